@@ -1,0 +1,4 @@
+//! The `harmonize` command.
+fn main() {
+    println!("harmonize {}", harmonizer_core::VERSION);
+}

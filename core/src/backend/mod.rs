@@ -1,0 +1,133 @@
+//! Backends behind one trait: `neural` (the ONNX model), `classical` (hole
+//! filling, harmonization, contact shadows, stabilization) and `bypass`.
+
+pub mod classical;
+pub mod neural;
+
+use std::collections::BTreeMap;
+
+use crate::error::{Error, Result};
+use crate::frame::{Image, PreparedFrame};
+use crate::params::Params;
+use crate::temporal::HistoryView;
+
+/// Small per-session state a backend carries from frame to frame (for
+/// example smoothed harmonization parameters). The session hands the backend a
+/// copy and keeps it only when the frame succeeds, so a failed or cancelled
+/// frame leaves the state as it was.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Carry {
+    /// Named values.
+    pub values: BTreeMap<String, Vec<f32>>,
+}
+
+/// Progress reporting with cancellation: monotonic values in [0,1].
+pub struct Progress<'a> {
+    callback: Option<&'a mut dyn FnMut(f64) -> bool>,
+    last: f64,
+    /// Range of the overall progress this stage maps [0,1] into.
+    span: (f64, f64),
+}
+
+impl<'a> Progress<'a> {
+    /// Wraps an optional host callback.
+    pub fn new(callback: Option<&'a mut dyn FnMut(f64) -> bool>) -> Self {
+        Progress { callback, last: 0.0, span: (0.0, 1.0) }
+    }
+
+    /// Maps later `report` values in [0,1] into [lo,hi] of the overall progress.
+    pub fn set_span(&mut self, lo: f64, hi: f64) {
+        self.span = (lo, hi);
+    }
+
+    /// Reports progress (in the current span); `Err(Cancelled)` when the host asks to stop.
+    pub fn report(&mut self, p: f64) -> Result<()> {
+        let v = (self.span.0 + (self.span.1 - self.span.0) * p.clamp(0.0, 1.0)).max(self.last);
+        self.last = v;
+        if let Some(cb) = self.callback.as_mut() {
+            if !cb(v) {
+                return Err(Error::Cancelled(format!("the progress callback returned false at {v:.3}")));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Per-stage wall times of one frame, in milliseconds, in call order.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Stages(pub Vec<(String, f64)>);
+
+impl Stages {
+    /// Runs `f` and records its time under `name` (added to an existing entry).
+    pub fn time<T>(&mut self, name: &str, f: impl FnOnce() -> T) -> T {
+        let t = std::time::Instant::now();
+        let r = f();
+        let ms = t.elapsed().as_secs_f64() * 1e3;
+        if let Some(e) = self.0.iter_mut().find(|(n, _)| n == name) {
+            e.1 += ms;
+        } else {
+            self.0.push((name.to_string(), ms));
+        }
+        r
+    }
+}
+
+/// Everything a backend sees for one frame.
+pub struct BackendInput<'a> {
+    /// The current frame in planar form.
+    pub frame: &'a PreparedFrame,
+    /// The enhanced history, reprojected into the current view on demand.
+    pub history: &'a HistoryView<'a>,
+    /// The session's committed parameters.
+    pub params: &'a Params,
+    /// The device's thread pool; run parallel work inside `pool.install`.
+    pub pool: &'a rayon::ThreadPool,
+}
+
+/// A backend turns one prepared frame plus history into the enhanced frame.
+pub trait Backend: Send + Sync {
+    /// Name for reports ("neural", "classical", "bypass").
+    fn name(&self) -> &str;
+
+    /// Produces the enhanced frame: 4 planes, RGB premultiplied by A, A the
+    /// output coverage (1 where holes were filled).
+    fn process(
+        &self,
+        input: &BackendInput<'_>,
+        carry: &mut Carry,
+        progress: &mut Progress<'_>,
+        stages: &mut Stages,
+    ) -> Result<Image>;
+}
+
+/// Output equals input: RGB copied, A = coverage (1 when absent).
+#[derive(Debug, Default)]
+pub struct Bypass;
+
+impl Backend for Bypass {
+    fn name(&self) -> &str {
+        "bypass"
+    }
+
+    fn process(
+        &self,
+        input: &BackendInput<'_>,
+        _carry: &mut Carry,
+        progress: &mut Progress<'_>,
+        stages: &mut Stages,
+    ) -> Result<Image> {
+        let out = stages.time("bypass", || {
+            let f = input.frame;
+            let mut out = Image::zeros(f.width(), f.height(), 4);
+            let n = f.color.len();
+            out.data[..3 * n].copy_from_slice(&f.color.data);
+            match &f.coverage {
+                Some(c) => out.data[3 * n..].copy_from_slice(c),
+                None => out.data[3 * n..].fill(1.0),
+            }
+            out
+        });
+        progress.report(1.0)?;
+        Ok(out)
+    }
+}

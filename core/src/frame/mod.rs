@@ -1,0 +1,12 @@
+//! Frames and AOVs: strided views of host buffers, the planar images the
+//! pipeline works on, cameras, and one frame's inputs.
+
+mod camera;
+mod image;
+mod input;
+mod view;
+
+pub use camera::Camera;
+pub use image::Image;
+pub use input::{DepthKind, FrameInput, PreparedFrame};
+pub use view::{ImageView, ImageViewMut, PixelFormat};

@@ -1,0 +1,287 @@
+//! Strided, borrowed views of a host's pixel buffers (f32 or f16), read and
+//! written without repacking: an RGBA buffer with a 16-byte pixel stride where
+//! only RGB is color is a 3-channel view with `pixel_stride = 16`.
+
+use crate::error::{Error, Result};
+
+/// Sample format of a host buffer.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PixelFormat {
+    /// 32-bit IEEE float.
+    F32,
+    /// 16-bit IEEE half float.
+    F16,
+}
+
+impl PixelFormat {
+    /// Bytes per sample.
+    pub fn size(self) -> usize {
+        match self {
+            PixelFormat::F32 => 4,
+            PixelFormat::F16 => 2,
+        }
+    }
+}
+
+/// Layout of a strided image inside a byte buffer.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Layout {
+    format: PixelFormat,
+    width: usize,
+    height: usize,
+    channels: usize,
+    offset: usize,
+    pixel_stride: usize,
+    row_stride: usize,
+}
+
+impl Layout {
+    /// Validates the layout against a buffer of `len` bytes; 0 strides mean packed.
+    #[allow(clippy::too_many_arguments)]
+    fn new(
+        what: &str,
+        len: usize,
+        format: PixelFormat,
+        width: usize,
+        height: usize,
+        channels: usize,
+        offset: usize,
+        pixel_stride: usize,
+        row_stride: usize,
+    ) -> Result<Layout> {
+        if width == 0 || height == 0 {
+            return Err(Error::invalid(format!(
+                "{what}: image size {width}x{height} is empty"
+            )));
+        }
+        if channels == 0 {
+            return Err(Error::invalid(format!("{what}: channel count is 0")));
+        }
+        let sample = format.size();
+        let packed_pixel = channels
+            .checked_mul(sample)
+            .ok_or_else(|| Error::invalid(format!("{what}: channel count {channels} overflows")))?;
+        let pixel_stride = if pixel_stride == 0 { packed_pixel } else { pixel_stride };
+        if pixel_stride < packed_pixel {
+            return Err(Error::invalid(format!(
+                "{what}: pixel stride {pixel_stride} bytes is smaller than {channels} channels of {sample} bytes"
+            )));
+        }
+        let packed_row = width
+            .checked_mul(pixel_stride)
+            .ok_or_else(|| Error::invalid(format!("{what}: width {width} x pixel stride overflows")))?;
+        let row_stride = if row_stride == 0 { packed_row } else { row_stride };
+        if row_stride < packed_row {
+            return Err(Error::invalid(format!(
+                "{what}: row stride {row_stride} bytes is smaller than width {width} x pixel stride {pixel_stride}"
+            )));
+        }
+        if offset % sample != 0 || pixel_stride % sample != 0 || row_stride % sample != 0 {
+            return Err(Error::invalid(format!(
+                "{what}: offset and strides must be multiples of the sample size {sample}"
+            )));
+        }
+        let end = (height - 1)
+            .checked_mul(row_stride)
+            .and_then(|v| v.checked_add((width - 1).checked_mul(pixel_stride)?))
+            .and_then(|v| v.checked_add(packed_pixel))
+            .and_then(|v| v.checked_add(offset))
+            .ok_or_else(|| Error::invalid(format!("{what}: {width}x{height} image size overflows")))?;
+        if end > len {
+            return Err(Error::invalid(format!(
+                "{what}: {width}x{height}x{channels} image needs {end} bytes, buffer has {len}"
+            )));
+        }
+        Ok(Layout { format, width, height, channels, offset, pixel_stride, row_stride })
+    }
+
+    #[inline]
+    fn index(&self, x: usize, y: usize, c: usize) -> usize {
+        self.offset + y * self.row_stride + x * self.pixel_stride + c * self.format.size()
+    }
+}
+
+/// A read-only strided view of a host image.
+#[derive(Debug, Clone, Copy)]
+pub struct ImageView<'a> {
+    data: &'a [u8],
+    layout: Layout,
+}
+
+impl<'a> ImageView<'a> {
+    /// Describes `data` as an image. `pixel_stride`/`row_stride` of 0 mean packed.
+    /// `what` names the image in error messages (for example "depth").
+    #[allow(clippy::too_many_arguments)]
+    pub fn new(
+        what: &str,
+        data: &'a [u8],
+        format: PixelFormat,
+        width: usize,
+        height: usize,
+        channels: usize,
+        offset: usize,
+        pixel_stride: usize,
+        row_stride: usize,
+    ) -> Result<Self> {
+        let layout = Layout::new(
+            what, data.len(), format, width, height, channels, offset, pixel_stride, row_stride,
+        )?;
+        Ok(ImageView { data, layout })
+    }
+
+    /// A packed interleaved f32 view of a slice.
+    pub fn from_f32(
+        what: &str,
+        data: &'a [f32],
+        width: usize,
+        height: usize,
+        channels: usize,
+    ) -> Result<Self> {
+        Self::new(what, f32_bytes(data), PixelFormat::F32, width, height, channels, 0, 0, 0)
+    }
+
+    /// Width in pixels.
+    pub fn width(&self) -> usize {
+        self.layout.width
+    }
+    /// Height in pixels.
+    pub fn height(&self) -> usize {
+        self.layout.height
+    }
+    /// Channels described by this view.
+    pub fn channels(&self) -> usize {
+        self.layout.channels
+    }
+    /// Sample format.
+    pub fn format(&self) -> PixelFormat {
+        self.layout.format
+    }
+
+    /// One sample as f32.
+    #[inline]
+    pub fn get(&self, x: usize, y: usize, c: usize) -> f32 {
+        let i = self.layout.index(x, y, c);
+        match self.layout.format {
+            PixelFormat::F32 => f32::from_ne_bytes([
+                self.data[i],
+                self.data[i + 1],
+                self.data[i + 2],
+                self.data[i + 3],
+            ]),
+            PixelFormat::F16 => {
+                half::f16::from_bits(u16::from_ne_bytes([self.data[i], self.data[i + 1]])).to_f32()
+            }
+        }
+    }
+
+    /// Copies channel `c` of row `y` into `out` (length = width).
+    pub fn read_row(&self, y: usize, c: usize, out: &mut [f32]) {
+        let l = &self.layout;
+        debug_assert_eq!(out.len(), l.width);
+        let base = l.index(0, y, c);
+        match l.format {
+            PixelFormat::F32 => {
+                for (x, o) in out.iter_mut().enumerate() {
+                    let i = base + x * l.pixel_stride;
+                    *o = f32::from_ne_bytes([
+                        self.data[i],
+                        self.data[i + 1],
+                        self.data[i + 2],
+                        self.data[i + 3],
+                    ]);
+                }
+            }
+            PixelFormat::F16 => {
+                for (x, o) in out.iter_mut().enumerate() {
+                    let i = base + x * l.pixel_stride;
+                    *o = half::f16::from_bits(u16::from_ne_bytes([self.data[i], self.data[i + 1]]))
+                        .to_f32();
+                }
+            }
+        }
+    }
+}
+
+/// A writable strided view of a host image.
+#[derive(Debug)]
+pub struct ImageViewMut<'a> {
+    data: &'a mut [u8],
+    layout: Layout,
+}
+
+impl<'a> ImageViewMut<'a> {
+    /// Describes `data` as a writable image; see [`ImageView::new`].
+    #[allow(clippy::too_many_arguments)]
+    pub fn new(
+        what: &str,
+        data: &'a mut [u8],
+        format: PixelFormat,
+        width: usize,
+        height: usize,
+        channels: usize,
+        offset: usize,
+        pixel_stride: usize,
+        row_stride: usize,
+    ) -> Result<Self> {
+        let layout = Layout::new(
+            what, data.len(), format, width, height, channels, offset, pixel_stride, row_stride,
+        )?;
+        Ok(ImageViewMut { data, layout })
+    }
+
+    /// A packed interleaved f32 view of a mutable slice.
+    pub fn from_f32(
+        what: &str,
+        data: &'a mut [f32],
+        width: usize,
+        height: usize,
+        channels: usize,
+    ) -> Result<Self> {
+        Self::new(what, f32_bytes_mut(data), PixelFormat::F32, width, height, channels, 0, 0, 0)
+    }
+
+    /// Width in pixels.
+    pub fn width(&self) -> usize {
+        self.layout.width
+    }
+    /// Height in pixels.
+    pub fn height(&self) -> usize {
+        self.layout.height
+    }
+    /// Channels described by this view.
+    pub fn channels(&self) -> usize {
+        self.layout.channels
+    }
+
+    /// Writes channel `c` of row `y` from `src` (length = width).
+    pub fn write_row(&mut self, y: usize, c: usize, src: &[f32]) {
+        let l = self.layout;
+        debug_assert_eq!(src.len(), l.width);
+        let base = l.index(0, y, c);
+        match l.format {
+            PixelFormat::F32 => {
+                for (x, v) in src.iter().enumerate() {
+                    let i = base + x * l.pixel_stride;
+                    self.data[i..i + 4].copy_from_slice(&v.to_ne_bytes());
+                }
+            }
+            PixelFormat::F16 => {
+                for (x, v) in src.iter().enumerate() {
+                    let i = base + x * l.pixel_stride;
+                    self.data[i..i + 2]
+                        .copy_from_slice(&half::f16::from_f32(*v).to_bits().to_ne_bytes());
+                }
+            }
+        }
+    }
+}
+
+/// The bytes of an f32 slice (native endianness).
+pub(crate) fn f32_bytes(data: &[f32]) -> &[u8] {
+    bytemuck::cast_slice(data)
+}
+
+/// The mutable bytes of an f32 slice (native endianness).
+pub(crate) fn f32_bytes_mut(data: &mut [f32]) -> &mut [u8] {
+    bytemuck::cast_slice_mut(data)
+}

@@ -1,0 +1,1 @@
+//! Files: EXR sequences in the `generic`, `blender` and user-mapped layouts.

@@ -1,0 +1,302 @@
+//! Session parameters, set by name (the C ABI's `hz_session_set_*`) and
+//! validated on commit. Adding a parameter never changes the ABI.
+
+use crate::error::{Error, Result};
+use crate::frame::DepthKind;
+
+/// A parameter value as a host passes it.
+#[derive(Debug, Clone, PartialEq)]
+pub enum ParamValue {
+    /// Integer.
+    Int(i64),
+    /// Float.
+    Float(f64),
+    /// Boolean.
+    Bool(bool),
+    /// String.
+    Str(String),
+}
+
+/// Which backend runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum BackendKind {
+    /// The neural model when the device has one, else classical.
+    Auto,
+    /// The ONNX model.
+    Neural,
+    /// The classical pipeline.
+    Classical,
+    /// Output equals input (color-management round-trip checks).
+    Bypass,
+}
+
+impl BackendKind {
+    /// Parses `auto|neural|classical|bypass`.
+    pub fn parse(s: &str) -> Result<Self> {
+        Ok(match s {
+            "auto" => BackendKind::Auto,
+            "neural" => BackendKind::Neural,
+            "classical" => BackendKind::Classical,
+            "bypass" => BackendKind::Bypass,
+            _ => {
+                return Err(Error::invalid(format!(
+                    "parameter backend: unknown value {s:?} (expected auto, neural, classical or bypass)"
+                )))
+            }
+        })
+    }
+    /// The name used in parameters and reports.
+    pub fn name(self) -> &'static str {
+        match self {
+            BackendKind::Auto => "auto",
+            BackendKind::Neural => "neural",
+            BackendKind::Classical => "classical",
+            BackendKind::Bypass => "bypass",
+        }
+    }
+}
+
+/// What to do when a frame number is not the previous one plus one.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum GapPolicy {
+    /// Reset the temporal state (the default).
+    Reset,
+    /// Keep the state and warn.
+    Keep,
+}
+
+/// All session parameters.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Params {
+    /// Previous enhanced frames used as context, 0..=8 (`context_frames`).
+    pub context_frames: usize,
+    /// Backend (`backend`).
+    pub backend: BackendKind,
+    /// Blend of enhanced over input, 0..=1 (`strength`).
+    pub strength: f32,
+    /// Fill holes where coverage < 1 (`fill_holes`).
+    pub fill_holes: bool,
+    /// Harmonize inserted objects with their surroundings (`harmonize`).
+    pub harmonize: bool,
+    /// Add contact shadows under inserted objects (`contact_shadows`).
+    pub contact_shadows: bool,
+    /// Shadow darkness, 0..=1 (`shadow_strength`).
+    pub shadow_strength: f32,
+    /// Blend with the reprojected history to remove flicker (`stabilize`).
+    pub stabilize: bool,
+    /// Weight of the history in stabilization, 0..=0.98 (`temporal_blend`).
+    pub temporal_blend: f32,
+    /// Frame-number gap policy (`gap_policy`: "reset" or "keep").
+    pub gap_policy: GapPolicy,
+    /// Reset automatically on a scene cut (`scene_cut_detection`).
+    pub scene_cut_detection: bool,
+    /// Fraction of mismatching pixels that counts as a cut, 0..=1 (`scene_cut_threshold`).
+    pub scene_cut_threshold: f32,
+    /// Depth measure of the depth AOV (`depth_kind`: "planar" or "euclidean").
+    pub depth_kind: DepthKind,
+    /// Run the classical pipeline after the neural model (`classical_post`).
+    pub classical_post: bool,
+    /// Neural tile edge in pixels, 0 = the manifest's (`tile_size`).
+    pub tile_size: usize,
+    /// Neural tile overlap in pixels, 0 = the manifest's (`tile_overlap`).
+    pub tile_overlap: usize,
+}
+
+impl Default for Params {
+    fn default() -> Self {
+        Params {
+            context_frames: 4,
+            backend: BackendKind::Auto,
+            strength: 1.0,
+            fill_holes: true,
+            harmonize: true,
+            contact_shadows: true,
+            shadow_strength: 0.6,
+            stabilize: true,
+            temporal_blend: 0.6,
+            gap_policy: GapPolicy::Reset,
+            scene_cut_detection: true,
+            scene_cut_threshold: 0.6,
+            depth_kind: DepthKind::Planar,
+            classical_post: false,
+            tile_size: 0,
+            tile_overlap: 0,
+        }
+    }
+}
+
+/// The names of all parameters, for help texts and bindings.
+pub const PARAM_NAMES: &[&str] = &[
+    "context_frames",
+    "backend",
+    "strength",
+    "fill_holes",
+    "harmonize",
+    "contact_shadows",
+    "shadow_strength",
+    "stabilize",
+    "temporal_blend",
+    "gap_policy",
+    "scene_cut_detection",
+    "scene_cut_threshold",
+    "depth_kind",
+    "classical_post",
+    "tile_size",
+    "tile_overlap",
+];
+
+fn want_int(name: &str, v: &ParamValue, lo: i64, hi: i64) -> Result<i64> {
+    let i = match v {
+        ParamValue::Int(i) => *i,
+        other => return Err(Error::invalid(format!("parameter {name}: expected an integer, got {other:?}"))),
+    };
+    if i < lo || i > hi {
+        return Err(Error::invalid(format!("parameter {name}: {i} is out of range {lo}..={hi}")));
+    }
+    Ok(i)
+}
+
+fn want_float(name: &str, v: &ParamValue, lo: f64, hi: f64) -> Result<f32> {
+    let f = match v {
+        ParamValue::Float(f) => *f,
+        ParamValue::Int(i) => *i as f64,
+        other => return Err(Error::invalid(format!("parameter {name}: expected a number, got {other:?}"))),
+    };
+    if !f.is_finite() || f < lo || f > hi {
+        return Err(Error::invalid(format!("parameter {name}: {f} is out of range {lo}..={hi}")));
+    }
+    Ok(f as f32)
+}
+
+fn want_bool(name: &str, v: &ParamValue) -> Result<bool> {
+    match v {
+        ParamValue::Bool(b) => Ok(*b),
+        ParamValue::Int(0) => Ok(false),
+        ParamValue::Int(1) => Ok(true),
+        other => Err(Error::invalid(format!("parameter {name}: expected a boolean, got {other:?}"))),
+    }
+}
+
+fn want_str<'a>(name: &str, v: &'a ParamValue) -> Result<&'a str> {
+    match v {
+        ParamValue::Str(s) => Ok(s),
+        other => Err(Error::invalid(format!("parameter {name}: expected a string, got {other:?}"))),
+    }
+}
+
+impl Params {
+    /// Sets one parameter by name; unknown names and out-of-range values are errors.
+    pub fn set(&mut self, name: &str, v: &ParamValue) -> Result<()> {
+        match name {
+            "context_frames" => self.context_frames = want_int(name, v, 0, 8)? as usize,
+            "backend" => self.backend = BackendKind::parse(want_str(name, v)?)?,
+            "strength" => self.strength = want_float(name, v, 0.0, 1.0)?,
+            "fill_holes" => self.fill_holes = want_bool(name, v)?,
+            "harmonize" => self.harmonize = want_bool(name, v)?,
+            "contact_shadows" => self.contact_shadows = want_bool(name, v)?,
+            "shadow_strength" => self.shadow_strength = want_float(name, v, 0.0, 1.0)?,
+            "stabilize" => self.stabilize = want_bool(name, v)?,
+            "temporal_blend" => self.temporal_blend = want_float(name, v, 0.0, 0.98)?,
+            "gap_policy" => {
+                self.gap_policy = match want_str(name, v)? {
+                    "reset" => GapPolicy::Reset,
+                    "keep" => GapPolicy::Keep,
+                    s => {
+                        return Err(Error::invalid(format!(
+                            "parameter gap_policy: unknown value {s:?} (expected reset or keep)"
+                        )))
+                    }
+                }
+            }
+            "scene_cut_detection" => self.scene_cut_detection = want_bool(name, v)?,
+            "scene_cut_threshold" => self.scene_cut_threshold = want_float(name, v, 0.0, 1.0)?,
+            "depth_kind" => {
+                self.depth_kind = match want_str(name, v)? {
+                    "planar" => DepthKind::Planar,
+                    "euclidean" => DepthKind::Euclidean,
+                    s => {
+                        return Err(Error::invalid(format!(
+                            "parameter depth_kind: unknown value {s:?} (expected planar or euclidean)"
+                        )))
+                    }
+                }
+            }
+            "classical_post" => self.classical_post = want_bool(name, v)?,
+            "tile_size" => self.tile_size = want_int(name, v, 0, 8192)? as usize,
+            "tile_overlap" => self.tile_overlap = want_int(name, v, 0, 1024)? as usize,
+            _ => {
+                return Err(Error::invalid(format!(
+                    "unknown parameter {name:?} (known: {})",
+                    PARAM_NAMES.join(", ")
+                )))
+            }
+        }
+        Ok(())
+    }
+
+    /// Reads one parameter by name.
+    pub fn get(&self, name: &str) -> Result<ParamValue> {
+        Ok(match name {
+            "context_frames" => ParamValue::Int(self.context_frames as i64),
+            "backend" => ParamValue::Str(self.backend.name().into()),
+            "strength" => ParamValue::Float(self.strength as f64),
+            "fill_holes" => ParamValue::Bool(self.fill_holes),
+            "harmonize" => ParamValue::Bool(self.harmonize),
+            "contact_shadows" => ParamValue::Bool(self.contact_shadows),
+            "shadow_strength" => ParamValue::Float(self.shadow_strength as f64),
+            "stabilize" => ParamValue::Bool(self.stabilize),
+            "temporal_blend" => ParamValue::Float(self.temporal_blend as f64),
+            "gap_policy" => ParamValue::Str(
+                match self.gap_policy {
+                    GapPolicy::Reset => "reset",
+                    GapPolicy::Keep => "keep",
+                }
+                .into(),
+            ),
+            "scene_cut_detection" => ParamValue::Bool(self.scene_cut_detection),
+            "scene_cut_threshold" => ParamValue::Float(self.scene_cut_threshold as f64),
+            "depth_kind" => ParamValue::Str(
+                match self.depth_kind {
+                    DepthKind::Planar => "planar",
+                    DepthKind::Euclidean => "euclidean",
+                }
+                .into(),
+            ),
+            "classical_post" => ParamValue::Bool(self.classical_post),
+            "tile_size" => ParamValue::Int(self.tile_size as i64),
+            "tile_overlap" => ParamValue::Int(self.tile_overlap as i64),
+            _ => {
+                return Err(Error::invalid(format!(
+                    "unknown parameter {name:?} (known: {})",
+                    PARAM_NAMES.join(", ")
+                )))
+            }
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_name_round_trips() {
+        let mut p = Params::default();
+        for name in PARAM_NAMES {
+            let v = p.get(name).unwrap();
+            p.set(name, &v).unwrap();
+        }
+        assert_eq!(p, Params::default());
+    }
+
+    #[test]
+    fn errors_name_the_parameter_and_value() {
+        let mut p = Params::default();
+        let e = p.set("context_frames", &ParamValue::Int(9)).unwrap_err().to_string();
+        assert!(e.contains("context_frames") && e.contains('9'), "{e}");
+        let e = p.set("nope", &ParamValue::Int(1)).unwrap_err().to_string();
+        assert!(e.contains("nope"), "{e}");
+        let e = p.set("backend", &ParamValue::Str("gpu".into())).unwrap_err().to_string();
+        assert!(e.contains("gpu"), "{e}");
+    }
+}

@@ -1,0 +1,384 @@
+//! The session: one camera's temporal state, run frame by frame.
+
+use std::sync::Arc;
+
+use crate::backend::{self, Backend, BackendInput, Carry, Progress, Stages};
+use crate::device::Device;
+use crate::error::{Error, Result};
+use crate::frame::{FrameInput, Image, ImageViewMut, PreparedFrame};
+use crate::params::{BackendKind, GapPolicy, ParamValue, Params};
+use crate::temporal::{History, HistoryFrame, HistoryView};
+
+/// Why the temporal state was dropped before a frame.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ResetReason {
+    /// The first frame of the session (or after `reset`).
+    FirstFrame,
+    /// The host set the reset flag.
+    Requested,
+    /// The frame size changed.
+    SizeChanged,
+    /// The set of AOVs given changed.
+    LayoutChanged,
+    /// Parameters or the model changed (commit).
+    ParamsChanged,
+    /// The frame number is not the previous one plus one.
+    FrameGap,
+    /// The scene-cut detector fired.
+    SceneCut,
+}
+
+impl ResetReason {
+    /// Name for reports.
+    pub fn name(self) -> &'static str {
+        match self {
+            ResetReason::FirstFrame => "first_frame",
+            ResetReason::Requested => "requested",
+            ResetReason::SizeChanged => "size_changed",
+            ResetReason::LayoutChanged => "layout_changed",
+            ResetReason::ParamsChanged => "params_changed",
+            ResetReason::FrameGap => "frame_gap",
+            ResetReason::SceneCut => "scene_cut",
+        }
+    }
+}
+
+/// What happened to one frame.
+#[derive(Debug, Clone, Default)]
+pub struct FrameReport {
+    /// The host's frame number.
+    pub frame_index: Option<i64>,
+    /// Why the state was reset before this frame, if it was.
+    pub reset: Option<ResetReason>,
+    /// Backend that ran.
+    pub backend: String,
+    /// History frames used.
+    pub history_used: usize,
+    /// Color samples replaced because they were NaN, infinite or negative.
+    pub sanitized: usize,
+    /// Warnings (non-consecutive frames, huge motion vectors, NaN inputs, ...).
+    pub warnings: Vec<String>,
+    /// Per-stage times in ms.
+    pub stages: Stages,
+    /// Total time in ms.
+    pub total_ms: f64,
+}
+
+/// Which optional inputs a frame had; a change resets the state.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Signature {
+    width: usize,
+    height: usize,
+    depth: bool,
+    motion: bool,
+    camera: bool,
+}
+
+/// State that only changes when a frame succeeds.
+#[derive(Debug, Clone, Default)]
+struct State {
+    history: History,
+    carry: Carry,
+    last: Option<Signature>,
+    last_index: Option<i64>,
+    pending_reset: Option<ResetReason>,
+}
+
+/// One camera's temporal enhancer. Calls on one session are serialized by `&mut`.
+pub struct Session {
+    device: Arc<Device>,
+    params: Params,
+    staged: Params,
+    backend: Box<dyn Backend>,
+    state: State,
+}
+
+impl std::fmt::Debug for Session {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Session")
+            .field("params", &self.params)
+            .field("backend", &self.backend.name())
+            .field("history", &self.state.history.len())
+            .finish_non_exhaustive()
+    }
+}
+
+fn make_backend(device: &Device, params: &Params) -> Result<Box<dyn Backend>> {
+    Ok(match params.backend {
+        BackendKind::Bypass => Box::new(backend::Bypass),
+        BackendKind::Classical => Box::new(backend::classical::Classical),
+        BackendKind::Neural => match device.neural_model()? {
+            Some(model) => Box::new(backend::neural::Neural { model }),
+            None => {
+                return Err(Error::Model(
+                    "backend neural: this build embeds no model; pass a model file or use backend classical"
+                        .into(),
+                ))
+            }
+        },
+        BackendKind::Auto => match device.neural_model()? {
+            Some(model) => Box::new(backend::neural::Neural { model }),
+            None => Box::new(backend::classical::Classical),
+        },
+    })
+}
+
+impl Session {
+    /// A session on `device` with `params`.
+    pub fn new(device: Arc<Device>, params: Params) -> Result<Session> {
+        let backend = make_backend(&device, &params)?;
+        Ok(Session {
+            device,
+            staged: params.clone(),
+            params,
+            backend,
+            state: State::default(),
+        })
+    }
+
+    /// The committed parameters.
+    pub fn params(&self) -> &Params {
+        &self.params
+    }
+
+    /// The device.
+    pub fn device(&self) -> &Arc<Device> {
+        &self.device
+    }
+
+    /// Stages a parameter change; it takes effect at [`Session::commit`].
+    pub fn set(&mut self, name: &str, value: ParamValue) -> Result<()> {
+        self.staged.set(name, &value)
+    }
+
+    /// Reads a staged parameter.
+    pub fn get(&self, name: &str) -> Result<ParamValue> {
+        self.staged.get(name)
+    }
+
+    /// Applies staged parameters. A change of backend or context resets the state.
+    pub fn commit(&mut self) -> Result<()> {
+        if self.staged == self.params {
+            return Ok(());
+        }
+        let backend = make_backend(&self.device, &self.staged)?;
+        let reset = self.staged.backend != self.params.backend
+            || self.staged.context_frames != self.params.context_frames
+            || self.staged.depth_kind != self.params.depth_kind;
+        self.backend = backend;
+        self.params = self.staged.clone();
+        if reset {
+            self.drop_state(ResetReason::ParamsChanged);
+        }
+        Ok(())
+    }
+
+    /// Drops the temporal state; the next frame is a cold start.
+    pub fn reset(&mut self) {
+        self.drop_state(ResetReason::Requested);
+    }
+
+    fn drop_state(&mut self, why: ResetReason) {
+        let had = !self.state.history.is_empty() || self.state.last.is_some();
+        self.state = State { pending_reset: had.then_some(why), ..State::default() };
+    }
+
+    /// History frames held.
+    pub fn history_len(&self) -> usize {
+        self.state.history.len()
+    }
+
+    /// Bytes of temporal state held.
+    pub fn memory_bytes(&self) -> usize {
+        self.state.history.bytes()
+    }
+
+    /// Name of the backend that runs.
+    pub fn backend_name(&self) -> &str {
+        self.backend.name()
+    }
+
+    /// Enhances one frame. On error (including cancellation) the temporal
+    /// state is exactly as before the call. Returns the enhanced frame as 4
+    /// planes (RGB premultiplied by A, A coverage after hole filling).
+    pub fn process(
+        &mut self,
+        input: &FrameInput<'_>,
+        progress: Option<&mut dyn FnMut(f64) -> bool>,
+    ) -> Result<(Image, FrameReport)> {
+        let t0 = std::time::Instant::now();
+        let mut progress = Progress::new(progress);
+        let mut stages = Stages::default();
+        let mut report = FrameReport { frame_index: input.frame_index, ..FrameReport::default() };
+        progress.report(0.0)?;
+
+        let frame = stages.time("prepare", || PreparedFrame::from_input(input, self.params.depth_kind))?;
+        if frame.sanitized > 0 {
+            report.sanitized = frame.sanitized;
+            report.warnings.push(format!(
+                "frame {}: {} color samples were NaN, infinite or negative and were replaced by 0",
+                fmt_index(input.frame_index),
+                frame.sanitized
+            ));
+        }
+        if frame.sanitized_aovs > 0 {
+            report.warnings.push(format!(
+                "frame {}: {} AOV samples were NaN and were replaced",
+                fmt_index(input.frame_index),
+                frame.sanitized_aovs
+            ));
+        }
+
+        let sig = Signature {
+            width: frame.width(),
+            height: frame.height(),
+            depth: frame.depth.is_some(),
+            motion: frame.motion.is_some(),
+            camera: frame.camera.is_some(),
+        };
+        let st = &self.state;
+        let mut reset = st.pending_reset;
+        if input.reset {
+            reset = Some(ResetReason::Requested);
+        } else if let Some(last) = st.last {
+            if last.width != sig.width || last.height != sig.height {
+                reset = Some(ResetReason::SizeChanged);
+            } else if last != sig {
+                reset = Some(ResetReason::LayoutChanged);
+            } else if let (Some(prev), Some(cur)) = (st.last_index, input.frame_index) {
+                if cur != prev + 1 {
+                    match self.params.gap_policy {
+                        GapPolicy::Reset => reset = Some(ResetReason::FrameGap),
+                        GapPolicy::Keep => report.warnings.push(format!(
+                            "frame {cur}: not consecutive to frame {prev}; temporal state kept (gap_policy keep)"
+                        )),
+                    }
+                }
+            }
+        } else if reset.is_none() {
+            reset = Some(ResetReason::FirstFrame);
+        }
+        let empty = History::default();
+        let history = if reset.is_some() { &empty } else { &st.history };
+        let mut view = HistoryView::new(history, &frame, self.params.context_frames);
+        if reset.is_none() && self.params.scene_cut_detection && !view.is_empty() {
+            let cut = stages.time("scene_cut", || {
+                crate::temporal::is_scene_cut(&view, &frame, self.params.scene_cut_threshold)
+            });
+            if cut {
+                reset = Some(ResetReason::SceneCut);
+                view = HistoryView::empty(&empty, &frame);
+            }
+        }
+        report.reset = reset;
+        report.history_used = view.len();
+
+        let mut carry = if reset.is_some() { Carry::default() } else { st.carry.clone() };
+        let backend_input = BackendInput {
+            frame: &frame,
+            history: &view,
+            params: &self.params,
+            pool: self.device.pool(),
+        };
+        progress.set_span(0.05, 0.95);
+        let mut out = self.backend.process(&backend_input, &mut carry, &mut progress, &mut stages)?;
+        progress.set_span(0.0, 1.0);
+        if self.params.strength < 1.0 {
+            stages.time("strength", || apply_strength(&mut out, &frame, self.params.strength));
+        }
+        progress.report(1.0)?;
+        drop(view);
+
+        // Commit: only now does the temporal state change.
+        let capacity = self.params.context_frames;
+        let mut history = if reset.is_some() { History::default() } else { std::mem::take(&mut self.state.history) };
+        if capacity > 0 {
+            history.push(
+                HistoryFrame {
+                    color: out.clone(),
+                    depth: frame.depth,
+                    motion: frame.motion,
+                    camera: frame.camera,
+                    frame_index: frame.frame_index,
+                },
+                capacity,
+            );
+        }
+        self.state = State {
+            history,
+            carry,
+            last: Some(sig),
+            last_index: input.frame_index,
+            pending_reset: None,
+        };
+        report.backend = self.backend.name().to_string();
+        report.stages = stages;
+        report.total_ms = t0.elapsed().as_secs_f64() * 1e3;
+        Ok((out, report))
+    }
+
+    /// Like [`Session::process`], then writes the result into `output`
+    /// (3 channels: RGB; 4: RGBA).
+    pub fn process_into(
+        &mut self,
+        input: &FrameInput<'_>,
+        output: &mut ImageViewMut<'_>,
+        progress: Option<&mut dyn FnMut(f64) -> bool>,
+    ) -> Result<FrameReport> {
+        check_output(input, output)?;
+        let (img, report) = self.process(input, progress)?;
+        write_output(&img, output);
+        Ok(report)
+    }
+}
+
+fn fmt_index(i: Option<i64>) -> String {
+    i.map_or_else(|| "?".to_string(), |i| i.to_string())
+}
+
+/// Checks that `output` can take the result of `input`.
+pub fn check_output(input: &FrameInput<'_>, output: &ImageViewMut<'_>) -> Result<()> {
+    if output.width() != input.width() || output.height() != input.height() {
+        return Err(Error::invalid(format!(
+            "output: size {}x{} differs from color {}x{}",
+            output.width(),
+            output.height(),
+            input.width(),
+            input.height()
+        )));
+    }
+    if output.channels() < 3 {
+        return Err(Error::invalid(format!(
+            "output: needs 3 (RGB) or 4 (RGBA) channels, got {}",
+            output.channels()
+        )));
+    }
+    Ok(())
+}
+
+/// Writes a 4-plane result into a host image (RGB, plus A if it has 4 channels).
+pub fn write_output(img: &Image, output: &mut ImageViewMut<'_>) {
+    let ch = output.channels().min(4);
+    let w = img.width;
+    for c in 0..ch {
+        let plane = img.plane(c);
+        for y in 0..img.height {
+            output.write_row(y, c, &plane[y * w..(y + 1) * w]);
+        }
+    }
+}
+
+fn apply_strength(out: &mut Image, frame: &PreparedFrame, s: f32) {
+    let n = out.len();
+    for c in 0..3 {
+        let src = frame.color.plane(c);
+        for (o, i) in out.data[c * n..(c + 1) * n].iter_mut().zip(src) {
+            *o = i + s * (*o - i);
+        }
+    }
+    let a = &mut out.data[3 * n..];
+    match &frame.coverage {
+        Some(cov) => a.iter_mut().zip(cov).for_each(|(o, i)| *o = i + s * (*o - i)),
+        None => a.iter_mut().for_each(|o| *o = 1.0 + s * (*o - 1.0)),
+    }
+}

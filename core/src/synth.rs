@@ -1,0 +1,1 @@
+//! Deterministic synthetic sequences with ground truth (demo, bench, tests).

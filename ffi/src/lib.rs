@@ -1,0 +1,1 @@
+//! libharmonizer: the C ABI.
