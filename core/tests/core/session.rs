@@ -1,0 +1,1 @@
+//! The session: resets, determinism, commit-on-success, gap policy, warnings.
