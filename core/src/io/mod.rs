@@ -1,6 +1,10 @@
 //! Files: EXR sequences in the `generic`, `blender` and user-mapped layouts,
 //! frame patterns, and the sequence runner behind `harmonize run`.
 
+pub mod exr;
+pub mod layout;
 pub mod pattern;
 
+pub use exr::{ExrFile, LoadedFrame, OutputMeta};
+pub use layout::{ChannelMapping, LayoutOptions, LayoutPreset};
 pub use pattern::{FramePattern, FrameRange};

@@ -150,7 +150,9 @@ impl FramePattern {
 
     /// The frame number a file name stands for, if it matches the pattern.
     pub fn match_name(&self, name: &str) -> Option<i64> {
-        let mid = name.strip_prefix(&self.prefix)?.strip_suffix(&self.suffix)?;
+        let mid = name
+            .strip_prefix(&self.prefix)?
+            .strip_suffix(&self.suffix)?;
         let digits = mid.strip_prefix('-').unwrap_or(mid);
         if digits.is_empty() || !digits.bytes().all(|c| c.is_ascii_digit()) {
             return None;
@@ -162,7 +164,11 @@ impl FramePattern {
 
     /// Existing frames, in increasing order.
     pub fn list(&self) -> Result<Vec<(i64, PathBuf)>> {
-        let dir = if self.dir.as_os_str().is_empty() { Path::new(".") } else { &self.dir };
+        let dir = if self.dir.as_os_str().is_empty() {
+            Path::new(".")
+        } else {
+            &self.dir
+        };
         let entries = std::fs::read_dir(dir).map_err(|e| {
             Error::Io(format!(
                 "frame pattern {:?}: cannot list directory {}: {e}",
@@ -202,7 +208,8 @@ pub struct FrameRange {
 impl FrameRange {
     /// Parses `A-B`, `A:B` or `A`; negative numbers are allowed (`-5--1`).
     pub fn parse(s: &str) -> Result<FrameRange> {
-        let bad = |why: &str| Error::invalid(format!("--frames {s:?}: {why} (expected A-B, e.g. 1-24)"));
+        let bad =
+            |why: &str| Error::invalid(format!("--frames {s:?}: {why} (expected A-B, e.g. 1-24)"));
         let t = s.trim();
         if t.is_empty() {
             return Err(bad("empty range"));
@@ -217,8 +224,14 @@ impl FrameRange {
             Some(i) => (&t[..i], &t[i + 1..]),
             None => (t, t),
         };
-        let start: i64 = a.trim().parse().map_err(|_| bad(&format!("{a:?} is not a frame number")))?;
-        let end: i64 = b.trim().parse().map_err(|_| bad(&format!("{b:?} is not a frame number")))?;
+        let start: i64 = a
+            .trim()
+            .parse()
+            .map_err(|_| bad(&format!("{a:?} is not a frame number")))?;
+        let end: i64 = b
+            .trim()
+            .parse()
+            .map_err(|_| bad(&format!("{b:?} is not a frame number")))?;
         if end < start {
             return Err(bad(&format!("end {end} is before start {start}")));
         }
@@ -252,7 +265,10 @@ pub fn format_frame_list(frames: &[i64]) -> String {
 
 /// The frames of `pattern` to process: every existing frame, or exactly the
 /// frames of `range` (an error lists the missing ones).
-pub fn select_frames(pattern: &FramePattern, range: Option<FrameRange>) -> Result<Vec<(i64, PathBuf)>> {
+pub fn select_frames(
+    pattern: &FramePattern,
+    range: Option<FrameRange>,
+) -> Result<Vec<(i64, PathBuf)>> {
     let found = pattern.list()?;
     match range {
         None => {
@@ -267,7 +283,10 @@ pub fn select_frames(pattern: &FramePattern, range: Option<FrameRange>) -> Resul
         Some(r) => {
             let chosen: Vec<_> = found.into_iter().filter(|(n, _)| r.contains(*n)).collect();
             let have: std::collections::BTreeSet<i64> = chosen.iter().map(|(n, _)| *n).collect();
-            let missing: Vec<i64> = (r.start..=r.end).filter(|n| !have.contains(n)).take(100_000).collect();
+            let missing: Vec<i64> = (r.start..=r.end)
+                .filter(|n| !have.contains(n))
+                .take(100_000)
+                .collect();
             if !missing.is_empty() {
                 return Err(Error::invalid(format!(
                     "input {pattern}: missing frame(s) {} of --frames {}-{} (e.g. {})",
@@ -297,17 +316,32 @@ mod tests {
             ("b_<F4>.exr", "b_0042.exr"),
             ("b.$F.exr", "b.42.exr"),
         ] {
-            assert_eq!(FramePattern::parse(p).unwrap().path(42), PathBuf::from(want), "{p}");
+            assert_eq!(
+                FramePattern::parse(p).unwrap().path(42),
+                PathBuf::from(want),
+                "{p}"
+            );
         }
-        assert_eq!(FramePattern::parse("x.###.exr").unwrap().path(-5), PathBuf::from("x.-005.exr"));
-        assert_eq!(FramePattern::parse("x.##.exr").unwrap().path(12345), PathBuf::from("x.12345.exr"));
+        assert_eq!(
+            FramePattern::parse("x.###.exr").unwrap().path(-5),
+            PathBuf::from("x.-005.exr")
+        );
+        assert_eq!(
+            FramePattern::parse("x.##.exr").unwrap().path(12345),
+            PathBuf::from("x.12345.exr")
+        );
     }
 
     #[test]
     fn bad_patterns_are_named() {
         let e = FramePattern::parse("plain.exr").unwrap_err().to_string();
-        assert!(e.contains("plain.exr") && e.contains("no frame token"), "{e}");
-        let e = FramePattern::parse("a.####.####.exr").unwrap_err().to_string();
+        assert!(
+            e.contains("plain.exr") && e.contains("no frame token"),
+            "{e}"
+        );
+        let e = FramePattern::parse("a.####.####.exr")
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("2 frame tokens"), "{e}");
         let e = FramePattern::parse("d####/a.exr").unwrap_err().to_string();
         assert!(e.contains("directory"), "{e}");
@@ -327,10 +361,22 @@ mod tests {
 
     #[test]
     fn ranges() {
-        assert_eq!(FrameRange::parse("1-24").unwrap(), FrameRange { start: 1, end: 24 });
-        assert_eq!(FrameRange::parse("7").unwrap(), FrameRange { start: 7, end: 7 });
-        assert_eq!(FrameRange::parse("-5--1").unwrap(), FrameRange { start: -5, end: -1 });
-        assert_eq!(FrameRange::parse("3:4").unwrap(), FrameRange { start: 3, end: 4 });
+        assert_eq!(
+            FrameRange::parse("1-24").unwrap(),
+            FrameRange { start: 1, end: 24 }
+        );
+        assert_eq!(
+            FrameRange::parse("7").unwrap(),
+            FrameRange { start: 7, end: 7 }
+        );
+        assert_eq!(
+            FrameRange::parse("-5--1").unwrap(),
+            FrameRange { start: -5, end: -1 }
+        );
+        assert_eq!(
+            FrameRange::parse("3:4").unwrap(),
+            FrameRange { start: 3, end: 4 }
+        );
         let e = FrameRange::parse("10-5").unwrap_err().to_string();
         assert!(e.contains("10-5") && e.contains("before"), "{e}");
         assert!(FrameRange::parse("a-b").is_err());

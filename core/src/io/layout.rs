@@ -1,0 +1,397 @@
+//! Channel layouts: which EXR channels hold color, coverage, depth, motion,
+//! normals and the insert mask. Channels are always found by name.
+//!
+//! - `generic` (single part): `R,G,B` (premultiplied), `A` (coverage), `Z`
+//!   (planar depth), `motion.X`, `motion.Y`, `N.X`, `N.Y`, `N.Z`, `mask.insert`.
+//! - `blender`: the multi-part multilayer EXR of Blender 5: `<layer>.Combined`
+//!   (.R .G .B .A), `<layer>.Depth` (.Z), `<layer>.Vector` (.X .Y, +y up: the
+//!   y component is negated), `<layer>.Normal` (.X .Y .Z), `<layer>.Object
+//!   Index` (.X, the insert mask is `Object Index == --insert-index`). The
+//!   view layer name is detected; a `Composite.Combined` part is left alone.
+//! - a user mapping (`color=beauty.R,beauty.G,beauty.B`, ...) overrides or
+//!   completes a preset; `auto` picks `blender` when a view layer's
+//!   `Combined` pass is present, else `generic`.
+
+use crate::error::{Error, Result};
+
+/// A layout preset.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum LayoutPreset {
+    /// `blender` when a Blender view layer is present, else `generic`.
+    #[default]
+    Auto,
+    /// Single-part `R,G,B,A,Z,motion.X,motion.Y,N.*,mask.insert`.
+    Generic,
+    /// Blender 5 multi-part multilayer.
+    Blender,
+}
+
+impl LayoutPreset {
+    /// Parses `auto|generic|blender`.
+    pub fn parse(s: &str) -> Result<LayoutPreset> {
+        match s {
+            "auto" => Ok(LayoutPreset::Auto),
+            "generic" => Ok(LayoutPreset::Generic),
+            "blender" => Ok(LayoutPreset::Blender),
+            _ => Err(Error::invalid(format!(
+                "--layout: unknown layout {s:?} (expected auto, generic or blender)"
+            ))),
+        }
+    }
+
+    /// The name used on the command line.
+    pub fn name(self) -> &'static str {
+        match self {
+            LayoutPreset::Auto => "auto",
+            LayoutPreset::Generic => "generic",
+            LayoutPreset::Blender => "blender",
+        }
+    }
+}
+
+/// One mapped channel: a (qualified) EXR channel name, possibly negated.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ChannelRef {
+    /// The channel name, `part.channel` for multi-part files (the bare channel
+    /// name is accepted when it is unique).
+    pub name: String,
+    /// Multiply the samples by -1 (written `-name` in a mapping).
+    pub negate: bool,
+}
+
+impl ChannelRef {
+    /// A plain reference.
+    pub fn new(name: impl Into<String>) -> ChannelRef {
+        ChannelRef {
+            name: name.into(),
+            negate: false,
+        }
+    }
+
+    fn parse(s: &str) -> ChannelRef {
+        match s.strip_prefix('-') {
+            Some(rest) => ChannelRef {
+                name: rest.to_string(),
+                negate: true,
+            },
+            None => ChannelRef::new(s),
+        }
+    }
+}
+
+/// Where the insert mask comes from.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum InsertSource {
+    /// A channel in [0,1].
+    Channel(ChannelRef),
+    /// 1 where an object-index channel equals `index`.
+    ObjectIndex {
+        /// The object-index channel.
+        channel: ChannelRef,
+        /// The index of the inserted object(s).
+        index: i64,
+    },
+}
+
+/// A user mapping given on the command line: `role=CH[,CH...]`.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct ChannelMapping {
+    /// Color channels (R, G, B).
+    pub color: Option<[ChannelRef; 3]>,
+    /// Coverage (alpha).
+    pub coverage: Option<ChannelRef>,
+    /// Planar depth.
+    pub depth: Option<ChannelRef>,
+    /// Motion vectors (x, y) in the library's convention (negate with `-`).
+    pub motion: Option<[ChannelRef; 2]>,
+    /// Normals (x, y, z).
+    pub normal: Option<[ChannelRef; 3]>,
+    /// Insert mask channel.
+    pub insert: Option<ChannelRef>,
+}
+
+impl ChannelMapping {
+    /// Adds one `role=CH[,CH...]` entry (roles: color, coverage, depth,
+    /// motion, normal, insert).
+    pub fn add(&mut self, spec: &str) -> Result<()> {
+        let bad = |why: String| Error::invalid(format!("--channel {spec:?}: {why}"));
+        let (role, list) = spec
+            .split_once('=')
+            .ok_or_else(|| bad("expected ROLE=CHANNEL[,CHANNEL...], e.g. depth=depth.Z".into()))?;
+        let chans: Vec<ChannelRef> = list
+            .split(',')
+            .map(str::trim)
+            .filter(|s| !s.is_empty())
+            .map(ChannelRef::parse)
+            .collect();
+        let want = |n: usize| -> Result<()> {
+            if chans.len() != n {
+                return Err(bad(format!(
+                    "role {role} needs {n} channel(s), got {}",
+                    chans.len()
+                )));
+            }
+            Ok(())
+        };
+        match role.trim() {
+            "color" => {
+                want(3)?;
+                self.color = Some([chans[0].clone(), chans[1].clone(), chans[2].clone()]);
+            }
+            "coverage" | "alpha" => {
+                want(1)?;
+                self.coverage = Some(chans[0].clone());
+            }
+            "depth" => {
+                want(1)?;
+                self.depth = Some(chans[0].clone());
+            }
+            "motion" => {
+                want(2)?;
+                self.motion = Some([chans[0].clone(), chans[1].clone()]);
+            }
+            "normal" => {
+                want(3)?;
+                self.normal = Some([chans[0].clone(), chans[1].clone(), chans[2].clone()]);
+            }
+            "insert" | "mask" => {
+                want(1)?;
+                self.insert = Some(chans[0].clone());
+            }
+            other => {
+                return Err(bad(format!(
+                    "unknown role {other:?} (expected color, coverage, depth, motion, normal or insert)"
+                )))
+            }
+        }
+        Ok(())
+    }
+
+    /// True when no role is mapped.
+    pub fn is_empty(&self) -> bool {
+        *self == ChannelMapping::default()
+    }
+}
+
+/// How to find a frame's channels: a preset, a user mapping on top, and the
+/// object index of the inserted object for Blender files.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct LayoutOptions {
+    /// The preset.
+    pub preset: LayoutPreset,
+    /// User mapping; each role given here replaces the preset's.
+    pub mapping: ChannelMapping,
+    /// Blender: pixels whose `Object Index` equals this are the insert mask.
+    pub insert_index: Option<i64>,
+}
+
+/// The channels a frame is read from, after detection.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ResolvedLayout {
+    /// The preset that applied (`generic` or `blender`, never `auto`).
+    pub preset: LayoutPreset,
+    /// The Blender view layer, when the preset is `blender`.
+    pub view_layer: Option<String>,
+    /// Color channels; required.
+    pub color: [ChannelRef; 3],
+    /// Coverage.
+    pub coverage: Option<ChannelRef>,
+    /// Depth.
+    pub depth: Option<ChannelRef>,
+    /// Motion (x, y), converted into the library's convention by `negate`.
+    pub motion: Option<[ChannelRef; 2]>,
+    /// Normals.
+    pub normal: Option<[ChannelRef; 3]>,
+    /// Insert mask.
+    pub insert: Option<InsertSource>,
+    /// Roles the user mapped explicitly (they must exist).
+    pub required: Vec<&'static str>,
+}
+
+/// Finds Blender view layers: prefixes `L` with a `L.Combined.R` channel,
+/// in file order, `Composite` excluded.
+pub fn blender_view_layers<'a>(names: impl IntoIterator<Item = &'a str>) -> Vec<String> {
+    let mut out: Vec<String> = Vec::new();
+    for n in names {
+        if let Some(layer) = n.strip_suffix(".Combined.R") {
+            if layer != "Composite" && !out.iter().any(|l| l == layer) {
+                out.push(layer.to_string());
+            }
+        }
+    }
+    out
+}
+
+fn refs<const N: usize>(prefix: &str, names: [&str; N]) -> [ChannelRef; N] {
+    names.map(|n| ChannelRef::new(format!("{prefix}{n}")))
+}
+
+/// Resolves `options` against the (qualified) channel names of a file.
+/// `has` tells whether a channel name exists (exactly or as a unique bare name).
+pub fn resolve(
+    options: &LayoutOptions,
+    names: &[String],
+    has: &dyn Fn(&str) -> bool,
+) -> Result<ResolvedLayout> {
+    let layers = blender_view_layers(names.iter().map(String::as_str));
+    let preset = match options.preset {
+        LayoutPreset::Auto if !layers.is_empty() => LayoutPreset::Blender,
+        LayoutPreset::Auto => LayoutPreset::Generic,
+        p => p,
+    };
+    let all = |r: &[ChannelRef]| r.iter().all(|c| has(&c.name));
+    let mut out = match preset {
+        LayoutPreset::Blender => {
+            let layer = layers
+                .first()
+                .cloned()
+                .unwrap_or_else(|| "ViewLayer".to_string());
+            let p = |pass: &str| format!("{layer}.{pass}.");
+            let color = refs(&p("Combined"), ["R", "G", "B"]);
+            let coverage =
+                Some(ChannelRef::new(format!("{}A", p("Combined")))).filter(|c| has(&c.name));
+            let depth = Some(ChannelRef::new(format!("{}Z", p("Depth")))).filter(|c| has(&c.name));
+            let mut mv = refs(&p("Vector"), ["X", "Y"]);
+            mv[1].negate = true;
+            let motion = Some(mv).filter(|m| all(m));
+            let normal = Some(refs(&p("Normal"), ["X", "Y", "Z"])).filter(|m| all(m));
+            let index_channel = [
+                format!("{}X", p("Object Index")),
+                format!("{}X", p("IndexOB")),
+            ]
+            .into_iter()
+            .find(|n| has(n));
+            let insert = match (options.insert_index, index_channel) {
+                (Some(index), Some(ch)) => Some(InsertSource::ObjectIndex {
+                    channel: ChannelRef::new(ch),
+                    index,
+                }),
+                (Some(index), None) if options.mapping.insert.is_none() => {
+                    return Err(Error::invalid(format!(
+                        "--insert-index {index}: view layer {layer:?} has no Object Index pass \
+                         (channel {layer}.Object Index.X); enable the Object Index pass in Blender"
+                    )))
+                }
+                _ => None,
+            };
+            ResolvedLayout {
+                preset,
+                view_layer: Some(layer),
+                color,
+                coverage,
+                depth,
+                motion,
+                normal,
+                insert,
+                required: vec![],
+            }
+        }
+        _ => {
+            let opt1 = |n: &str| Some(ChannelRef::new(n)).filter(|c| has(&c.name));
+            ResolvedLayout {
+                preset: LayoutPreset::Generic,
+                view_layer: None,
+                color: refs("", ["R", "G", "B"]),
+                coverage: opt1("A"),
+                depth: opt1("Z"),
+                motion: Some(refs("", ["motion.X", "motion.Y"])).filter(|m| all(m)),
+                normal: Some(refs("", ["N.X", "N.Y", "N.Z"])).filter(|m| all(m)),
+                insert: opt1("mask.insert").map(InsertSource::Channel),
+                required: vec![],
+            }
+        }
+    };
+    let m = &options.mapping;
+    if let Some(c) = &m.color {
+        out.color = c.clone();
+        out.required.push("color");
+    }
+    if let Some(c) = &m.coverage {
+        out.coverage = Some(c.clone());
+        out.required.push("coverage");
+    }
+    if let Some(c) = &m.depth {
+        out.depth = Some(c.clone());
+        out.required.push("depth");
+    }
+    if let Some(c) = &m.motion {
+        out.motion = Some(c.clone());
+        out.required.push("motion");
+    }
+    if let Some(c) = &m.normal {
+        out.normal = Some(c.clone());
+        out.required.push("normal");
+    }
+    if let Some(c) = &m.insert {
+        out.insert = Some(InsertSource::Channel(c.clone()));
+        out.required.push("insert");
+    }
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn names(list: &[&str]) -> Vec<String> {
+        list.iter().map(|s| s.to_string()).collect()
+    }
+
+    #[test]
+    fn auto_detects_blender_and_its_view_layer() {
+        let n = names(&[
+            "Composite.Combined.R",
+            "Composite.Combined.G",
+            "Composite.Combined.B",
+            "Shot.Combined.R",
+            "Shot.Combined.G",
+            "Shot.Combined.B",
+            "Shot.Combined.A",
+            "Shot.Vector.X",
+            "Shot.Vector.Y",
+            "Shot.Object Index.X",
+        ]);
+        let has = |s: &str| n.iter().any(|x| x == s);
+        let opts = LayoutOptions {
+            insert_index: Some(3),
+            ..Default::default()
+        };
+        let r = resolve(&opts, &n, &has).unwrap();
+        assert_eq!(r.preset, LayoutPreset::Blender);
+        assert_eq!(r.view_layer.as_deref(), Some("Shot"));
+        assert_eq!(r.color[0].name, "Shot.Combined.R");
+        let mv = r.motion.unwrap();
+        assert!(
+            !mv[0].negate && mv[1].negate,
+            "Blender's +y-up vector is flipped"
+        );
+        assert!(r.depth.is_none());
+        assert!(matches!(
+            r.insert,
+            Some(InsertSource::ObjectIndex { index: 3, .. })
+        ));
+    }
+
+    #[test]
+    fn generic_and_user_mapping() {
+        let n = names(&["R", "G", "B", "A", "Z", "beauty.R", "mv.X", "mv.Y"]);
+        let has = |s: &str| n.iter().any(|x| x == s);
+        let mut opts = LayoutOptions::default();
+        opts.mapping.add("motion=mv.X,-mv.Y").unwrap();
+        let r = resolve(&opts, &n, &has).unwrap();
+        assert_eq!(r.preset, LayoutPreset::Generic);
+        assert_eq!(r.depth, Some(ChannelRef::new("Z")));
+        assert_eq!(
+            r.motion.as_ref().unwrap()[1],
+            ChannelRef {
+                name: "mv.Y".into(),
+                negate: true
+            }
+        );
+        assert_eq!(r.required, vec!["motion"]);
+        let e = opts.mapping.add("color=a,b").unwrap_err().to_string();
+        assert!(e.contains("color") && e.contains("3"), "{e}");
+        let e = opts.mapping.add("albedo=x").unwrap_err().to_string();
+        assert!(e.contains("albedo"), "{e}");
+    }
+}
