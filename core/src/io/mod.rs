@@ -4,6 +4,7 @@
 pub mod exr;
 pub mod layout;
 pub mod pattern;
+pub mod run;
 
 pub use exr::{ExrFile, LoadedFrame, OutputMeta};
 pub use layout::{ChannelMapping, LayoutOptions, LayoutPreset};

@@ -1,0 +1,147 @@
+//! Running a session over an EXR sequence: the loop behind `harmonize run`
+//! (and `demo`). Frames are read, enhanced and written in increasing order;
+//! the first failing frame stops the run with an error that names it, and
+//! outputs already written stay.
+
+use std::path::PathBuf;
+
+use super::exr::{refuse_input, LoadedFrame, OutputMeta};
+use super::layout::LayoutOptions;
+use super::pattern::{select_frames, FramePattern, FrameRange};
+use crate::error::{Error, Result};
+use crate::frame::Image;
+use crate::session::{FrameReport, Session};
+
+/// What to run.
+#[derive(Debug, Clone)]
+pub struct RunOptions {
+    /// Input frame pattern.
+    pub input: String,
+    /// Output frame pattern.
+    pub output: String,
+    /// How channels are found.
+    pub layout: LayoutOptions,
+    /// Only these frames (all must exist); `None` = every existing frame.
+    pub frames: Option<FrameRange>,
+}
+
+/// One frame to process.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct PlannedFrame {
+    /// Frame number.
+    pub frame: i64,
+    /// Input file.
+    pub input: PathBuf,
+    /// Output file.
+    pub output: PathBuf,
+}
+
+/// One processed frame.
+#[derive(Debug, Clone)]
+pub struct FrameResult {
+    /// What was planned.
+    pub planned: PlannedFrame,
+    /// The session's report.
+    pub report: FrameReport,
+    /// Warnings from reading the file (camera dropped, ...).
+    pub read_warnings: Vec<String>,
+    /// Time to read the EXR, ms.
+    pub read_ms: f64,
+    /// Time to write the EXR, ms.
+    pub write_ms: f64,
+    /// The enhanced frame (RGB premultiplied, A coverage; 4 planes), kept
+    /// only when [`run_sequence`] is asked to.
+    pub output: Option<Image>,
+}
+
+/// Adds `context` in front of an error's message, keeping its kind.
+pub fn with_context(e: Error, context: &str) -> Error {
+    let f = |m: String| format!("{context}: {m}");
+    match e {
+        Error::Invalid(m) => Error::Invalid(f(m)),
+        Error::InvalidOperation(m) => Error::InvalidOperation(f(m)),
+        Error::NotSupported(m) => Error::NotSupported(f(m)),
+        Error::Io(m) => Error::Io(f(m)),
+        Error::OutOfMemory(m) => Error::OutOfMemory(f(m)),
+        Error::Model(m) => Error::Model(f(m)),
+        Error::RuntimeMissing(m) => Error::RuntimeMissing(f(m)),
+        Error::Cancelled(m) => Error::Cancelled(f(m)),
+    }
+}
+
+/// Lists the frames to process and their outputs; refuses an output that
+/// would overwrite an input.
+pub fn plan(options: &RunOptions) -> Result<Vec<PlannedFrame>> {
+    let input = FramePattern::parse(&options.input)?;
+    let output = FramePattern::parse(&options.output)?;
+    let frames = select_frames(&input, options.frames)?;
+    let planned: Vec<PlannedFrame> = frames
+        .into_iter()
+        .map(|(frame, path)| PlannedFrame {
+            frame,
+            output: output.path(frame),
+            input: path,
+        })
+        .collect();
+    for p in &planned {
+        refuse_input(&p.output, &p.input, Some(p.frame))?;
+    }
+    Ok(planned)
+}
+
+/// Runs `session` over the planned frames. `on_frame` sees each result as it
+/// is written (for progress bars and reports). With `keep_outputs` the
+/// enhanced images are kept in the results.
+pub fn run_sequence(
+    session: &mut Session,
+    options: &RunOptions,
+    planned: &[PlannedFrame],
+    keep_outputs: bool,
+    on_frame: &mut dyn FnMut(&FrameResult),
+) -> Result<Vec<FrameResult>> {
+    let mut first: Option<(usize, usize, PathBuf)> = None;
+    let mut results = Vec::with_capacity(planned.len());
+    for p in planned {
+        let here = format!("frame {} ({})", p.frame, p.input.display());
+        let t = std::time::Instant::now();
+        let mut loaded = LoadedFrame::read(&p.input, Some(p.frame), &options.layout)?;
+        let read_ms = t.elapsed().as_secs_f64() * 1e3;
+        match &first {
+            None => first = Some((loaded.width, loaded.height, p.input.clone())),
+            Some((w, h, path)) if (*w, *h) != (loaded.width, loaded.height) => {
+                return Err(Error::invalid(format!(
+                    "{here}: size {}x{} differs from the first frame's {w}x{h} ({})",
+                    loaded.width,
+                    loaded.height,
+                    path.display()
+                )));
+            }
+            Some(_) => {}
+        }
+        let input = loaded.frame_input().map_err(|e| with_context(e, &here))?;
+        let (out, report) = session
+            .process(&input, None)
+            .map_err(|e| with_context(e, &here))?;
+        let t = std::time::Instant::now();
+        let meta = OutputMeta {
+            backend: report.backend.clone(),
+            reset: report
+                .reset
+                .map(|r| r.name().to_string())
+                .unwrap_or_default(),
+        };
+        loaded.write_enhanced(&out, &p.output, &meta)?;
+        let write_ms = t.elapsed().as_secs_f64() * 1e3;
+        let result = FrameResult {
+            planned: p.clone(),
+            report,
+            read_warnings: std::mem::take(&mut loaded.warnings),
+            read_ms,
+            write_ms,
+            output: keep_outputs.then_some(out),
+        };
+        on_frame(&result);
+        results.push(result);
+    }
+    Ok(results)
+}
