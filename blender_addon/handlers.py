@@ -1,0 +1,157 @@
+"""Render handlers: one harmonizer session per animation render.
+
+- ``render_init``: check (and set) the passes, open the session.
+- ``render_write``: after Blender saved a frame, enhance it and write the
+  enhanced EXR (beside the raw one unless configured otherwise).
+- ``render_complete`` / ``render_cancel``: free the session.
+
+A failed frame is reported and skipped; it never aborts the render, and the
+session's temporal state stays as it was before that frame.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import bpy
+from bpy.app.handlers import persistent
+
+from . import passes, reports, runtime
+
+
+@dataclass
+class RunLog:
+    """What one render did, frame by frame (kept after the render for the UI and scripts)."""
+
+    scene: str
+    frames: list[dict] = field(default_factory=list)
+    errors: list[str] = field(default_factory=list)
+    finished: bool = False
+
+
+_RUNNERS: dict[str, runtime.Runner] = {}
+_LOGS: dict[str, RunLog] = {}
+
+
+def last_run(scene_name: str) -> RunLog | None:
+    """The log of the latest render of ``scene_name`` (None before the first)."""
+    return _LOGS.get(scene_name)
+
+
+def _close(scene_name: str) -> None:
+    runner = _RUNNERS.pop(scene_name, None)
+    if runner is not None:
+        runner.close()
+    log = _LOGS.get(scene_name)
+    if log is not None:
+        log.finished = True
+
+
+@persistent
+def on_render_init(scene, *_args):
+    """Render start: set up passes, open the session."""
+    if not getattr(scene, "harmonizer", None) or not scene.harmonizer.enabled:
+        return
+    _close(scene.name)
+    log = RunLog(scene.name)
+    _LOGS[scene.name] = log
+    for level, text in passes.check(scene, apply=scene.harmonizer.manage_passes):
+        reports.post(level, text)
+    try:
+        _RUNNERS[scene.name] = runtime.Runner(scene)
+    except Exception as exc:  # reported; the render itself goes on unchanged
+        msg = f"Harmonizer: cannot start for scene {scene.name!r}: {exc}"
+        log.errors.append(msg)
+        reports.post("ERROR", msg)
+
+
+@persistent
+def on_render_write(scene, *_args):
+    """A frame was saved: enhance it."""
+    runner = _RUNNERS.get(scene.name)
+    if runner is None:
+        return
+    log = _LOGS[scene.name]
+    frame = scene.frame_current
+    raw = scene.render.frame_path(frame=frame)
+    out = passes.enhanced_path(scene, raw, frame)
+    step = max(1, scene.frame_step)
+    index = (frame - scene.frame_start) // step
+    start = time.perf_counter()
+    try:
+        result = runner.processor.process(
+            raw,
+            out,
+            frame=frame,
+            frame_index=index,
+            camera=runtime.camera_matrices(scene),
+            allow_overwrite=scene.harmonizer.overwrite_raw,
+        )
+    except Exception as exc:  # one failed frame never aborts the user's render
+        msg = f"Harmonizer: frame {frame} not enhanced ({raw}): {exc}"
+        log.errors.append(msg)
+        log.frames.append({"frame": frame, "raw": raw, "output": None, "error": str(exc)})
+        reports.post("ERROR", msg)
+        return
+    report = result.report
+    entry = {
+        "frame": frame,
+        "raw": raw,
+        "output": out,
+        "reset": report.get("reset"),
+        "backend": report.get("backend"),
+        "history_used": report.get("history_used"),
+        "ms": (time.perf_counter() - start) * 1000.0,
+        "warnings": list(report.get("warnings") or []),
+    }
+    log.frames.append(entry)
+    for w in entry["warnings"]:
+        reports.post("WARNING", f"Harmonizer: frame {frame}: {w}")
+    reset = entry["reset"]
+    note = f", temporal state reset ({reset})" if reset else ""
+    reports.post("INFO", f"Harmonizer: frame {frame} -> {out} ({entry['ms']:.0f} ms{note})")
+
+
+@persistent
+def on_render_done(scene, *_args):
+    """Render finished or cancelled: free the session."""
+    _close(scene.name)
+
+
+HANDLERS = (
+    (bpy.app.handlers.render_init, on_render_init),
+    (bpy.app.handlers.render_write, on_render_write),
+    (bpy.app.handlers.render_complete, on_render_done),
+    (bpy.app.handlers.render_cancel, on_render_done),
+)
+
+
+def register() -> None:
+    for handler_list, fn in HANDLERS:
+        if fn not in handler_list:
+            handler_list.append(fn)
+
+
+def unregister() -> None:
+    for handler_list, fn in HANDLERS:
+        # Remove by identity and, after a reload, by qualified name.
+        for existing in list(handler_list):
+            if existing is fn or (
+                getattr(existing, "__module__", None) == fn.__module__
+                and getattr(existing, "__name__", None) == fn.__name__
+            ):
+                handler_list.remove(existing)
+    for name in list(_RUNNERS):
+        _close(name)
+
+
+def registered_count() -> int:
+    """How many of this module's handlers are installed (0 after unregister)."""
+    return sum(
+        1
+        for handler_list, fn in HANDLERS
+        for existing in handler_list
+        if getattr(existing, "__module__", None) == fn.__module__
+    )
+

@@ -1,0 +1,110 @@
+"""The render settings harmonizer needs, checked and set at render start."""
+
+from __future__ import annotations
+
+import os
+
+import bpy
+
+
+def render_view_layer(scene: bpy.types.Scene, name: str = "") -> bpy.types.ViewLayer | None:
+    """The view layer to enhance: ``name`` if given, else the first one that renders."""
+    if name:
+        return scene.view_layers.get(name)
+    for vl in scene.view_layers:
+        if vl.use:
+            return vl
+    return scene.view_layers[0] if scene.view_layers else None
+
+
+def mask_names(scene: bpy.types.Scene) -> list[str]:
+    """Cryptomatte names of the insert mask (objects, collection members, or typed names)."""
+    s = scene.harmonizer
+    if s.mask_source == "OBJECT":
+        return [s.mask_object.name] if s.mask_object else []
+    if s.mask_source == "COLLECTION":
+        return sorted({o.name for o in s.mask_collection.all_objects}) if s.mask_collection else []
+    if s.mask_source == "CRYPTOMATTE":
+        return [n.strip() for n in s.mask_names.split(",") if n.strip()]
+    return []
+
+
+def check(scene: bpy.types.Scene, *, apply: bool) -> list[tuple[str, str]]:
+    """Check (and with ``apply``, fix) what harmonizer needs.
+
+    Returns (level, message) pairs: 'INFO' for what was changed, 'WARNING' for
+    what the user has to look at, 'ERROR' for what stops harmonizer.
+    """
+    s = scene.harmonizer
+    out: list[tuple[str, str]] = []
+    vl = render_view_layer(scene, s.view_layer)
+    if vl is None:
+        return [("ERROR", f"Harmonizer: view layer {s.view_layer!r} not found in scene {scene.name!r}")]
+
+    wanted = {
+        "use_pass_combined": "Combined",
+        "use_pass_z": "Depth",
+        "use_pass_vector": "Vector",
+        "use_pass_normal": "Normal",
+    }
+    if s.mask_source == "OBJECT_INDEX":
+        wanted["use_pass_object_index"] = "Object Index"
+    elif s.mask_source in {"OBJECT", "COLLECTION"}:
+        wanted["use_pass_cryptomatte_object"] = "Cryptomatte Object"
+    elif s.mask_source == "CRYPTOMATTE":
+        prop = {
+            "CryptoObject": "use_pass_cryptomatte_object",
+            "CryptoMaterial": "use_pass_cryptomatte_material",
+            "CryptoAsset": "use_pass_cryptomatte_asset",
+        }[s.mask_crypto_layer]
+        wanted[prop] = "Cryptomatte"
+    for prop, label in wanted.items():
+        if not getattr(vl, prop):
+            if apply:
+                setattr(vl, prop, True)
+                out.append(("INFO", f"Harmonizer: enabled the {label} pass on view layer {vl.name!r}"))
+            else:
+                out.append(("WARNING", f"Harmonizer: the {label} pass is off on view layer {vl.name!r}"))
+
+    render = scene.render
+    if render.use_motion_blur:
+        out.append(
+            (
+                "WARNING",
+                "Harmonizer: motion blur is on; the Vector pass is then not the per-frame motion "
+                "harmonizer needs, so temporal reprojection will be poor. Turn motion blur off.",
+            )
+        )
+    fmt = render.image_settings
+    if fmt.file_format != "OPEN_EXR_MULTILAYER":
+        if apply:
+            fmt.media_type = "MULTI_LAYER_IMAGE"
+            fmt.file_format = "OPEN_EXR_MULTILAYER"
+            if fmt.color_depth not in {"16", "32"}:
+                fmt.color_depth = "32"
+            out.append(("INFO", "Harmonizer: output set to multilayer OpenEXR (harmonizer reads the passes from it)"))
+        else:
+            out.append(("WARNING", f"Harmonizer: output format is {fmt.file_format}; harmonizer needs multilayer OpenEXR"))
+    if s.mask_source == "OBJECT" and s.mask_object is None:
+        out.append(("WARNING", "Harmonizer: insert mask source is Object but no object is set"))
+    if s.mask_source == "COLLECTION" and s.mask_collection is None:
+        out.append(("WARNING", "Harmonizer: insert mask source is Collection but no collection is set"))
+    return out
+
+
+def enhanced_path(scene: bpy.types.Scene, raw_path: str, frame: int) -> str:
+    """Where the enhanced frame for ``raw_path`` goes."""
+    s = scene.harmonizer
+    if s.overwrite_raw:
+        return raw_path
+    if s.output_path:
+        base = bpy.path.abspath(s.output_path)
+        if os.path.isdir(base) or base.endswith(("/", os.sep)):
+            return os.path.join(base, os.path.basename(raw_path))
+        from . import sequence
+
+        path = sequence.expand(base, frame)
+        if not path.lower().endswith(".exr"):
+            path += ".exr"
+        return path
+    return os.path.join(os.path.dirname(raw_path), "harmonized", os.path.basename(raw_path))

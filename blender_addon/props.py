@@ -1,0 +1,112 @@
+"""Scene settings of the extension (``scene.harmonizer``)."""
+
+from __future__ import annotations
+
+import bpy
+from bpy.props import (
+    BoolProperty,
+    EnumProperty,
+    FloatProperty,
+    IntProperty,
+    PointerProperty,
+    StringProperty,
+)
+
+BACKENDS = [
+    ("auto", "Auto", "Neural model when ONNX Runtime is available, else classical"),
+    ("neural", "Neural", "The one-step neural enhancer (ONNX Runtime)"),
+    ("classical", "Classical", "Hole filling, harmonization, contact shadows and stabilization without a model"),
+    ("bypass", "Bypass", "Pass frames through unchanged (checks the pipeline and color round trip)"),
+]
+
+MASK_SOURCES = [
+    ("NONE", "None", "No inserted element"),
+    ("OBJECT", "Object", "The inserted element is one object (uses the Cryptomatte Object pass)"),
+    ("COLLECTION", "Collection", "The inserted element is every object of a collection (Cryptomatte Object pass)"),
+    ("OBJECT_INDEX", "Object Index", "Pixels whose Object Index (pass index) equals a value"),
+    ("CRYPTOMATTE", "Cryptomatte", "Cryptomatte matte names, comma separated"),
+]
+
+CRYPTO_LAYERS = [
+    ("CryptoObject", "Object", "Cryptomatte Object pass"),
+    ("CryptoMaterial", "Material", "Cryptomatte Material pass"),
+    ("CryptoAsset", "Asset", "Cryptomatte Asset pass"),
+]
+
+COVERAGE = [
+    ("ALPHA", "Alpha", "The Combined alpha is coverage: transparent pixels are holes to fill"),
+    ("FULL", "Full", "Every pixel is rendered data (transparent film background is kept as is)"),
+]
+
+
+class HarmonizerSceneSettings(bpy.types.PropertyGroup):
+    """Per-scene harmonizer settings."""
+
+    enabled: BoolProperty(
+        name="Harmonizer",
+        description="Enhance every frame of animation renders with harmonizer",
+        default=False,
+    )
+    backend: EnumProperty(name="Backend", items=BACKENDS, default="auto")
+    context_frames: IntProperty(
+        name="Context Frames",
+        description="Previous enhanced frames that condition the next one (temporal stability)",
+        default=4,
+        min=0,
+        max=8,
+    )
+    strength: FloatProperty(
+        name="Strength", description="Blend between the raw (0) and the enhanced (1) frame", default=1.0, min=0.0, max=1.0
+    )
+    coverage: EnumProperty(name="Coverage", items=COVERAGE, default="ALPHA")
+    mask_source: EnumProperty(name="Insert Mask", items=MASK_SOURCES, default="NONE")
+    mask_object: PointerProperty(name="Object", type=bpy.types.Object)
+    mask_collection: PointerProperty(name="Collection", type=bpy.types.Collection)
+    mask_index: IntProperty(name="Pass Index", default=1, min=0, max=32767)
+    mask_names: StringProperty(name="Mattes", description="Cryptomatte names, comma separated")
+    mask_crypto_layer: EnumProperty(name="Cryptomatte Layer", items=CRYPTO_LAYERS, default="CryptoObject")
+    view_layer: StringProperty(
+        name="View Layer", description="View layer to enhance (empty: the first one that renders)", default=""
+    )
+    output_path: StringProperty(
+        name="Enhanced Frames",
+        description="Where enhanced frames go; '####' is the frame number. Empty: "
+        "beside the raw frames, in a 'harmonized' folder with the same file names",
+        default="",
+        subtype="FILE_PATH",
+    )
+    overwrite_raw: BoolProperty(
+        name="Replace Raw Frames",
+        description="Write the enhanced frame over the raw render (the raw render is lost)",
+        default=False,
+    )
+    replace_composite: BoolProperty(
+        name="Replace Composite",
+        description="Also replace the Composite part of the file with the enhanced frame",
+        default=False,
+    )
+    gap_policy: EnumProperty(
+        name="Frame Jump",
+        items=[
+            ("reset", "Reset", "A jump in frame numbers starts the temporal state over"),
+            ("keep", "Keep", "Keep the temporal state across frame jumps"),
+        ],
+        default="reset",
+    )
+    threads: IntProperty(name="Threads", description="Worker threads (0: all cores)", default=0, min=0, max=1024)
+    manage_passes: BoolProperty(
+        name="Enable Needed Passes",
+        description="At render start, enable the passes harmonizer reads and multilayer EXR output",
+        default=True,
+    )
+
+
+def register() -> None:
+    bpy.utils.register_class(HarmonizerSceneSettings)
+    bpy.types.Scene.harmonizer = PointerProperty(type=HarmonizerSceneSettings)
+
+
+def unregister() -> None:
+    if hasattr(bpy.types.Scene, "harmonizer"):
+        del bpy.types.Scene.harmonizer
+    bpy.utils.unregister_class(HarmonizerSceneSettings)
