@@ -37,7 +37,8 @@ def build(output_pattern: str, *, samples: int = 4, frames: tuple[int, int] = FR
 
     ``output_pattern`` is the render output path (``####`` is the frame number).
     """
-    bpy.ops.wm.read_factory_settings(use_empty=True)
+    # An empty file; the preferences (and so the enabled extension) are kept.
+    bpy.ops.wm.read_homefile(use_empty=True)
     scene = bpy.context.scene
     scene.name = "Fixture"
 
@@ -91,6 +92,8 @@ def build(output_pattern: str, *, samples: int = 4, frames: tuple[int, int] = FR
     ins = bpy.context.active_object
     ins.name = "InsertedSphere"
     ins.pass_index = INSERT_PASS_INDEX
+    # Inserted the way a composited element often is: it casts no shadow on the floor.
+    ins.visible_shadow = False
     ins.data.materials.append(_material("InsertedMat", (0.9, 0.85, 0.2), 0.25))
     _link(ins, inserted)
     # The inserted object moves on its own, so the motion vectors carry object motion too.
