@@ -145,10 +145,11 @@ def read(oiio, path: str) -> MultiPartExr:
         exr = MultiPartExr(path)
         index = 0
         while inp.seek_subimage(index, 0):
-            spec = inp.spec()
+            spec = inp.spec(index, 0)
             if spec.deep:
                 raise ExrError(f"{path}: part {index} is a deep image, which is not supported")
-            pixels = inp.read_image(0, spec.nchannels, oiio.FLOAT)
+            # Name the part explicitly: the (chbegin, chend) form reads the first part.
+            pixels = inp.read_image(index, 0, 0, spec.nchannels, oiio.FLOAT)
             if pixels is None or not isinstance(pixels, np.ndarray):
                 raise ExrError(f"{path}: part {index} ({spec.get_string_attribute('name', '')}): cannot read pixels: {_oiio_error(oiio, inp)}")
             pixels = np.ascontiguousarray(pixels.reshape(spec.height, spec.width, spec.nchannels), dtype=np.float32)
