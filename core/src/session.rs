@@ -260,7 +260,7 @@ impl Session {
         }
         let empty = History::default();
         let history = if reset.is_some() { &empty } else { &st.history };
-        let mut view = HistoryView::new(history, &frame, self.params.context_frames);
+        let mut view = HistoryView::new(history, &frame, self.params.context_frames, self.device.pool());
         if reset.is_none() && self.params.scene_cut_detection && !view.is_empty() {
             let cut = stages.time("scene_cut", || {
                 crate::temporal::is_scene_cut(&view, &frame, self.params.scene_cut_threshold)

@@ -1,76 +1,44 @@
 //! Temporal state: the last K enhanced frames with their depth, motion and
-//! camera, and their reprojection into the current view with validity masks.
+//! camera ([`History`]), their reprojection into the current view with
+//! validity masks ([`HistoryView`], see [`reproject`]) and scene-cut
+//! detection ([`is_scene_cut`]).
 
-use std::collections::VecDeque;
+mod history;
+pub mod reproject;
+pub mod scene_cut;
+
 use std::sync::OnceLock;
 
-use crate::frame::{Camera, Image, PreparedFrame};
+pub use history::{History, HistoryFrame};
+pub use scene_cut::{is_scene_cut, scene_cut_score, SceneCutScore};
 
-/// One enhanced frame kept for the future.
-#[derive(Debug, Clone)]
-pub struct HistoryFrame {
-    /// The enhanced output: RGB premultiplied by A, A coverage (4 planes).
-    pub color: Image,
-    /// Planar depth of the frame, if the host gave one.
-    pub depth: Option<Vec<f32>>,
-    /// The frame's motion vectors (to its own previous frame), if any.
-    pub motion: Option<Image>,
-    /// The frame's camera, if any.
-    pub camera: Option<Camera>,
-    /// The host's frame number.
-    pub frame_index: Option<i64>,
-}
-
-impl HistoryFrame {
-    /// Bytes held.
-    pub fn bytes(&self) -> usize {
-        self.color.bytes()
-            + self.depth.as_ref().map_or(0, |d| d.len() * 4)
-            + self.motion.as_ref().map_or(0, Image::bytes)
-    }
-}
-
-/// The last K enhanced frames, newest first.
-#[derive(Debug, Clone, Default)]
-pub struct History {
-    frames: VecDeque<HistoryFrame>,
-}
-
-impl History {
-    /// Frames held.
-    pub fn len(&self) -> usize {
-        self.frames.len()
-    }
-    /// True when empty.
-    pub fn is_empty(&self) -> bool {
-        self.frames.is_empty()
-    }
-    /// Drops everything.
-    pub fn clear(&mut self) {
-        self.frames.clear();
-    }
-    /// Adds the newest frame, keeping at most `capacity`.
-    pub fn push(&mut self, frame: HistoryFrame, capacity: usize) {
-        self.frames.push_front(frame);
-        self.frames.truncate(capacity);
-    }
-    /// Frame `k` (0 = previous).
-    pub fn get(&self, k: usize) -> Option<&HistoryFrame> {
-        self.frames.get(k)
-    }
-    /// Bytes held.
-    pub fn bytes(&self) -> usize {
-        self.frames.iter().map(HistoryFrame::bytes).sum()
-    }
-}
+use crate::frame::{Image, PreparedFrame};
+use reproject::{Chain, Source};
 
 /// History frame `k` aligned to the current view.
 #[derive(Debug, Clone)]
 pub struct ReprojectedFrame {
-    /// RGBA premultiplied, resampled into the current view (0 where invalid).
+    /// RGBA premultiplied, resampled into the current view from the valid
+    /// bilinear taps only (renormalized, so not scaled by `valid`); 0 where
+    /// `valid` is 0.
     pub color: Image,
-    /// Validity in [0,1]: 0 for disocclusions and out-of-frame samples.
+    /// Validity in [0,1]: 0 for disocclusions and out-of-frame samples, soft
+    /// at image borders and depth edges.
     pub valid: Vec<f32>,
+}
+
+/// How a history frame is aligned to the current view.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ReprojectionMode {
+    /// Motion vectors of the current frame and of the newer history frames, chained.
+    MotionVectors,
+    /// Current depth and camera, projected into the history frame's camera.
+    DepthCamera,
+    /// No motion vectors and no depth: the camera is taken as static (the
+    /// cameras are equal or unknown), the history is used as it is.
+    Identity,
+    /// The cameras differ but there is no depth nor motion to align: nothing is valid.
+    Unavailable,
 }
 
 /// The history as seen from the current frame; reprojects lazily, once per k.
@@ -78,19 +46,47 @@ pub struct HistoryView<'a> {
     history: &'a History,
     current: &'a PreparedFrame,
     count: usize,
+    pool: Option<&'a rayon::ThreadPool>,
     cache: Vec<OnceLock<ReprojectedFrame>>,
+    /// `chains[h]`: positions in history frame `h + 1` (motion vectors).
+    chains: Vec<OnceLock<Chain>>,
+}
+
+impl std::fmt::Debug for HistoryView<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("HistoryView").field("count", &self.count).finish_non_exhaustive()
+    }
 }
 
 impl<'a> HistoryView<'a> {
-    /// A view of the first `count` history frames from `current`.
-    pub fn new(history: &'a History, current: &'a PreparedFrame, count: usize) -> Self {
-        let count = count.min(history.len());
-        HistoryView { history, current, count, cache: (0..count).map(|_| OnceLock::new()).collect() }
+    /// A view of the first `count` history frames from `current`; reprojection
+    /// runs on `pool` (row-parallel, results independent of the pool size).
+    /// History frames of another size than `current` are not used.
+    pub fn new(
+        history: &'a History,
+        current: &'a PreparedFrame,
+        count: usize,
+        pool: &'a rayon::ThreadPool,
+    ) -> Self {
+        let (w, h) = (current.width(), current.height());
+        let usable = history
+            .iter()
+            .take_while(|f| f.color.width == w && f.color.height == h && f.color.channels == 4)
+            .count();
+        let count = count.min(usable);
+        HistoryView {
+            history,
+            current,
+            count,
+            pool: Some(pool),
+            cache: (0..count).map(|_| OnceLock::new()).collect(),
+            chains: (0..count.saturating_sub(1)).map(|_| OnceLock::new()).collect(),
+        }
     }
 
     /// An empty view (cold start).
     pub fn empty(history: &'a History, current: &'a PreparedFrame) -> Self {
-        Self::new(history, current, 0)
+        HistoryView { history, current, count: 0, pool: None, cache: Vec::new(), chains: Vec::new() }
     }
 
     /// Usable history frames.
@@ -103,20 +99,79 @@ impl<'a> HistoryView<'a> {
         self.count == 0
     }
 
-    /// History frame `k` (0 = previous) reprojected into the current view.
-    pub fn reproject(&self, k: usize) -> &ReprojectedFrame {
-        self.cache[k].get_or_init(|| reproject_naive(self.history, self.current, k))
+    /// The current frame.
+    pub fn current(&self) -> &'a PreparedFrame {
+        self.current
     }
-}
 
-/// Placeholder reprojection: identity alignment, valid everywhere.
-fn reproject_naive(history: &History, current: &PreparedFrame, k: usize) -> ReprojectedFrame {
-    let h = history.get(k).expect("history index in range");
-    let n = current.width() * current.height();
-    ReprojectedFrame { color: h.color.clone(), valid: vec![1.0; n] }
-}
+    /// History frame `k` (0 = previous) as stored, not reprojected.
+    ///
+    /// # Panics
+    /// When `k >= self.len()`.
+    pub fn frame(&self, k: usize) -> &'a HistoryFrame {
+        assert!(k < self.count, "history frame {k} requested, {} usable", self.count);
+        self.history.get(k).expect("history index in range")
+    }
 
-/// True when the current frame does not continue the history (a cut).
-pub fn is_scene_cut(_view: &HistoryView<'_>, _current: &PreparedFrame, _threshold: f32) -> bool {
-    false
+    /// The pool reprojection runs on (`None` for an empty view).
+    pub fn pool(&self) -> Option<&'a rayon::ThreadPool> {
+        self.pool
+    }
+
+    /// How history frame `k` is aligned: motion vectors when the current frame
+    /// and history frames `0..k` all have them; else depth + cameras when the
+    /// current frame has depth and a camera and frame `k` a camera; else the
+    /// identity when the cameras are equal or unknown; else unavailable.
+    ///
+    /// # Panics
+    /// When `k >= self.len()`.
+    pub fn mode(&self, k: usize) -> ReprojectionMode {
+        let hk = self.frame(k);
+        let cur = self.current;
+        if cur.motion.is_some() && (0..k).all(|h| self.frame(h).motion.is_some()) {
+            return ReprojectionMode::MotionVectors;
+        }
+        match (cur.camera, hk.camera) {
+            (Some(_), Some(_)) if cur.depth.is_some() => ReprojectionMode::DepthCamera,
+            (Some(a), Some(b)) if a != b => ReprojectionMode::Unavailable,
+            _ => ReprojectionMode::Identity,
+        }
+    }
+
+    /// History frame `k` (0 = previous) reprojected into the current view;
+    /// computed on first use and cached.
+    ///
+    /// # Panics
+    /// When `k >= self.len()`.
+    pub fn reproject(&self, k: usize) -> &ReprojectedFrame {
+        assert!(k < self.count, "history frame {k} requested, {} usable", self.count);
+        self.cache[k].get_or_init(|| {
+            let frame = self.frame(k);
+            match self.mode(k) {
+                ReprojectionMode::MotionVectors => reproject::hop_color(self.source(k), frame, self.pool),
+                ReprojectionMode::DepthCamera => reproject::reproject_camera(self.current, frame, self.pool),
+                ReprojectionMode::Identity => {
+                    ReprojectedFrame { color: frame.color.clone(), valid: vec![1.0; frame.color.len()] }
+                }
+                ReprojectionMode::Unavailable => ReprojectedFrame {
+                    color: Image::zeros(frame.color.width, frame.color.height, 4),
+                    valid: vec![0.0; frame.color.len()],
+                },
+            }
+        })
+    }
+
+    /// Where the motion-vector chain into history frame `k` starts its last hop.
+    fn source(&self, k: usize) -> Source<'_> {
+        if k == 0 {
+            let motion = self.current.motion.as_ref().expect("motion mode needs motion vectors");
+            return Source::Current { motion, depth: self.current.depth.as_deref() };
+        }
+        Source::Chain(self.chain(k))
+    }
+
+    /// Positions of the current pixels in history frame `k >= 1`.
+    fn chain(&self, k: usize) -> &Chain {
+        self.chains[k - 1].get_or_init(|| reproject::hop_chain(self.source(k - 1), self.frame(k - 1), self.pool))
+    }
 }

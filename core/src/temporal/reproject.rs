@@ -1,0 +1,362 @@
+//! Reprojection of history frames into the current view.
+//!
+//! Two ways, chosen per history frame by [`super::HistoryView::mode`]:
+//! - **motion vectors**, chained frame to frame without resampling the image
+//!   more than once: the current pixel centre `p0` moves to
+//!   `p1 = p0 + mv_t(p0)` in frame t-1, then `p2 = p1 + mv_{t-1}(p1)` (the
+//!   stored motion of history frame 0, looked up bilinearly) in frame t-2, and
+//!   so on; the color of history frame k is sampled once, at the final position;
+//! - **depth + cameras** (static scene, no motion vectors): the current pixel
+//!   is unprojected with its planar depth and the current camera and projected
+//!   into history frame k's camera; empty depth (sky) is projected as a
+//!   direction (rotation only).
+//!
+//! Validity: every bilinear lookup (each hop and the final color sample) drops
+//! the taps outside the image and, when depth is known on both sides, the taps
+//! whose depth differs from the expected depth by more than
+//! [`DEPTH_TOLERANCE`] (relative). The kept weights are renormalized, so a
+//! silhouette never mixes foreground and background; their sum before
+//! renormalizing is the validity of that lookup (soft at image borders and
+//! depth edges), and the validities of the hops multiply.
+//!
+//! Every output pixel depends only on the inputs, never on how rows are split
+//! between threads, so results are bit-identical for any pool size.
+
+use glam::{DMat4, DVec4};
+use rayon::prelude::*;
+
+use super::{HistoryFrame, ReprojectedFrame};
+use crate::frame::{Image, PreparedFrame};
+
+/// Depth at or beyond this is empty (sky, holes): it only matches other empty depth.
+pub const FAR_DEPTH: f32 = 1e9;
+
+/// Relative tolerance of the disocclusion depth test: a history sample is the
+/// same surface when `|expected - seen| <= DEPTH_TOLERANCE * min(expected, seen)`.
+pub const DEPTH_TOLERANCE: f32 = 0.1;
+
+/// True when depth `seen` in a history frame is the surface expected at depth `expected`.
+#[inline]
+pub fn depth_match(expected: f32, seen: f32) -> bool {
+    let far_e = expected >= FAR_DEPTH;
+    let far_s = seen >= FAR_DEPTH;
+    if far_e || far_s {
+        return far_e && far_s;
+    }
+    (expected - seen).abs() <= DEPTH_TOLERANCE * expected.min(seen)
+}
+
+/// The bilinear taps at one position that passed the frame and depth tests,
+/// with renormalized weights; `sum` is the weight they had before (validity).
+#[derive(Clone, Copy)]
+struct Taps {
+    idx: [usize; 4],
+    w: [f32; 4],
+    sum: f32,
+}
+
+impl Taps {
+    const NONE: Taps = Taps { idx: [0; 4], w: [0.0; 4], sum: 0.0 };
+
+    #[inline]
+    fn sample(&self, plane: &[f32]) -> f32 {
+        self.w[0] * plane[self.idx[0]]
+            + self.w[1] * plane[self.idx[1]]
+            + self.w[2] * plane[self.idx[2]]
+            + self.w[3] * plane[self.idx[3]]
+    }
+}
+
+/// Bilinear taps at pixel position (`x`, `y`) (pixel centres at +0.5) in a
+/// `w` x `h` image. With `depth`, taps whose depth does not match `expected`
+/// are dropped.
+#[inline]
+fn taps(x: f32, y: f32, w: usize, h: usize, depth: Option<&[f32]>, expected: f32) -> Taps {
+    let fx = x - 0.5;
+    let fy = y - 0.5;
+    // Written so that NaN positions fail too.
+    if !(fx > -1.0 && fy > -1.0 && fx < w as f32 && fy < h as f32) {
+        return Taps::NONE;
+    }
+    let x0f = fx.floor();
+    let y0f = fy.floor();
+    let ax = fx - x0f;
+    let ay = fy - y0f;
+    let x0 = x0f as isize;
+    let y0 = y0f as isize;
+    let cand = [
+        (x0, y0, (1.0 - ax) * (1.0 - ay)),
+        (x0 + 1, y0, ax * (1.0 - ay)),
+        (x0, y0 + 1, (1.0 - ax) * ay),
+        (x0 + 1, y0 + 1, ax * ay),
+    ];
+    let mut t = Taps::NONE;
+    for (n, &(xi, yi, wt)) in cand.iter().enumerate() {
+        if wt <= 0.0 || xi < 0 || yi < 0 || xi >= w as isize || yi >= h as isize {
+            continue;
+        }
+        let i = yi as usize * w + xi as usize;
+        if let Some(d) = depth {
+            if !depth_match(expected, d[i]) {
+                continue;
+            }
+        }
+        t.idx[n] = i;
+        t.w[n] = wt;
+        t.sum += wt;
+    }
+    if t.sum > 0.0 {
+        let inv = 1.0 / t.sum;
+        for v in &mut t.w {
+            *v *= inv;
+        }
+        t.sum = t.sum.min(1.0);
+    }
+    t
+}
+
+/// Runs `f(row, [row slices of each plane])` over all rows, in parallel on
+/// `pool` when given. Each row is written by exactly one call, so the result
+/// does not depend on the number of threads.
+pub(crate) fn par_rows<const N: usize, F>(
+    pool: Option<&rayon::ThreadPool>,
+    planes: [&mut [f32]; N],
+    w: usize,
+    f: F,
+) where
+    F: Fn(usize, [&mut [f32]; N]) + Send + Sync,
+{
+    if w == 0 || N == 0 {
+        return;
+    }
+    let h = planes[0].len() / w;
+    let mut iters = planes.map(|p| p.chunks_mut(w));
+    let rows: Vec<[&mut [f32]; N]> = (0..h)
+        .map(|_| std::array::from_fn(|c| iters[c].next().expect("planes of equal size")))
+        .collect();
+    match pool {
+        Some(pool) => pool.install(|| {
+            rows.into_par_iter().enumerate().with_min_len(4).for_each(|(i, r)| f(i, r));
+        }),
+        None => rows.into_iter().enumerate().for_each(|(i, r)| f(i, r)),
+    }
+}
+
+/// Splits a 4-plane image into its planes.
+fn planes4(img: &mut Image) -> [&mut [f32]; 4] {
+    let n = img.len();
+    let (a, rest) = img.data.split_at_mut(n);
+    let (b, rest) = rest.split_at_mut(n);
+    let (c, d) = rest.split_at_mut(n);
+    [a, b, c, d]
+}
+
+/// Positions of the current pixels in history frame h, after following the
+/// motion vectors hop by hop, with the surface's depth there (NaN: unknown)
+/// and the validity so far.
+#[derive(Debug, Clone)]
+pub(crate) struct Chain {
+    x: Vec<f32>,
+    y: Vec<f32>,
+    depth: Vec<f32>,
+    valid: Vec<f32>,
+}
+
+/// Where a hop starts: the current frame (positions from its motion vectors)
+/// or a chain into a history frame.
+#[derive(Clone, Copy)]
+pub(crate) enum Source<'a> {
+    /// The current frame: `p1 = p0 + mv_t(p0)` exactly, no lookup.
+    Current {
+        /// The current frame's motion vectors.
+        motion: &'a Image,
+        /// The current frame's depth.
+        depth: Option<&'a [f32]>,
+    },
+    /// A chain into a history frame.
+    Chain(&'a Chain),
+}
+
+impl Source<'_> {
+    /// Position in the next frame, expected depth there (NaN: unknown) and validity.
+    #[inline]
+    fn at(&self, i: usize, j: usize, w: usize) -> (f32, f32, f32, f32) {
+        let p = i * w + j;
+        match self {
+            Source::Current { motion, depth } => {
+                let n = motion.len();
+                (
+                    j as f32 + 0.5 + motion.data[p],
+                    i as f32 + 0.5 + motion.data[n + p],
+                    depth.map_or(f32::NAN, |d| d[p]),
+                    1.0,
+                )
+            }
+            Source::Chain(c) => (c.x[p], c.y[p], c.depth[p], c.valid[p]),
+        }
+    }
+}
+
+/// Samples history frame `frame`'s color at the positions of `src`.
+pub(crate) fn hop_color(
+    src: Source<'_>,
+    frame: &HistoryFrame,
+    pool: Option<&rayon::ThreadPool>,
+) -> ReprojectedFrame {
+    let (w, h) = (frame.color.width, frame.color.height);
+    let mut color = Image::zeros(w, h, 4);
+    let mut valid = vec![0.0f32; w * h];
+    let [c0, c1, c2, c3] = planes4(&mut color);
+    let hist = &frame.color;
+    let hdepth = frame.depth.as_deref();
+    par_rows(pool, [c0, c1, c2, c3, &mut valid], w, |i, [r0, r1, r2, r3, rv]| {
+        for j in 0..w {
+            let (x, y, d, v) = src.at(i, j, w);
+            if v <= 0.0 {
+                continue;
+            }
+            let t = taps(x, y, w, h, if d.is_nan() { None } else { hdepth }, d);
+            if t.sum <= 0.0 {
+                continue;
+            }
+            r0[j] = t.sample(hist.plane(0));
+            r1[j] = t.sample(hist.plane(1));
+            r2[j] = t.sample(hist.plane(2));
+            r3[j] = t.sample(hist.plane(3));
+            rv[j] = v * t.sum;
+        }
+    });
+    ReprojectedFrame { color, valid }
+}
+
+/// Follows the motion vectors of history frame `frame` one hop further.
+/// `frame.motion` must be present.
+pub(crate) fn hop_chain(
+    src: Source<'_>,
+    frame: &HistoryFrame,
+    pool: Option<&rayon::ThreadPool>,
+) -> Chain {
+    let (w, h) = (frame.color.width, frame.color.height);
+    let n = w * h;
+    let mut chain =
+        Chain { x: vec![0.0; n], y: vec![0.0; n], depth: vec![f32::NAN; n], valid: vec![0.0; n] };
+    let motion = frame.motion.as_ref().expect("hop_chain needs the frame's motion vectors");
+    let (mx, my) = (motion.plane(0), motion.plane(1));
+    let hdepth = frame.depth.as_deref();
+    let Chain { x, y, depth, valid } = &mut chain;
+    par_rows(pool, [x, y, depth, valid], w, |i, [rx, ry, rd, rv]| {
+        for j in 0..w {
+            let (x, y, d, v) = src.at(i, j, w);
+            if v <= 0.0 {
+                continue;
+            }
+            let t = taps(x, y, w, h, if d.is_nan() { None } else { hdepth }, d);
+            if t.sum <= 0.0 {
+                continue;
+            }
+            rx[j] = x + t.sample(mx);
+            ry[j] = y + t.sample(my);
+            if let Some(hd) = hdepth {
+                rd[j] = t.sample(hd);
+            }
+            rv[j] = v * t.sum;
+        }
+    });
+    chain
+}
+
+/// Reprojects history frame `frame` with the current frame's depth and both
+/// cameras (static scene). The current frame must have depth and a camera and
+/// the history frame a camera.
+pub(crate) fn reproject_camera(
+    current: &PreparedFrame,
+    frame: &HistoryFrame,
+    pool: Option<&rayon::ThreadPool>,
+) -> ReprojectedFrame {
+    let (w, h) = (current.width(), current.height());
+    let depth = current.depth.as_deref().expect("camera reprojection needs depth");
+    let cc = current.camera.expect("camera reprojection needs the current camera");
+    let hc = frame.camera.expect("camera reprojection needs the history camera");
+    let cam_to_world = cc.world_to_camera.as_dmat4().inverse();
+    let cam_to_ndc: DMat4 = cc.world_to_ndc.as_dmat4() * cam_to_world;
+    // Current camera space to the history frame's clip space and planar depth.
+    let to_clip: DMat4 = hc.world_to_ndc.as_dmat4() * cam_to_world;
+    let to_cam: DMat4 = hc.world_to_camera.as_dmat4() * cam_to_world;
+    let zrow = to_cam.row(2);
+    let (r0, r1, r3) = (cam_to_ndc.row(0), cam_to_ndc.row(1), cam_to_ndc.row(3));
+    let (wf, hf) = (w as f64, h as f64);
+
+    let mut color = Image::zeros(w, h, 4);
+    let mut valid = vec![0.0f32; w * h];
+    let [c0, c1, c2, c3] = planes4(&mut color);
+    let hist = &frame.color;
+    let hdepth = frame.depth.as_deref();
+    par_rows(pool, [c0, c1, c2, c3, &mut valid], w, |i, [o0, o1, o2, o3, ov]| {
+        let v = (i as f64 + 0.5) / hf;
+        let b: DVec4 = r1 - v * r3;
+        for j in 0..w {
+            let u = (j as f64 + 0.5) / wf;
+            let a: DVec4 = r0 - u * r3;
+            let det = a.x * b.y - a.y * b.x;
+            if det.abs() < 1e-18 {
+                continue;
+            }
+            let d = depth[i * w + j];
+            // (a . X = 0, b . X = 0) with X = (x, y, d, 1), or the direction (x, y, 1, 0).
+            let far = d >= FAR_DEPTH;
+            let (ac, bc, dz, dw) = if far {
+                (-a.z, -b.z, 1.0, 0.0)
+            } else {
+                let d = d as f64;
+                (-(a.z * d + a.w), -(b.z * d + b.w), d, 1.0)
+            };
+            let p = DVec4::new((ac * b.y - a.y * bc) / det, (a.x * bc - ac * b.x) / det, dz, dw);
+            let zk = zrow.dot(p);
+            let clip = to_clip * p;
+            if zk <= 1e-9 || clip.w <= 1e-12 {
+                continue;
+            }
+            let px = (clip.x / clip.w * wf) as f32;
+            let py = (clip.y / clip.w * hf) as f32;
+            let expected = if far { f32::MAX } else { zk as f32 };
+            let t = taps(px, py, w, h, hdepth, expected);
+            if t.sum <= 0.0 {
+                continue;
+            }
+            o0[j] = t.sample(hist.plane(0));
+            o1[j] = t.sample(hist.plane(1));
+            o2[j] = t.sample(hist.plane(2));
+            o3[j] = t.sample(hist.plane(3));
+            ov[j] = t.sum;
+        }
+    });
+    ReprojectedFrame { color, valid }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn depth_test_is_relative_and_far_matches_far() {
+        assert!(depth_match(10.0, 10.5));
+        assert!(!depth_match(10.0, 12.0));
+        assert!(!depth_match(5.0, 1e10));
+        assert!(depth_match(1e10, f32::MAX));
+    }
+
+    #[test]
+    fn taps_drop_outside_and_mismatching_depth() {
+        // 2x1 image; position between the two pixel centres.
+        let d = [1.0f32, 5.0];
+        let t = taps(1.0, 0.5, 2, 1, None, f32::NAN);
+        assert!((t.sum - 1.0).abs() < 1e-6);
+        let t = taps(1.0, 0.5, 2, 1, Some(&d), 1.0);
+        assert!((t.sum - 0.5).abs() < 1e-6, "only the near tap is kept");
+        assert_eq!(t.sample(&[3.0, 7.0]), 3.0);
+        let t = taps(-0.6, 0.5, 2, 1, None, f32::NAN);
+        assert_eq!(t.sum, 0.0);
+        let t = taps(f32::NAN, 0.5, 2, 1, None, f32::NAN);
+        assert_eq!(t.sum, 0.0);
+    }
+}
