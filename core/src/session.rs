@@ -212,7 +212,8 @@ impl Session {
         let mut report = FrameReport { frame_index: input.frame_index, ..FrameReport::default() };
         progress.report(0.0)?;
 
-        let frame = stages.time("prepare", || PreparedFrame::from_input(input, self.params.depth_kind))?;
+        let pool = self.device.pool();
+        let frame = stages.time("prepare", || PreparedFrame::from_input_on(input, self.params.depth_kind, pool))?;
         if frame.sanitized > 0 {
             report.sanitized = frame.sanitized;
             report.warnings.push(format!(
@@ -227,6 +228,18 @@ impl Session {
                 fmt_index(input.frame_index),
                 frame.sanitized_aovs
             ));
+        }
+        if let Some(m) = &frame.motion {
+            let big = stages.time("prepare", || count_huge_motion(m, pool));
+            if big > 0 {
+                report.warnings.push(format!(
+                    "frame {}: {} motion vectors are longer than the image ({}x{}); check motion_vector_scale and the motion AOV",
+                    fmt_index(input.frame_index),
+                    big,
+                    frame.width(),
+                    frame.height()
+                ));
+            }
         }
 
         let sig = Signature {
@@ -246,9 +259,14 @@ impl Session {
             } else if last != sig {
                 reset = Some(ResetReason::LayoutChanged);
             } else if let (Some(prev), Some(cur)) = (st.last_index, input.frame_index) {
-                if cur != prev + 1 {
+                if cur != prev.wrapping_add(1) {
                     match self.params.gap_policy {
-                        GapPolicy::Reset => reset = Some(ResetReason::FrameGap),
+                        GapPolicy::Reset => {
+                            reset = Some(ResetReason::FrameGap);
+                            report.warnings.push(format!(
+                                "frame {cur}: not consecutive to frame {prev}; temporal state reset (gap_policy reset)"
+                            ));
+                        }
                         GapPolicy::Keep => report.warnings.push(format!(
                             "frame {cur}: not consecutive to frame {prev}; temporal state kept (gap_policy keep)"
                         )),
@@ -330,6 +348,19 @@ impl Session {
         write_output(&img, output);
         Ok(report)
     }
+}
+
+/// Motion vectors longer than the image in either axis (a wrong scale or AOV).
+fn count_huge_motion(m: &Image, pool: &rayon::ThreadPool) -> usize {
+    use rayon::prelude::*;
+    let (w, h) = (m.width as f32, m.height as f32);
+    let (mx, my) = (m.plane(0), m.plane(1));
+    pool.install(|| {
+        mx.par_chunks(m.width.max(1))
+            .zip(my.par_chunks(m.width.max(1)))
+            .map(|(rx, ry)| rx.iter().zip(ry).filter(|(x, y)| x.abs() > w || y.abs() > h).count())
+            .sum()
+    })
 }
 
 fn fmt_index(i: Option<i64>) -> String {

@@ -2,8 +2,31 @@
 //! prepared planar form the pipeline uses (validated, converted to the
 //! library's conventions, sanitized).
 
+use rayon::prelude::*;
+
 use super::{Camera, Image, ImageView};
 use crate::error::{Error, Result};
+
+/// Reads channel `c` of `view` into `plane` row by row (in parallel on `pool`
+/// when given) and applies `fix` to every sample; returns how many samples
+/// `fix` reported as replaced.
+fn read_plane(
+    pool: Option<&rayon::ThreadPool>,
+    view: &ImageView<'_>,
+    c: usize,
+    plane: &mut [f32],
+    fix: impl Fn(&mut f32) -> bool + Sync,
+) -> usize {
+    let w = view.width();
+    let row = |(y, row): (usize, &mut [f32])| -> usize {
+        view.read_row(y, c, row);
+        row.iter_mut().map(|v| usize::from(fix(v))).sum()
+    };
+    match pool {
+        Some(pool) => pool.install(|| plane.par_chunks_mut(w).enumerate().map(row).sum()),
+        None => plane.chunks_mut(w).enumerate().map(row).sum(),
+    }
+}
 
 /// How the depth AOV measures distance.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -107,8 +130,26 @@ impl PreparedFrame {
         self.color.height
     }
 
-    /// Validates `input` and converts it to the planar form.
+    /// Validates `input` and converts it to the planar form (on the calling thread).
     pub fn from_input(input: &FrameInput<'_>, depth_kind: DepthKind) -> Result<PreparedFrame> {
+        Self::prepare(input, depth_kind, None)
+    }
+
+    /// Like [`PreparedFrame::from_input`], row-parallel on `pool`; the result
+    /// is the same for any number of threads.
+    pub fn from_input_on(
+        input: &FrameInput<'_>,
+        depth_kind: DepthKind,
+        pool: &rayon::ThreadPool,
+    ) -> Result<PreparedFrame> {
+        Self::prepare(input, depth_kind, Some(pool))
+    }
+
+    fn prepare(
+        input: &FrameInput<'_>,
+        depth_kind: DepthKind,
+        pool: Option<&rayon::ThreadPool>,
+    ) -> Result<PreparedFrame> {
         let (w, h) = (input.width(), input.height());
         if input.color.channels() < 3 {
             return Err(Error::invalid(format!(
@@ -149,71 +190,72 @@ impl PreparedFrame {
             ));
         }
 
-        let mut sanitized = 0usize;
-        let mut sanitized_aovs = 0usize;
+        let n = w * h;
         let mut color = Image::zeros(w, h, 3);
-        {
-            let n = w * h;
-            for c in 0..3 {
-                let plane = &mut color.data[c * n..(c + 1) * n];
-                for (y, row) in plane.chunks_mut(w).enumerate() {
-                    input.color.read_row(y, c, row);
-                    for v in row.iter_mut() {
-                        if !(v.is_finite() && *v >= 0.0) {
-                            *v = 0.0;
-                            sanitized += 1;
-                        }
-                    }
+        let mut sanitized = 0usize;
+        for c in 0..3 {
+            sanitized += read_plane(pool, &input.color, c, &mut color.data[c * n..(c + 1) * n], |v| {
+                if v.is_finite() && *v >= 0.0 {
+                    false
+                } else {
+                    *v = 0.0;
+                    true
                 }
-            }
+            });
         }
-        let mut read_planes =
-            |v: &Option<ImageView<'_>>, ch: usize, lo: f32, hi: f32, bad: f32| -> Option<Image> {
-                v.as_ref().map(|v| {
-                    let mut img = Image::zeros(w, h, ch);
-                    let n = w * h;
-                    for c in 0..ch {
-                        let plane = &mut img.data[c * n..(c + 1) * n];
-                        for (y, row) in plane.chunks_mut(w).enumerate() {
-                            v.read_row(y, c, row);
-                            for x in row.iter_mut() {
-                                if x.is_nan() {
-                                    *x = bad;
-                                    sanitized_aovs += 1;
-                                } else {
-                                    *x = x.clamp(lo, hi);
-                                }
-                            }
+        let mut sanitized_aovs = 0usize;
+        // NaN becomes `bad` (counted), everything else is clamped to [lo, hi].
+        let mut read_planes = |v: &Option<ImageView<'_>>, ch: usize, lo: f32, hi: f32, bad: f32| {
+            v.as_ref().map(|v| {
+                let mut img = Image::zeros(w, h, ch);
+                for c in 0..ch {
+                    sanitized_aovs += read_plane(pool, v, c, &mut img.data[c * n..(c + 1) * n], |x| {
+                        if x.is_nan() {
+                            *x = bad;
+                            true
+                        } else {
+                            *x = x.clamp(lo, hi);
+                            false
                         }
-                    }
-                    img
-                })
-            };
+                    });
+                }
+                img
+            })
+        };
         let coverage = read_planes(&input.coverage, 1, 0.0, 1.0, 0.0).map(|i| i.data);
         let insert_mask = read_planes(&input.insert_mask, 1, 0.0, 1.0, 0.0).map(|i| i.data);
         let mut depth = read_planes(&input.depth, 1, 0.0, f32::MAX, f32::MAX).map(|i| i.data);
-        let limit = 4.0 * (w.max(h) as f32);
-        let mut motion = read_planes(&input.motion, 2, -f32::MAX, f32::MAX, 0.0);
-        if let Some(m) = motion.as_mut() {
-            let n = w * h;
-            for (c, scale) in s.iter().enumerate() {
-                for v in &mut m.data[c * n..(c + 1) * n] {
-                    *v = (*v * scale).clamp(-limit, limit);
-                }
-            }
-        }
         let normal = read_planes(&input.normal, 3, -f32::MAX, f32::MAX, 0.0);
+        let limit = 4.0 * (w.max(h) as f32);
+        let motion = input.motion.as_ref().map(|v| {
+            let mut img = Image::zeros(w, h, 2);
+            for (c, scale) in s.iter().copied().enumerate() {
+                sanitized_aovs += read_plane(pool, v, c, &mut img.data[c * n..(c + 1) * n], |x| {
+                    if x.is_nan() {
+                        *x = 0.0;
+                        true
+                    } else {
+                        *x = (x.clamp(-f32::MAX, f32::MAX) * scale).clamp(-limit, limit);
+                        false
+                    }
+                });
+            }
+            img
+        });
         if depth_kind == DepthKind::Euclidean {
             if let (Some(d), Some(cam)) = (depth.as_mut(), input.camera.as_ref()) {
                 let un = cam.unprojector(w, h);
-                for y in 0..h {
-                    for x in 0..w {
-                        let f = un.euclidean_to_planar(glam::DVec2::new(x as f64 + 0.5, y as f64 + 0.5));
-                        let v = &mut d[y * w + x];
+                let convert = |(y, row): (usize, &mut [f32])| {
+                    for (x, v) in row.iter_mut().enumerate() {
                         if *v < f32::MAX {
+                            let f = un.euclidean_to_planar(glam::DVec2::new(x as f64 + 0.5, y as f64 + 0.5));
                             *v = (*v as f64 * f) as f32;
                         }
                     }
+                };
+                match pool {
+                    Some(pool) => pool.install(|| d.par_chunks_mut(w).enumerate().for_each(convert)),
+                    None => d.chunks_mut(w).enumerate().for_each(convert),
                 }
             }
         }
