@@ -161,23 +161,54 @@ def detect_view_layer(exr: exrio.MultiPartExr) -> str | None:
     return None
 
 
-def blender_camera_matrices(
-    matrix_world: np.ndarray, projection_gl: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """OpenEXR ``worldToCamera`` and ``worldToNDC`` (row-vector) from a Blender camera.
+@dataclass
+class CameraParams:
+    """A Blender perspective camera and the render size, as plain values."""
 
-    ``matrix_world`` is the camera object's world matrix and ``projection_gl``
-    its OpenGL projection (``Object.calc_matrix_camera``), both column-vector
-    4x4. Blender cameras look down -z; OpenEXR camera space looks down +z, and
-    its NDC runs (0,0) top-left to (1,1) bottom-right.
+    matrix_world: np.ndarray  # 4x4, column-vector (Blender's Object.matrix_world)
+    lens: float  # mm
+    sensor_width: float  # mm
+    sensor_height: float  # mm
+    sensor_fit: str  # 'AUTO', 'HORIZONTAL' or 'VERTICAL'
+    shift_x: float
+    shift_y: float
+    clip_start: float
+    width: int  # pixels
+    height: int
+    pixel_aspect_x: float = 1.0
+    pixel_aspect_y: float = 1.0
+
+
+def blender_camera_matrices(cam: CameraParams) -> tuple[np.ndarray, np.ndarray]:
+    """OpenEXR ``worldToCamera`` and ``worldToNDC`` (row-vector) of a Blender perspective camera.
+
+    Follows Blender's view plane (sensor fit, shift, pixel aspect). Blender
+    cameras look down -z; OpenEXR camera space looks down +z, and its NDC runs
+    (0,0) top-left to (1,1) bottom-right after dividing by w (= camera z).
     """
-    view_gl = np.linalg.inv(np.asarray(matrix_world, dtype=np.float64))
-    flip = np.diag([1.0, 1.0, -1.0, 1.0])
-    world_to_camera = flip @ view_gl
-    to_ndc = np.array(
-        [[0.5, 0.0, 0.0, 0.5], [0.0, -0.5, 0.0, 0.5], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
+    winx, winy = float(cam.width), float(cam.height)
+    ycor = cam.pixel_aspect_y / cam.pixel_aspect_x
+    fit = cam.sensor_fit
+    if fit == "AUTO":
+        sensor = cam.sensor_width
+        fit = "HORIZONTAL" if cam.pixel_aspect_x * winx >= cam.pixel_aspect_y * winy else "VERTICAL"
+    else:
+        sensor = cam.sensor_width if fit == "HORIZONTAL" else cam.sensor_height
+    viewfac = winx if fit == "HORIZONTAL" else ycor * winy
+    f = cam.lens * viewfac / sensor  # pixels per unit of x/z (horizontal pixel units)
+    dx, dy = cam.shift_x * viewfac, cam.shift_y * viewfac
+    # u = 0.5 + (f x/z - dx) / winx ; v = 0.5 - (f y/z - dy) / (ycor winy)
+    cam_to_ndc = np.array(
+        [
+            [f / winx, 0.0, 0.5 - dx / winx, 0.0],
+            [0.0, -f / (ycor * winy), 0.5 + dy / (ycor * winy), 0.0],
+            [0.0, 0.0, 1.0, -cam.clip_start],
+            [0.0, 0.0, 1.0, 0.0],
+        ]
     )
-    world_to_ndc = to_ndc @ np.asarray(projection_gl, dtype=np.float64) @ view_gl
+    view_gl = np.linalg.inv(np.asarray(cam.matrix_world, dtype=np.float64))
+    world_to_camera = np.diag([1.0, 1.0, -1.0, 1.0]) @ view_gl
+    world_to_ndc = cam_to_ndc @ world_to_camera
     return (
         np.ascontiguousarray(world_to_camera.T, dtype=np.float32),
         np.ascontiguousarray(world_to_ndc.T, dtype=np.float32),

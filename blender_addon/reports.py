@@ -20,26 +20,17 @@ import bpy
 RECENT: collections.deque = collections.deque(maxlen=200)
 _PENDING: collections.deque = collections.deque()
 _LOCK = threading.Lock()
-_TIMER_ON = False
+_POLL_SECONDS = 0.5
 
 
 def post(level: str, text: str) -> None:
-    """Report ``text`` at ``level`` ('INFO', 'WARNING' or 'ERROR')."""
-    global _TIMER_ON
+    """Report ``text`` at ``level`` ('INFO', 'WARNING' or 'ERROR'); safe from any thread."""
     with _LOCK:
         RECENT.append((level, text))
-        _PENDING.append((level, text))
+        if not bpy.app.background:
+            _PENDING.append((level, text))
     label = {"INFO": "Info", "WARNING": "Warning", "ERROR": "Error"}.get(level, level)
     print(f"{label}: {text}", file=sys.stderr if level != "INFO" else sys.stdout, flush=True)
-    if bpy.app.background:
-        with _LOCK:
-            _PENDING.clear()
-        return
-    with _LOCK:
-        if _TIMER_ON:
-            return
-        _TIMER_ON = True
-    bpy.app.timers.register(_flush, first_interval=0.0)
 
 
 def take_pending() -> list[tuple[str, str]]:
@@ -50,15 +41,17 @@ def take_pending() -> list[tuple[str, str]]:
     return items
 
 
-def _flush():
-    global _TIMER_ON
-    with _LOCK:
-        _TIMER_ON = False
-    try:
-        bpy.ops.harmonizer.show_reports()
-    except Exception as exc:  # no window (e.g. closing): the terminal has the messages
-        print(f"Harmonizer: could not show reports: {exc}", file=sys.stderr)
-    return None
+def _poll():
+    """Main-thread timer: turn pending messages into Blender reports."""
+    if _PENDING:
+        try:
+            bpy.ops.harmonizer.show_reports()
+        except RuntimeError:
+            pass  # an ERROR report reaches the UI and is also raised to the caller
+        except Exception as exc:  # no window (e.g. while closing): the terminal has the messages
+            print(f"Harmonizer: could not show reports: {exc}", file=sys.stderr)
+            take_pending()
+    return _POLL_SECONDS
 
 
 class HARMONIZER_OT_show_reports(bpy.types.Operator):
@@ -76,11 +69,12 @@ class HARMONIZER_OT_show_reports(bpy.types.Operator):
 
 def register() -> None:
     bpy.utils.register_class(HARMONIZER_OT_show_reports)
+    if not bpy.app.background:
+        bpy.app.timers.register(_poll, first_interval=_POLL_SECONDS, persistent=True)
 
 
 def unregister() -> None:
-    global _TIMER_ON
-    if bpy.app.timers.is_registered(_flush):
-        bpy.app.timers.unregister(_flush)
-    _TIMER_ON = False
+    if bpy.app.timers.is_registered(_poll):
+        bpy.app.timers.unregister(_poll)
+    take_pending()
     bpy.utils.unregister_class(HARMONIZER_OT_show_reports)

@@ -73,24 +73,36 @@ class Runner:
             device.close()
 
 
-def camera_matrices(scene: bpy.types.Scene):
-    """OpenEXR worldToCamera/worldToNDC of the scene camera at the current frame, or None."""
+def camera_params(scene: bpy.types.Scene) -> processor.CameraParams | None:
+    """The scene camera at the current frame as plain values (perspective only), or None.
+
+    Reads only properties (no depsgraph evaluation), so it is safe in render
+    handlers, which run in the render thread when rendering from the UI.
+    """
     import numpy as np
 
     cam = scene.camera
-    if cam is None or cam.type != "CAMERA":
-        return None
+    if cam is None or cam.type != "CAMERA" or cam.data.type != "PERSP":
+        return None  # orthographic/panoramic: the library reprojects with motion vectors only
     r = scene.render
-    x = max(1, int(r.resolution_x * r.resolution_percentage / 100))
-    y = max(1, int(r.resolution_y * r.resolution_percentage / 100))
-    try:
-        depsgraph = bpy.context.evaluated_depsgraph_get()
-        cam_eval = cam.evaluated_get(depsgraph)
-        proj = cam_eval.calc_matrix_camera(depsgraph, x=x, y=y, scale_x=r.pixel_aspect_x, scale_y=r.pixel_aspect_y)
-        world = cam_eval.matrix_world
-    except Exception:
-        return None
-    if cam.data.type != "PERSP":
-        # Orthographic/panoramic cameras: reproject with motion vectors only.
-        return None
-    return processor.blender_camera_matrices(np.array(world, dtype=np.float64), np.array(proj, dtype=np.float64))
+    data = cam.data
+    return processor.CameraParams(
+        matrix_world=np.array(cam.matrix_world, dtype=np.float64),
+        lens=data.lens,
+        sensor_width=data.sensor_width,
+        sensor_height=data.sensor_height,
+        sensor_fit=data.sensor_fit,
+        shift_x=data.shift_x,
+        shift_y=data.shift_y,
+        clip_start=data.clip_start,
+        width=max(1, int(r.resolution_x * r.resolution_percentage / 100)),
+        height=max(1, int(r.resolution_y * r.resolution_percentage / 100)),
+        pixel_aspect_x=r.pixel_aspect_x,
+        pixel_aspect_y=r.pixel_aspect_y,
+    )
+
+
+def camera_matrices(scene: bpy.types.Scene):
+    """OpenEXR worldToCamera/worldToNDC of the scene camera at the current frame, or None."""
+    params = camera_params(scene)
+    return None if params is None else processor.blender_camera_matrices(params)

@@ -346,3 +346,30 @@ def test_before_after_image(addon, classical_run, tmp_root):
     assert outf.write_image((image * 255.0 + 0.5).astype(np.uint8))
     outf.close()
     assert os.path.getsize(path) > 1000
+
+
+def test_camera_matrices_match_blender_projection(addon, tmp_root):
+    """worldToNDC from the camera settings projects like Blender's own world_to_camera_view."""
+    from bpy_extras.object_utils import world_to_camera_view
+
+    scene = fixture.build(os.path.join(tmp_root, "cam", "frame_####.exr"))
+    cam = scene.camera
+    cases = [
+        dict(),
+        dict(shift_x=0.1, shift_y=-0.05),
+        dict(sensor_fit="VERTICAL", lens=50.0),
+        dict(sensor_fit="HORIZONTAL", shift_y=0.2),
+    ]
+    for case in cases:
+        for k, v in case.items():
+            setattr(cam.data, k, v)
+        for frame in (1, 8):
+            scene.frame_set(frame)
+            w2c, w2n = addon.runtime.camera_matrices(scene)
+            for obj in ("Cube", "Pillar", "InsertedSphere"):
+                p = bpy.data.objects[obj].matrix_world.translation
+                ref = world_to_camera_view(scene, cam, p)
+                h = np.array([p.x, p.y, p.z, 1.0]) @ w2n.astype(np.float64)
+                c = np.array([p.x, p.y, p.z, 1.0]) @ w2c.astype(np.float64)
+                np.testing.assert_allclose([h[0] / h[3], h[1] / h[3]], [ref.x, 1.0 - ref.y], atol=1e-5, err_msg=f"{case} {obj}")
+                assert abs(c[2] - ref.z) < 1e-4  # planar depth along +z
