@@ -15,7 +15,7 @@ import time
 import bpy
 from bpy.props import BoolProperty, StringProperty
 
-from . import exrio, processor, reports, runtime, sequence
+from . import deps, exrio, processor, reports, runtime, sequence
 
 
 class _Job:
@@ -24,7 +24,7 @@ class _Job:
         if not frames:
             raise processor.FrameError(f"{directory}: no frame-numbered .exr files")
         if not view_layer:
-            oiio = runtime.deps.oiio()
+            oiio = deps.oiio()
             view_layer = processor.detect_view_layer(exrio.read(oiio, frames[0][1])) or ""
             if not view_layer:
                 raise processor.FrameError(f"{frames[0][1]}: no view layer with a Combined pass")
