@@ -373,3 +373,20 @@ def test_camera_matrices_match_blender_projection(addon, tmp_root):
                 c = np.array([p.x, p.y, p.z, 1.0]) @ w2c.astype(np.float64)
                 np.testing.assert_allclose([h[0] / h[3], h[1] / h[3]], [ref.x, 1.0 - ref.y], atol=1e-5, err_msg=f"{case} {obj}")
                 assert abs(c[2] - ref.z) < 1e-4  # planar depth along +z
+
+
+def test_frame_patterns_and_motion_blur_warning(addon, tmp_root):
+    seq = addon.sequence
+    for pattern in ("f_####.exr", "f_%04d.exr", "f_$F4.exr", "f_${F4}.exr", "f_<F4>.exr"):
+        assert seq.expand(pattern, 7) == "f_0007.exr", pattern
+    assert seq.expand("f_.exr", 12) == "f_0012.exr"
+    scene = fixture.build(os.path.join(tmp_root, "warn", "frame_####.exr"))
+    scene.harmonizer.enabled = True
+    scene.render.use_motion_blur = True
+    msgs = addon.passes.check(scene, apply=False)
+    assert any(level == "WARNING" and "motion blur" in text for level, text in msgs), msgs
+    scene.harmonizer.output_path = os.path.join(tmp_root, "warn", "hz", "shot_<F4>")
+    raw = scene.render.frame_path(frame=3)
+    assert addon.passes.enhanced_path(scene, raw, 3) == os.path.join(tmp_root, "warn", "hz", "shot_0003.exr")
+    scene.harmonizer.output_path = ""
+    assert addon.passes.enhanced_path(scene, raw, 3) == os.path.join(tmp_root, "warn", "harmonized", "frame_0003.exr")
