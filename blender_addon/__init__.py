@@ -18,12 +18,25 @@ from __future__ import annotations
 if "bpy" in locals():  # reload (Reload Scripts / disable + enable)
     import importlib
 
-    for _name in ("deps", "exrio", "colorspace", "sequence", "processor", "props", "passes", "reports",
-                  "runtime", "handlers", "nodes", "ops", "panel"):
+    for _name in (
+        "deps",
+        "exrio",
+        "colorspace",
+        "sequence",
+        "processor",
+        "props",
+        "passes",
+        "reports",
+        "runtime",
+        "handlers",
+        "nodes",
+        "ops",
+        "panel",
+    ):
         if _name in locals():
             importlib.reload(locals()[_name])
 
-import bpy  # noqa: E402
+import bpy  # noqa: E402, F401  (the reload check above looks for it)
 
 from . import (  # noqa: E402
     colorspace,

@@ -100,10 +100,27 @@ def fetch_onnxruntime(cache: str) -> str:
     have = sorted(f for f in os.listdir(cache) if f.startswith("onnxruntime-1.31.") and f.endswith(".whl"))
     if not have:
         cmd = [
-            sys.executable, "-m", "pip", "download", ORT_SPEC, "--no-deps", "--only-binary=:all:",
-            "--python-version", "3.11", "--implementation", "cp", "--abi", "cp311",
-            "--platform", "manylinux_2_28_x86_64", "--platform", "manylinux_2_27_x86_64",
-            "--platform", "manylinux2014_x86_64", "-d", cache,
+            sys.executable,
+            "-m",
+            "pip",
+            "download",
+            ORT_SPEC,
+            "--no-deps",
+            "--only-binary=:all:",
+            "--python-version",
+            "3.11",
+            "--implementation",
+            "cp",
+            "--abi",
+            "cp311",
+            "--platform",
+            "manylinux_2_28_x86_64",
+            "--platform",
+            "manylinux_2_27_x86_64",
+            "--platform",
+            "manylinux2014_x86_64",
+            "-d",
+            cache,
         ]
         print("+", " ".join(cmd), flush=True)
         subprocess.run(cmd, check=True)
@@ -178,12 +195,18 @@ def validate(path: str) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--lib", default=os.environ.get("HARMONIZER_LIB") or os.path.join(REPO, "target", "release", "libharmonizer.so"),
-                    help="libharmonizer.so to bundle (default: $HARMONIZER_LIB or target/release)")
+    ap.add_argument(
+        "--lib",
+        default=os.environ.get("HARMONIZER_LIB") or os.path.join(REPO, "target", "release", "libharmonizer.so"),
+        help="libharmonizer.so to bundle (default: $HARMONIZER_LIB or target/release)",
+    )
     ap.add_argument("--cargo", action="store_true", help="build it first: cargo build --release -p harmonizer-ffi")
     ap.add_argument("--out", default=os.path.join(REPO, "dist"), help="output folder for the zip")
-    ap.add_argument("--cache", default=os.path.join(REPO, "build", "blender_addon", "wheel-cache"),
-                    help="where downloaded wheels are kept between builds")
+    ap.add_argument(
+        "--cache",
+        default=os.path.join(REPO, "build", "blender_addon", "wheel-cache"),
+        help="where downloaded wheels are kept between builds",
+    )
     ap.add_argument("--no-onnxruntime", action="store_true", help="do not bundle onnxruntime (classical/bypass only)")
     ap.add_argument("--no-validate", action="store_true", help="skip Blender's manifest validation")
     args = ap.parse_args(argv)
@@ -192,8 +215,10 @@ def main(argv: list[str] | None = None) -> int:
         subprocess.run(["cargo", "build", "--release", "-p", "harmonizer-ffi"], cwd=REPO, check=True)
     lib = os.path.abspath(args.lib)
     if not os.path.isfile(lib):
-        print(f"error: {lib} not found; build it with `cargo build --release -p harmonizer-ffi` or pass --lib/--cargo",
-              file=sys.stderr)
+        print(
+            f"error: {lib} not found; build it with `cargo build --release -p harmonizer-ffi` or pass --lib/--cargo",
+            file=sys.stderr,
+        )
         return 2
     with open(os.path.join(HERE, "blender_manifest.toml"), encoding="utf-8") as fh:
         version = _manifest_version(fh.read())

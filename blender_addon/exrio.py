@@ -33,9 +33,7 @@ class Part:
     @property
     def name(self) -> str:
         """The part name (``ViewLayer.Combined``), or '' for a single-part file."""
-        return self.spec.get_string_attribute("name", "") or self.spec.get_string_attribute(
-            "oiio:subimagename", ""
-        )
+        return self.spec.get_string_attribute("name", "") or self.spec.get_string_attribute("oiio:subimagename", "")
 
     @property
     def channels(self) -> list[str]:
@@ -87,9 +85,7 @@ class MultiPartExr:
         """The (H, W) float32 view of one channel, found by name."""
         loc = self.find(name)
         if loc is None:
-            raise ExrError(
-                f"{self.path}: channel {name!r} not found (channels: {', '.join(self.channel_names())})"
-            )
+            raise ExrError(f"{self.path}: channel {name!r} not found (channels: {', '.join(self.channel_names())})")
         pi, ci = loc
         return self.parts[pi].pixels[:, :, ci]
 
@@ -100,11 +96,9 @@ class MultiPartExr:
         part (no copy), else a stacked copy.
         """
         locs = [self.find(n) for n in names]
-        for n, loc in zip(names, locs):
+        for n, loc in zip(names, locs, strict=True):
             if loc is None:
-                raise ExrError(
-                    f"{self.path}: channel {n!r} not found (channels: {', '.join(self.channel_names())})"
-                )
+                raise ExrError(f"{self.path}: channel {n!r} not found (channels: {', '.join(self.channel_names())})")
         pis = {pi for pi, _ in locs}
         idx = [ci for _, ci in locs]
         if len(pis) == 1 and idx == list(range(idx[0], idx[0] + len(idx))):
@@ -151,7 +145,8 @@ def read(oiio, path: str) -> MultiPartExr:
             # Name the part explicitly: the (chbegin, chend) form reads the first part.
             pixels = inp.read_image(index, 0, 0, spec.nchannels, oiio.FLOAT)
             if pixels is None or not isinstance(pixels, np.ndarray):
-                raise ExrError(f"{path}: part {index} ({spec.get_string_attribute('name', '')}): cannot read pixels: {_oiio_error(oiio, inp)}")
+                part_name = spec.get_string_attribute("name", "")
+                raise ExrError(f"{path}: part {index} ({part_name}): cannot read pixels: {_oiio_error(oiio, inp)}")
             pixels = np.ascontiguousarray(pixels.reshape(spec.height, spec.width, spec.nchannels), dtype=np.float32)
             exr.parts.append(Part(oiio.ImageSpec(spec), pixels))
             index += 1
@@ -190,7 +185,7 @@ def write(oiio, exr: MultiPartExr, path: str, *, extra_attributes: dict | None =
         if not ok:
             raise ExrError(f"{path}: cannot open for writing: {_oiio_error(oiio, out)}")
         try:
-            for k, (spec, part) in enumerate(zip(specs, exr.parts)):
+            for k, (spec, part) in enumerate(zip(specs, exr.parts, strict=True)):
                 if k > 0 and not out.open(tmp, spec, "AppendSubimage"):
                     raise ExrError(f"{path}: cannot append part {k} ({part.name}): {_oiio_error(oiio, out)}")
                 if not out.write_image(np.ascontiguousarray(part.pixels, dtype=np.float32)):

@@ -154,4 +154,3 @@ def registered_count() -> int:
         for existing in handler_list
         if getattr(existing, "__module__", None) == fn.__module__
     )
-

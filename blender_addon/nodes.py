@@ -148,4 +148,3 @@ def unregister() -> None:
     if menu is not None:
         menu.remove(_menu_draw)
     bpy.utils.unregister_class(HARMONIZER_OT_add_node)
-

@@ -77,7 +77,9 @@ class HARMONIZER_OT_enhance_sequence(bpy.types.Operator):
 
     directory: StringProperty(name="Rendered Frames", subtype="DIR_PATH")
     output_directory: StringProperty(
-        name="Output", description="Where enhanced frames go (empty: a 'harmonized' folder inside the input)", subtype="DIR_PATH"
+        name="Output",
+        description="Where enhanced frames go (empty: a 'harmonized' folder inside the input)",
+        subtype="DIR_PATH",
     )
     view_layer: StringProperty(name="View Layer", description="View layer in the files (empty: the first one)")
     use_modal: BoolProperty(options={"HIDDEN", "SKIP_SAVE"}, default=False)
@@ -90,9 +92,14 @@ class HARMONIZER_OT_enhance_sequence(bpy.types.Operator):
         if not directory or not os.path.isdir(directory):
             self.report({"ERROR"}, f"Harmonizer: input folder not found: {directory!r}")
             return None
-        output = bpy.path.abspath(self.output_directory) if self.output_directory else os.path.join(directory, "harmonized")
+        output = (
+            bpy.path.abspath(self.output_directory) if self.output_directory else os.path.join(directory, "harmonized")
+        )
         if os.path.abspath(output) == os.path.abspath(directory):
-            self.report({"ERROR"}, f"Harmonizer: the output folder is the input folder ({directory}); raw frames are never overwritten")
+            self.report(
+                {"ERROR"},
+                f"Harmonizer: the output folder is the input folder ({directory}); raw frames are never overwritten",
+            )
             return None
         try:
             return _Job(context.scene, directory, output, self.view_layer or context.scene.harmonizer.view_layer)

@@ -84,7 +84,9 @@ def check(scene: bpy.types.Scene, *, apply: bool) -> list[tuple[str, str]]:
                 fmt.color_depth = "32"
             out.append(("INFO", "Harmonizer: output set to multilayer OpenEXR (harmonizer reads the passes from it)"))
         else:
-            out.append(("WARNING", f"Harmonizer: output format is {fmt.file_format}; harmonizer needs multilayer OpenEXR"))
+            out.append(
+                ("WARNING", f"Harmonizer: output format is {fmt.file_format}; harmonizer needs multilayer OpenEXR")
+            )
     if s.mask_source == "OBJECT" and s.mask_object is None:
         out.append(("WARNING", "Harmonizer: insert mask source is Object but no object is set"))
     if s.mask_source == "COLLECTION" and s.mask_collection is None:

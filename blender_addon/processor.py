@@ -334,9 +334,7 @@ class FrameProcessor:
         if progress is not None:
             kwargs["progress"] = progress
 
-        out = self.session.process(
-            color, frame_index=frame if frame_index is None else frame_index, **kwargs
-        )
+        out = self.session.process(color, frame_index=frame if frame_index is None else frame_index, **kwargs)
         out = np.array(out, dtype=np.float32, copy=True)
         conv.from_library(out)
         report = dict(self.session.last_report or {})

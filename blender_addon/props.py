@@ -56,7 +56,11 @@ class HarmonizerSceneSettings(bpy.types.PropertyGroup):
         max=8,
     )
     strength: FloatProperty(
-        name="Strength", description="Blend between the raw (0) and the enhanced (1) frame", default=1.0, min=0.0, max=1.0
+        name="Strength",
+        description="Blend between the raw (0) and the enhanced (1) frame",
+        default=1.0,
+        min=0.0,
+        max=1.0,
     )
     coverage: EnumProperty(name="Coverage", items=COVERAGE, default="ALPHA")
     mask_source: EnumProperty(name="Insert Mask", items=MASK_SOURCES, default="NONE")

@@ -195,7 +195,10 @@ def test_ocio_round_trip_is_exact_with_bypass(addon, tmp_root, space):
     for frame in (1, 2):
         raw, raw_attrs = read_exr(os.path.join(out, "raw", f"frame_{frame:04d}.exr"))
         enh, attrs = read_exr(os.path.join(out, "enhanced", f"frame_{frame:04d}.exr"))
-        assert attrs["harmonizer/colorspace"] == space, (attrs.get("harmonizer/colorspace"), raw_attrs.get("colorInteropID"))
+        assert attrs["harmonizer/colorspace"] == space, (
+            attrs.get("harmonizer/colorspace"),
+            raw_attrs.get("colorInteropID"),
+        )
         for c in COLOR:
             np.testing.assert_allclose(enh[c], raw[c], atol=1e-4, rtol=0, err_msg=f"{space} frame {frame} {c}")
 
@@ -371,7 +374,9 @@ def test_camera_matrices_match_blender_projection(addon, tmp_root):
                 ref = world_to_camera_view(scene, cam, p)
                 h = np.array([p.x, p.y, p.z, 1.0]) @ w2n.astype(np.float64)
                 c = np.array([p.x, p.y, p.z, 1.0]) @ w2c.astype(np.float64)
-                np.testing.assert_allclose([h[0] / h[3], h[1] / h[3]], [ref.x, 1.0 - ref.y], atol=1e-5, err_msg=f"{case} {obj}")
+                np.testing.assert_allclose(
+                    [h[0] / h[3], h[1] / h[3]], [ref.x, 1.0 - ref.y], atol=1e-5, err_msg=f"{case} {obj}"
+                )
                 assert abs(c[2] - ref.z) < 1e-4  # planar depth along +z
 
 
