@@ -1,0 +1,232 @@
+"""The processing loop: one harmonizer session per render product (and its
+camera), frames in increasing order, outputs written atomically.
+
+For each frame: read the product's file, find each var's channels by name,
+convert color to Linear Rec.709 (PyOpenColorIO), pass depth, motion
+(scaled into the library's convention), normals, coverage, the insert mask
+and the frame's camera matrices (so a product without motion vectors is
+reprojected from depth), enhance, convert back, and write a copy of the file
+with the color (and coverage) channels replaced and ``harmonizer:*``
+attributes added. A failed frame raises :class:`FrameError` naming the
+product, frame and file, and leaves the session's temporal state unchanged.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from . import binding
+from .camera import exr_matrices
+from .color import ColorConverter, converter_for
+from .errors import FrameError, ProductFileError, UsdHarmonizerError
+from .exrio import read_exr, write_exr_atomic
+from .settings import ProductInfo, SettingsInfo
+from .varmap import Binding, find_channels, map_vars
+
+
+@dataclass
+class Options:
+    """How products are processed (the CLI's options)."""
+
+    #: Library backend: auto, neural, classical or bypass.
+    backend: str = "auto"
+    #: Further session parameters by name (``strength``, ``context_frames``, ...).
+    params: dict[str, Any] = field(default_factory=dict)
+    #: Output directory; default ``<product file dir>/harmonized``.
+    out_dir: Path | None = None
+    #: User var mapping: var name or path -> role (or ``ignore``).
+    user_map: dict[str, str] = field(default_factory=dict)
+    #: Motion-vector scale for every product (overrides ``harmonizer:motionVectorScale``).
+    motion_scale: tuple[float, float] | None = None
+    #: OCIO config (default ``$OCIO``, else ``ocio://default``).
+    ocio_config: str | None = None
+    #: Library threads (0 = all cores).
+    threads: int = 0
+    #: Model file (None = the library's embedded default).
+    model: str | None = None
+    #: Pass the per-frame camera matrices even when motion vectors exist.
+    always_cameras: bool = True
+
+
+@dataclass
+class FrameResult:
+    """What happened to one frame of one product."""
+
+    product: str
+    frame: int
+    source: Path
+    output: Path
+    reset: str | None
+    backend: str
+    total_ms: float
+    history_used: int
+    color_space: str
+    inputs: list[str]
+    warnings: list[str]
+
+
+def make_device(options: Options) -> Any:
+    """A library device for ``options`` (threads, model)."""
+    hz = binding.load()
+    try:
+        return hz.Device(threads=options.threads, model=options.model)
+    except hz.HarmonizerError as e:
+        raise UsdHarmonizerError(f"cannot create the harmonizer device: {e}") from e
+
+
+def _header_matrix(attrs: dict[str, Any], name: str) -> np.ndarray | None:
+    v = attrs.get(name)
+    if v is None:
+        return None
+    try:
+        m = np.asarray(v, dtype=np.float64).reshape(4, 4)
+    except (TypeError, ValueError):
+        return None
+    return m if np.isfinite(m).all() else None
+
+
+class ProductRunner:
+    """Runs one product's frames through one session, keeping temporal state."""
+
+    def __init__(self, product: ProductInfo, settings: SettingsInfo, device: Any, options: Options) -> None:
+        hz = binding.load()
+        self.hz = hz
+        self.product = product
+        self.settings = settings
+        self.options = options
+        self.roles = map_vars(product, options.user_map)
+        params: dict[str, Any] = dict(options.params)
+        params["backend"] = options.backend
+        depth_var = self.roles.get("depth")
+        if depth_var is not None and depth_var.depth_kind:
+            params.setdefault("depth_kind", depth_var.depth_kind)
+        try:
+            self.session = hz.Session(device, **params)
+        except hz.HarmonizerError as e:
+            raise UsdHarmonizerError(f"render product {product.path}: cannot create a session: {e}") from e
+        self.camera = product.camera_prim()
+        self.last_frame: int | None = None
+        self.results: list[FrameResult] = []
+        self._converters: dict[tuple[Any, ...], ColorConverter] = {}
+
+    # -- paths ---------------------------------------------------------------
+    def out_dir_for(self, source: Path) -> Path:
+        """The directory enhanced files go to."""
+        return self.options.out_dir if self.options.out_dir is not None else source.parent / "harmonized"
+
+    def output_for(self, frame: int) -> Path:
+        """The enhanced file of ``frame``."""
+        src = self.product.file_for(frame)
+        return self.out_dir_for(src) / src.name
+
+    # -- one frame -------------------------------------------------------------
+    def _converter(self, attrs: dict[str, Any], file_name: str) -> ColorConverter:
+        declared = self.roles["color"].color_space or self.product.color_space
+        key = (declared, attrs.get("colorInteropID"), attrs.get("oiio:ColorSpace"), self.settings.rendering_color_space)
+        if key not in self._converters:
+            self._converters[key] = converter_for(
+                declared, attrs, file_name, self.settings.rendering_color_space, self.options.ocio_config
+            )
+        return self._converters[key]
+
+    def process_frame(self, frame: int, reset: bool = False, progress: Callable[[float], bool] | None = None) -> FrameResult:
+        """Enhances ``frame`` and writes its output; returns what happened."""
+        prod = self.product
+        src = self.product.file_for(frame)
+        where = f"render product {prod.path} frame {frame} ({src})"
+        out_path = self.output_for(frame)
+        if out_path.resolve() == src.resolve():
+            raise FrameError(f"{where}: the output would overwrite the input; choose another --out-dir")
+        img = read_exr(src, where)
+        w, h = img.size
+        rw, rh = prod.resolution
+        if abs(w / h - rw / rh) > 2.0 / min(w, h):
+            raise ProductFileError(
+                f"{where}: the file is {w}x{h} but the product's resolution is {rw}x{rh} (a different aspect ratio)"
+            )
+        names = img.channel_names
+        b: dict[str, Binding] = {r: find_channels(r, v, names, where) for r, v in self.roles.items()}
+        color_b = b["color"]
+        rgb = img.stack(color_b.channels)
+        cov_channels = [c for c in (b["coverage"].channels[0] if "coverage" in b else None, color_b.alpha) if c]
+        coverage = img.channel(cov_channels[0]).astype(np.float32) if cov_channels else None
+        attrs = img.attributes()
+        conv = self._converter(attrs, str(src))
+        lin = conv.to_linear(rgb, coverage)
+        kw: dict[str, Any] = {}
+        inputs = ["color"]
+        if "depth" in b:
+            kw["depth"] = np.ascontiguousarray(img.channel(b["depth"].channels[0]))
+            inputs.append("depth")
+        if "motion" in b:
+            kw["motion"] = img.stack(b["motion"].channels)
+            scale = self.options.motion_scale or self.roles["motion"].motion_scale or (1.0, 1.0)
+            kw["motion_vector_scale"] = scale
+            inputs.append("motion")
+        if "normal" in b:
+            kw["normal"] = img.stack(b["normal"].channels)
+            inputs.append("normal")
+        if coverage is not None:
+            kw["coverage"] = coverage
+            inputs.append("coverage")
+        if "insert_mask" in b:
+            kw["insert_mask"] = np.clip(img.channel(b["insert_mask"].channels[0]), 0.0, 1.0).astype(np.float32)
+            inputs.append("insert_mask")
+        if self.options.always_cameras or "motion" not in b:
+            if self.camera is not None:
+                w2c, w2n = exr_matrices(self.camera, frame, prod.resolution, prod.pixel_aspect, prod.conform_policy)
+            else:
+                w2c, w2n = _header_matrix(attrs, "worldToCamera"), _header_matrix(attrs, "worldToNDC")
+            if w2c is not None and w2n is not None:
+                kw["world_to_camera"] = w2c.astype(np.float32)
+                kw["world_to_ndc"] = w2n.astype(np.float32)
+                inputs.append("camera")
+        hz = self.hz
+        try:
+            out = self.session.process(lin, frame_index=frame, reset=reset, progress=progress, **kw)
+        except hz.HarmonizerError as e:
+            raise FrameError(f"{where}: {e}") from e
+        report = self.session.last_report or {}
+        back = conv.from_linear(out[..., :3], out[..., 3] if coverage is not None else None)
+        for i, c in enumerate(color_b.channels):
+            img.set_channel(c, back[..., i])
+        for c in cov_channels:
+            img.set_channel(c, out[..., 3])
+        reset_reason = report.get("reset")
+        backend = str(report.get("backend") or self.session.backend_name)
+        extra = {
+            "harmonizer:version": hz.version(),
+            "harmonizer:backend": backend,
+            "harmonizer:model": self.session.model_name or "none",
+            "harmonizer:frame": int(frame),
+            "harmonizer:reset": str(reset_reason) if reset_reason else "none",
+            "harmonizer:colorSpace": conv.source_name,
+            "harmonizer:product": prod.path,
+            "harmonizer:source": os.fspath(src),
+        }
+        write_exr_atomic(img, out_path, extra, where)
+        self.last_frame = frame
+        result = FrameResult(
+            product=prod.path,
+            frame=frame,
+            source=src,
+            output=out_path,
+            reset=str(reset_reason) if reset_reason else None,
+            backend=backend,
+            total_ms=float(report.get("total_ms") or 0.0),
+            history_used=int(report.get("history_used") or 0),
+            color_space=conv.source_name,
+            inputs=inputs,
+            warnings=list(report.get("warnings") or []),
+        )
+        self.results.append(result)
+        return result
+
+    def close(self) -> None:
+        """Releases the session."""
+        self.session.close()

@@ -1,0 +1,72 @@
+"""Runs every selected product of a stage, frame by frame, and records the
+outputs in a layer: what ``usd-harmonize`` does."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+from . import binding
+from .layer import write_layer
+from .process import FrameResult, Options, ProductRunner, make_device
+from .settings import ProductInfo, SettingsInfo, open_stage, resolve
+
+
+@dataclass
+class RunSummary:
+    """Results of one run."""
+
+    settings: SettingsInfo
+    results: dict[str, tuple[ProductInfo, list[FrameResult]]] = field(default_factory=dict)
+    layer: Path | None = None
+
+
+def run_stage(
+    stage_path: str | os.PathLike[str],
+    settings: str | None = None,
+    products: list[str] | None = None,
+    frames: list[int] | None = None,
+    options: Options | None = None,
+    layer: str | os.PathLike[str] | None = None,
+    in_place: bool = False,
+    write_layer_file: bool = True,
+    base_dir: str | os.PathLike[str] | None = None,
+    on_frame: Callable[[int, int, ProductInfo, int], None] | None = None,
+) -> RunSummary:
+    """Processes ``frames`` (default: the stage's range) of each product in
+    increasing order, one session per product; writes the layer unless
+    ``write_layer_file`` is False. ``on_frame(done, total, product, frame)``
+    is called before each frame."""
+    options = options or Options()
+    stage = open_stage(stage_path)
+    info = resolve(stage, settings, products, frames, base_dir)
+    order = sorted(info.frames)
+    for p in info.products:
+        p.check_frames_distinct(order)
+    summary = RunSummary(info)
+    total = len(order) * len(info.products)
+    done = 0
+    device = make_device(options)
+    try:
+        for prod in info.products:
+            runner = ProductRunner(prod, info, device, options)
+            try:
+                for f in order:
+                    if on_frame:
+                        on_frame(done, total, prod, f)
+                    runner.process_frame(f)
+                    done += 1
+            finally:
+                summary.results[prod.path] = (prod, list(runner.results))
+                runner.close()
+    finally:
+        device.close()
+    if on_frame:
+        on_frame(done, total, info.products[-1], order[-1])
+    if write_layer_file:
+        summary.layer = write_layer(
+            info, summary.results, Path(layer) if layer else None, in_place, version=binding.load().version()
+        )
+    return summary
