@@ -1,0 +1,58 @@
+"""Reads rendered samples (numpy only; shared by the trainer and the tools).
+
+Layout (``training/README.md`` has the full table)::
+
+    <data>/<split>/scene_<id>/scene.npz      clean render + AOVs shared by the streams
+    <data>/<split>/scene_<id>/s<k>_<name>.npz degraded input of one stream (+ overrides)
+    <data>/<split>/scene_<id>/meta.json      parameters, assets, checks
+
+A scene directory exists only when complete (it is renamed into place last).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+STREAMS = ("s1_recon", "s2_tone", "s3_relight", "s4_shadow", "s5_noise")
+SCENE_KEYS = ("target", "depth", "motion", "normal", "mask_insert", "mask_shadow", "world_to_camera", "world_to_ndc")
+
+
+class DataError(RuntimeError):
+    """A sample is missing or malformed."""
+
+
+def list_scenes(data_dir: Path, split: str) -> list[Path]:
+    """Complete scene directories of a split, sorted by id."""
+    d = Path(data_dir) / split
+    if not d.is_dir():
+        return []
+    return sorted(p for p in d.iterdir() if p.is_dir() and p.name.startswith("scene_") and (p / "meta.json").exists())
+
+
+def load_sample(scene_dir: Path, stream: str) -> dict:
+    """One sample as float32 arrays: ``input [T,H,W,4]`` (RGB premultiplied,
+    A = coverage), ``target [T,H,W,3]``, ``depth [T,H,W]``, ``motion [T,H,W,2]``,
+    ``normal [T,H,W,3]``, ``mask_insert``/``mask_shadow [T,H,W]``,
+    ``world_to_camera``/``world_to_ndc [T,4,4]`` (OpenEXR row-vector), ``meta``."""
+    scene_dir = Path(scene_dir)
+    if stream not in STREAMS:
+        raise DataError(f"unknown stream '{stream}' (expected one of {', '.join(STREAMS)})")
+    out: dict = {}
+    for f in (scene_dir / "scene.npz", scene_dir / f"{stream}.npz"):
+        if not f.exists():
+            raise DataError(f"{f} missing")
+        try:
+            with np.load(f) as z:
+                for k in z.files:
+                    out[k] = z[k].astype(np.float32)
+        except (OSError, ValueError) as e:
+            raise DataError(f"{f}: cannot read ({e})") from e
+    for k in SCENE_KEYS + ("input",):
+        if k not in out:
+            raise DataError(f"{scene_dir}: array '{k}' missing for stream {stream}")
+    out["meta"] = json.loads((scene_dir / "meta.json").read_text())
+    out["stream"] = stream
+    return out

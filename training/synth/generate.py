@@ -1,0 +1,130 @@
+"""Renders many training scenes, resumably: finished scenes are skipped.
+
+    python -m training.synth.generate --out training/data --scenes 0:400
+
+Each scene runs in its own bpy process (``render_scene.py``) so a crash or a
+leak cannot take the whole run down; a scene that fails is recorded in
+``<out>/failed/scene_<id>.txt`` and skipped on the next run unless
+``--retry-failed``. The split (train/test) is decided by scene id. Safe to stop
+at any moment (Ctrl-C, kill): a scene appears only when complete.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+TRAINING_DIR = Path(__file__).resolve().parent.parent
+REPO = TRAINING_DIR.parent
+DEFAULT_BPY_PYTHON = REPO / ".venv-bpy" / "bin" / "python"
+
+
+def scene_dir(out: Path, scene_id: int, test_every: int) -> Path:
+    split = "test" if scene_id % test_every == test_every - 1 else "train"
+    return out / split / f"scene_{scene_id:06d}"
+
+
+def parse_range(s: str) -> range:
+    if ":" in s:
+        a, b = s.split(":", 1)
+        return range(int(a), int(b))
+    return range(int(s), int(s) + 1)
+
+
+def add_render_args(ap: argparse.ArgumentParser) -> None:
+    """Options shared with the smoke test and ``render_scene``."""
+    ap.add_argument("--width", type=int, default=256)
+    ap.add_argument("--height", type=int, default=144)
+    ap.add_argument("--frames", type=int, default=8)
+    ap.add_argument("--samples", type=int, default=32, help="samples of the clean renders (OIDN-denoised)")
+    ap.add_argument("--threads", type=int, default=2, help="Cycles threads per render")
+    ap.add_argument("--seed", type=int, default=1, help="global seed (with the scene id, fixes a scene)")
+    ap.add_argument("--test-every", type=int, default=10, help="scene ids = k*N-1 are held out as test")
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, default=TRAINING_DIR / "data")
+    ap.add_argument("--scenes", default="0:400", help="scene id range a:b (b excluded) or one id")
+    ap.add_argument("--bpy-python", type=Path, default=Path(os.environ.get("HZ_BPY_PYTHON", DEFAULT_BPY_PYTHON)))
+    ap.add_argument("--retry-failed", action="store_true")
+    ap.add_argument("--timeout", type=float, default=3600.0, help="seconds per scene before it is abandoned")
+    add_render_args(ap)
+    args = ap.parse_args(argv)
+    if not args.bpy_python.exists():
+        print(f"generate: bpy interpreter {args.bpy_python} not found (see training/README.md)", file=sys.stderr)
+        return 2
+    # Assets first (idempotent), in the bpy interpreter so the HDRI path is bpy's.
+    r = subprocess.run([str(args.bpy_python), "-m", "training.synth.assets"], cwd=REPO)
+    if r.returncode != 0:
+        return r.returncode
+    failed_dir = args.out / "failed"
+    ids = list(parse_range(args.scenes))
+    done = skipped = failed = 0
+    t0 = time.time()
+    for sid in ids:
+        d = scene_dir(args.out, sid, args.test_every)
+        fail_note = failed_dir / f"scene_{sid:06d}.txt"
+        if (d / "meta.json").exists():
+            skipped += 1
+            continue
+        if fail_note.exists() and not args.retry_failed:
+            skipped += 1
+            continue
+        d.parent.mkdir(parents=True, exist_ok=True)
+        cmd = [
+            str(args.bpy_python),
+            "-m",
+            "training.synth.render_scene",
+            "--scene-id",
+            str(sid),
+            "--out",
+            str(d),
+            "--width",
+            str(args.width),
+            "--height",
+            str(args.height),
+            "--frames",
+            str(args.frames),
+            "--samples",
+            str(args.samples),
+            "--threads",
+            str(args.threads),
+            "--seed",
+            str(args.seed),
+            "--test-every",
+            str(args.test_every),
+        ]
+        ts = time.time()
+        try:
+            p = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=args.timeout)
+            rc, tail = p.returncode, (p.stdout + p.stderr)[-3000:]
+        except subprocess.TimeoutExpired:
+            rc, tail = -1, f"timed out after {args.timeout} s"
+        if rc == 0 and (d / "meta.json").exists():
+            done += 1
+            last = [ln for ln in p.stdout.splitlines() if ln.startswith("{")]
+            print(f"[{time.strftime('%H:%M:%S')}] scene {sid} ok in {time.time() - ts:.0f}s {last[-1] if last else ''}", flush=True)
+            fail_note.unlink(missing_ok=True)
+        else:
+            failed += 1
+            failed_dir.mkdir(parents=True, exist_ok=True)
+            fail_note.write_text(f"exit {rc}\ncommand: {' '.join(cmd)}\n\n{tail}\n")
+            print(f"[{time.strftime('%H:%M:%S')}] scene {sid} FAILED (exit {rc}), see {fail_note}", flush=True)
+    summary = {
+        "rendered": done,
+        "skipped": skipped,
+        "failed": failed,
+        "seconds": round(time.time() - t0),
+    }
+    print("generate: " + json.dumps(summary), flush=True)
+    return 0 if failed == 0 else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
