@@ -1,0 +1,47 @@
+#!/usr/bin/env bash
+# USD hook tests (issue 5): real usd-core, OpenImageIO, OpenColorIO, Blender's
+# Cycles (fixture render from a USD stage) and libharmonizer.
+#
+#   tests/usd/run.sh [pytest args...]
+#
+# Idempotent on a fresh machine: creates .venv-usd (python3.11: usd-core,
+# OpenImageIO, opencolorio, numpy, pytest) and installs usd_plugin editable;
+# creates .venv-bpy (bpy==5.0.1, numpy) for the fixture render when missing
+# (bpy and usd-core both ship `pxr`: never in one venv); builds libharmonizer
+# (release) when missing. Fixtures are rendered once into build/usd_fixtures/.
+# Environment: HARMONIZER_LIB (library to use), HZ_USD_VENV, HZ_BPY_VENV,
+# HZ_USD_CACHE (fixture cache), PYTHON311.
+set -euo pipefail
+cd "$(dirname "$0")/../.."
+REPO=$PWD
+PY=${PYTHON311:-python3.11}
+
+VENV=${HZ_USD_VENV:-$REPO/.venv-usd}
+if ! "$VENV/bin/python" -c "import pxr.UsdRender, OpenImageIO, PyOpenColorIO, numpy, pytest" >/dev/null 2>&1; then
+    command -v "$PY" >/dev/null || { echo "error: $PY not found (set PYTHON311)" >&2; exit 2; }
+    echo "creating $VENV (usd-core, OpenImageIO, opencolorio, numpy, pytest)"
+    "$PY" -m venv "$VENV"
+    "$VENV/bin/python" -m pip install --quiet usd-core OpenImageIO opencolorio numpy pytest
+fi
+if ! "$VENV/bin/python" -c "import usd_harmonizer" >/dev/null 2>&1 || [[ ! -x "$VENV/bin/usd-harmonize" ]]; then
+    echo "installing usd_plugin (editable) into $VENV"
+    "$VENV/bin/python" -m pip install --quiet --no-deps -e usd_plugin
+fi
+
+BPY=${HZ_BPY_VENV:-$REPO/.venv-bpy}
+if ! "$BPY/bin/python" -c "import bpy, numpy" >/dev/null 2>&1; then
+    command -v "$PY" >/dev/null || { echo "error: bpy 5.0.1 needs $PY (set PYTHON311)" >&2; exit 2; }
+    echo "creating $BPY (bpy==5.0.1, numpy) for the fixture render"
+    "$PY" -m venv "$BPY"
+    "$BPY/bin/python" -m pip install --quiet "bpy==5.0.1" numpy
+fi
+export HZ_BPY_VENV=$BPY
+
+LIB=${HARMONIZER_LIB:-$REPO/target/release/libharmonizer.so}
+if [[ ! -f "$LIB" ]]; then
+    echo "building libharmonizer: cargo build --release -p harmonizer-ffi"
+    cargo build --release -p harmonizer-ffi
+fi
+export HARMONIZER_LIB=$LIB
+
+exec nice -n 10 "$VENV/bin/python" -m pytest tests/usd -q -p no:cacheprovider "$@"
