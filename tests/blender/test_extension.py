@@ -139,7 +139,9 @@ def test_temporal_state_within_a_render(classical_run):
     assert all(r is None for r in resets[1:]), resets
     assert [f["history_used"] for f in log.frames][-1] >= 1
     ms = [f["ms"] for f in log.frames]
-    print(f"\nclassical backend, 160x90, per frame (read + enhance + write): {np.mean(ms):.1f} ms mean, {max(ms):.1f} max")
+    print(
+        f"\nclassical backend, 160x90, per frame (read + enhance + write): {np.mean(ms):.1f} ms mean, {max(ms):.1f} max"
+    )
 
 
 def test_node_group_feeds_enhanced_frames_through_compositor(addon, classical_run, tmp_root):
@@ -226,6 +228,7 @@ def test_frame_jump_resets_temporal_state(addon, tmp_root):
     with open(os.path.join(raw_dir, "frame_0004.exr"), "wb") as fh:
         fh.write(b"placeholder")
     scene.render.use_overwrite = False
+    scene.render.image_settings.color_depth = "16"  # half float, as many productions write
     render(scene)
     log = addon.handlers.last_run(scene.name)
     by_frame = {f["frame"]: f["reset"] for f in log.frames}
@@ -235,6 +238,20 @@ def test_frame_jump_resets_temporal_state(addon, tmp_root):
     assert by_frame[5] == "frame_gap", by_frame
     _, attrs = read_exr(os.path.join(out, "enhanced", "frame_0005.exr"))
     assert attrs["harmonizer/reset"] == "frame_gap"
+    # Every part keeps its stored precision (color in half here; Blender keeps depth in float).
+    oiio = _oiio()
+    formats = {}
+    for name in ("raw", "enhanced"):
+        inp = oiio.ImageInput.open(os.path.join(out, name, "frame_0005.exr"))
+        k, per_part = 0, []
+        while inp.seek_subimage(k, 0):
+            spec = inp.spec(k, 0)
+            per_part.append([str(f) for f in spec.channelformats] or [str(spec.format)] * spec.nchannels)
+            k += 1
+        inp.close()
+        formats[name] = per_part
+    assert formats["enhanced"] == formats["raw"]
+    assert formats["raw"][0] == ["half"] * 4, formats["raw"][0]
 
 
 def test_failed_frame_is_reported_and_render_goes_on(addon, tmp_root):
