@@ -1,0 +1,155 @@
+"""Exports a trained checkpoint to ONNX (IR version <= 13) with its manifest.
+
+    .venv-train/bin/python -m training.export --ckpt training/runs/main/ckpt_last.pt --out out/model
+
+writes ``out/model.onnx`` and ``out/model.json`` (``training/export_contract.md``),
+then checks the file with ONNX Runtime against PyTorch on a random input at two
+sizes and prints parameters, GMAC at 1024x576 and the largest difference.
+To ship it as the library default: copy both files to ``core/models/default.onnx``
+and ``core/models/default.json`` and rebuild.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from training.model import Enhancer, ModelConfig, activation_bytes_per_pixel, count_macs
+
+MAX_IR_VERSION = 13
+OPSET = 17
+
+
+def manifest_for(model: Enhancer, name: str, version: str) -> dict:
+    cfg = model.cfg
+    return {
+        "format_version": 1,
+        "name": name,
+        "version": version,
+        "context_frames": cfg.context_frames,
+        "input": {"name": "input", "channels": cfg.input_channels()},
+        "output": {"name": "output", "channels": ["color.r", "color.g", "color.b"]},
+        "residual": True,
+        "premultiplied": True,
+        "encoding": {"kind": "log", "key": cfg.key, "exposure": "frame", "log_range": cfg.log_range},
+        "tile_size": 256,
+        "tile_overlap": 32,
+        "spatial_multiple": cfg.spatial_multiple,
+        "bytes_per_pixel": activation_bytes_per_pixel(model),
+    }
+
+
+class _ResidualFree(torch.nn.Module):
+    """The graph the runtime runs: ``residual: true`` means the runtime adds the
+    encoded input color itself, so the exported network returns only the correction."""
+
+    def __init__(self, model: Enhancer):
+        super().__init__()
+        self.model = model
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.model.correction(x)
+
+
+def export(model: Enhancer, out_stem: Path, name: str = "harmonizer-small", version: str = "0.1.0") -> dict:
+    import onnx
+
+    model.eval()
+    net = _ResidualFree(model).eval()
+    cin = len(model.cfg.input_channels())
+    m = model.cfg.spatial_multiple
+    dummy = torch.zeros(1, cin, 4 * m, 4 * m)
+    onnx_path = out_stem.with_suffix(".onnx")
+    onnx_path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = onnx_path.with_suffix(".onnx.tmp")
+    torch.onnx.export(
+        net,
+        (dummy,),
+        str(tmp),
+        input_names=["input"],
+        output_names=["output"],
+        dynamic_axes={"input": {2: "height", 3: "width"}, "output": {2: "height", 3: "width"}},
+        opset_version=OPSET,
+        dynamo=False,
+    )
+    proto = onnx.load(str(tmp))
+    if proto.ir_version > MAX_IR_VERSION:
+        proto.ir_version = MAX_IR_VERSION
+    onnx.checker.check_model(proto)
+    onnx.save(proto, str(tmp))
+    tmp.replace(onnx_path)
+    manifest = manifest_for(model, name, version)
+    json_path = out_stem.with_suffix(".json")
+    json_path.write_text(json.dumps(manifest, indent=2) + "\n")
+    return manifest
+
+
+def verify(model: Enhancer, onnx_path: Path, sizes=((144, 256), (96, 160))) -> float:
+    """Largest |ONNX Runtime - PyTorch| over random inputs at ``sizes``."""
+    import onnxruntime as ort
+
+    sess = ort.InferenceSession(str(onnx_path), providers=["CPUExecutionProvider"])
+    cin = len(model.cfg.input_channels())
+    rng = np.random.default_rng(0)
+    worst = 0.0
+    for h, w in sizes:
+        x = rng.random((1, cin, h, w), dtype=np.float32) * 0.3
+        with torch.no_grad():
+            ref = model.correction(torch.from_numpy(x)).numpy()
+        got = sess.run(["output"], {"input": x})[0]
+        if got.shape != ref.shape:
+            raise RuntimeError(f"ONNX output shape {got.shape} != PyTorch {ref.shape} at {h}x{w}")
+        worst = max(worst, float(np.abs(got - ref).max()))
+    return worst
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--ckpt", type=Path, required=True)
+    ap.add_argument("--out", type=Path, required=True, help="output path without extension")
+    ap.add_argument("--name", default="harmonizer-small")
+    ap.add_argument("--version", default="0.1.0")
+    ap.add_argument("--tolerance", type=float, default=1e-4)
+    args = ap.parse_args(argv)
+    if not args.ckpt.exists():
+        print(f"export: checkpoint {args.ckpt} not found", file=sys.stderr)
+        return 2
+    ck = torch.load(args.ckpt, map_location="cpu", weights_only=False)
+    model = Enhancer(ModelConfig.from_dict(ck["model_cfg"]))
+    model.load_state_dict(ck["model"])
+    model.eval()
+    manifest = export(model, args.out, args.name, args.version)
+    onnx_path = args.out.with_suffix(".onnx")
+    diff = verify(model, onnx_path)
+    macs, params = count_macs(model, 576, 1024)
+    size = onnx_path.stat().st_size
+    print(
+        json.dumps(
+            {
+                "onnx": str(onnx_path),
+                "manifest": str(args.out.with_suffix(".json")),
+                "step": ck["step"],
+                "params": params,
+                "gmac_1024x576": round(macs / 1e9, 3),
+                "onnx_bytes": size,
+                "max_abs_diff_ort_vs_torch": diff,
+                "spatial_multiple": manifest["spatial_multiple"],
+            }
+        )
+    )
+    if diff > args.tolerance:
+        print(f"export: ONNX Runtime differs from PyTorch by {diff} > {args.tolerance}", file=sys.stderr)
+        return 1
+    if size > 8 * 1024 * 1024:
+        print(f"export: {onnx_path} is {size} bytes, over the 8 MB budget", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,257 @@
+"""The temporal enhancer network and the runtime contract it is trained for.
+
+A small UNet for CPUs: the input (current frame encoded, coverage, insert
+mask, K reprojected previous enhanced frames with their validity) is
+pixel-unshuffled by 2, runs through dense 3x3 convolutions with ReLU at four
+resolutions, is pixel-shuffled back and added to the encoded input color
+(residual). Channel names, color encoding and reprojection follow
+``training/export_contract.md`` and ``core/src/backend/neural/``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+LUMA = (0.2126, 0.7152, 0.0722)
+COVERAGE_EPSILON = 1e-3
+LUMINANCE_FLOOR = 1e-4
+FAR_DEPTH = 1e9
+DEPTH_TOLERANCE = 0.1
+
+
+@dataclass
+class ModelConfig:
+    """Architecture and contract settings (saved in checkpoints and manifests)."""
+
+    context_frames: int = 4
+    widths: tuple = (24, 32, 48, 64)
+    unshuffle: int = 2
+    key: float = 0.18
+    log_range: float = 8.0
+
+    def input_channels(self) -> list[str]:
+        ch = ["color.r", "color.g", "color.b", "coverage", "insert"]
+        for k in range(self.context_frames):
+            ch += [f"hist{k}.r", f"hist{k}.g", f"hist{k}.b", f"valid{k}"]
+        return ch
+
+    @property
+    def spatial_multiple(self) -> int:
+        return self.unshuffle * 2 ** (len(self.widths) - 1)
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["widths"] = list(self.widths)
+        return d
+
+    @staticmethod
+    def from_dict(d: dict) -> "ModelConfig":
+        d = dict(d)
+        d["widths"] = tuple(d["widths"])
+        return ModelConfig(**d)
+
+
+def conv(cin: int, cout: int) -> nn.Module:
+    return nn.Sequential(nn.Conv2d(cin, cout, 3, padding=1), nn.ReLU(inplace=True))
+
+
+class Enhancer(nn.Module):
+    """UNet on pixel-unshuffled input with a residual color output.
+
+    ``forward(x)`` takes ``[N, C_in, H, W]`` (channels in
+    ``ModelConfig.input_channels()`` order, H and W multiples of
+    ``spatial_multiple``) and returns the encoded complete frame ``[N, 3, H, W]``.
+    """
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        self.cfg = cfg
+        r = cfg.unshuffle
+        cin = len(cfg.input_channels()) * r * r
+        w = list(cfg.widths)
+        self.enc = nn.ModuleList()
+        self.down = nn.ModuleList()
+        prev = cin
+        for i, c in enumerate(w):
+            if i > 0:
+                self.down.append(nn.Sequential(nn.Conv2d(prev, c, 3, stride=2, padding=1), nn.ReLU(inplace=True)))
+                prev = c
+            self.enc.append(nn.Sequential(conv(prev, c), conv(c, c)))
+            prev = c
+        self.dec = nn.ModuleList()
+        for i in range(len(w) - 2, -1, -1):
+            self.dec.append(nn.Sequential(conv(w[i + 1] + w[i], w[i]), conv(w[i], w[i])))
+        self.head = nn.Conv2d(w[0], 3 * r * r, 3, padding=1)
+        nn.init.zeros_(self.head.weight)
+        nn.init.zeros_(self.head.bias)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x[:, 0:3] + self.correction(x)
+
+    def correction(self, x: torch.Tensor) -> torch.Tensor:
+        """The residual alone (what the exported graph returns: the runtime adds it
+        to the encoded input color, ``residual: true``)."""
+        r = self.cfg.unshuffle
+        h = F.pixel_unshuffle(x, r) if r > 1 else x
+        skips = []
+        for i, block in enumerate(self.enc):
+            if i > 0:
+                h = self.down[i - 1](h)
+            h = block(h)
+            skips.append(h)
+        for j, block in enumerate(self.dec):
+            skip = skips[len(skips) - 2 - j]
+            h = F.interpolate(h, scale_factor=2.0, mode="nearest")
+            h = block(torch.cat([h, skip], 1))
+        out = self.head(h)
+        if r > 1:
+            out = F.pixel_shuffle(out, r)
+        return out
+
+
+def count_macs(model: nn.Module, height: int, width: int) -> tuple[int, int]:
+    """Multiply-adds of one forward pass at ``height`` x ``width``, and parameters."""
+    macs = 0
+
+    def hook(m, inp, out):
+        nonlocal macs
+        if isinstance(m, nn.Conv2d):
+            k = m.kernel_size[0] * m.kernel_size[1]
+            macs += out.numel() // out.shape[0] * (m.in_channels // m.groups) * k
+
+    hs = [m.register_forward_hook(hook) for m in model.modules() if isinstance(m, nn.Conv2d)]
+    cin = len(model.cfg.input_channels())
+    with torch.no_grad():
+        model(torch.zeros(1, cin, height, width))
+    for h in hs:
+        h.remove()
+    params = sum(p.numel() for p in model.parameters())
+    return macs, params
+
+
+def activation_bytes_per_pixel(model: Enhancer) -> int:
+    """Upper estimate of the peak working memory per input pixel (f32)."""
+    cfg = model.cfg
+    r2 = cfg.unshuffle**2
+    total = len(cfg.input_channels()) + 3
+    for i, c in enumerate(cfg.widths):
+        area = r2 * 4**i
+        total += 3 * c / area * (2 if i < len(cfg.widths) - 1 else 1)
+    return int(math.ceil(total * 4 * 1.5))
+
+
+# ---------------------------------------------------------------------------
+# Color encoding (exactly the runtime's: core/src/backend/neural/encoding.rs)
+
+
+def frame_scale(rgba: torch.Tensor, key: float) -> torch.Tensor:
+    """``s = key / Lavg`` per frame; ``rgba`` premultiplied ``[N, 4, H, W]``.
+
+    ``Lavg = exp(mean(ln(1e-4 + L)))`` over covered pixels (coverage-weighted,
+    straight luminance), clamped to [1e-6, 1e6]; 1 when nothing is covered."""
+    a = rgba[:, 3]
+    lum = LUMA[0] * rgba[:, 0] + LUMA[1] * rgba[:, 1] + LUMA[2] * rgba[:, 2]
+    ok = a >= COVERAGE_EPSILON
+    straight = torch.where(ok, lum / a.clamp(min=COVERAGE_EPSILON), torch.zeros_like(lum))
+    w = torch.where(ok, a, torch.zeros_like(a))
+    s = (w * torch.log(LUMINANCE_FLOOR + straight.clamp(min=0))).sum((1, 2))
+    wsum = w.sum((1, 2))
+    avg = torch.exp(s / wsum.clamp(min=1e-12))
+    scale = (key / avg).clamp(1e-6, 1e6)
+    return torch.where(wsum > 0, scale, torch.ones_like(scale))
+
+
+def encode(x: torch.Tensor, scale: torch.Tensor, log_range: float) -> torch.Tensor:
+    """``log2(1 + x s) / log_range``; ``scale`` is ``[N]``."""
+    return torch.log1p(x.clamp(min=0) * scale.view(-1, 1, 1, 1)) / (math.log(2.0) * log_range)
+
+
+def decode(y: torch.Tensor, scale: torch.Tensor, log_range: float) -> torch.Tensor:
+    return torch.expm1((y * log_range * math.log(2.0)).clamp(max=80.0)).clamp(min=0) / scale.view(-1, 1, 1, 1)
+
+
+# ---------------------------------------------------------------------------
+# Reprojection (the runtime's motion-vector hop: core/src/temporal/reproject.rs)
+
+
+def reproject_hop(
+    img: torch.Tensor,
+    valid: torch.Tensor,
+    depth_prev: torch.Tensor | None,
+    depth_cur: torch.Tensor | None,
+    motion: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Moves ``img`` (and its validity) from the previous frame into the current one.
+
+    ``aligned(i, j) = prev(x = j + 0.5 + mv.x, y = i + 0.5 + mv.y)``, bilinear over
+    the taps that are inside the image and whose depth matches the current
+    depth (relative ``DEPTH_TOLERANCE``), renormalized; the kept weight is the
+    hop's validity, multiplied with the incoming validity.
+    Shapes: img ``[N, C, H, W]``, valid/depths ``[N, 1, H, W]``, motion ``[N, 2, H, W]``.
+    """
+    n, c, h, w = img.shape
+    dev = img.device
+    jj = torch.arange(w, device=dev, dtype=img.dtype).view(1, 1, w).expand(n, h, w)
+    ii = torch.arange(h, device=dev, dtype=img.dtype).view(1, h, 1).expand(n, h, w)
+    x = jj + motion[:, 0]
+    y = ii + motion[:, 1]
+    x0 = torch.floor(x)
+    y0 = torch.floor(y)
+    fx = x - x0
+    fy = y - y0
+    src = torch.cat([img * valid, valid] + ([depth_prev] if depth_prev is not None else []), 1)
+    flat = src.reshape(n, src.shape[1], h * w)
+    acc = torch.zeros(n, c + 1, h, w, device=dev, dtype=img.dtype)
+    wsum = torch.zeros(n, h, w, device=dev, dtype=img.dtype)
+    for dx, dy in ((0, 0), (1, 0), (0, 1), (1, 1)):
+        xi = x0 + dx
+        yi = y0 + dy
+        wt = (fx if dx else 1 - fx) * (fy if dy else 1 - fy)
+        inside = (xi >= 0) & (xi <= w - 1) & (yi >= 0) & (yi <= h - 1)
+        idx = (yi.clamp(0, h - 1) * w + xi.clamp(0, w - 1)).long().view(n, 1, h * w)
+        tap = torch.gather(flat, 2, idx.expand(n, src.shape[1], h * w)).view(n, src.shape[1], h, w)
+        keep = inside.to(img.dtype)
+        if depth_prev is not None and depth_cur is not None:
+            seen = tap[:, c + 1]
+            exp = depth_cur[:, 0]
+            far_e = exp >= FAR_DEPTH
+            far_s = seen >= FAR_DEPTH
+            close = (exp - seen).abs() <= DEPTH_TOLERANCE * torch.minimum(exp, seen)
+            keep = keep * torch.where(far_e | far_s, far_e & far_s, close).to(img.dtype)
+        wk = wt * keep
+        acc = acc + tap[:, : c + 1] * wk.unsqueeze(1)
+        wsum = wsum + wk
+    # tap[:, :c] holds img*valid and tap[:, c] valid: renormalize by the kept valid weight.
+    vw = acc[:, c]
+    color = torch.where(vw.unsqueeze(1) > 1e-6, acc[:, :c] / vw.clamp(min=1e-6).unsqueeze(1), torch.zeros_like(acc[:, :c]))
+    return color, vw.clamp(0, 1).unsqueeze(1)
+
+
+def assemble_input(
+    cfg: ModelConfig,
+    rgba: torch.Tensor,
+    insert: torch.Tensor,
+    history: list[tuple[torch.Tensor, torch.Tensor]],
+    scale: torch.Tensor,
+) -> torch.Tensor:
+    """The network input tensor for one frame.
+
+    ``rgba`` premultiplied linear ``[N, 4, H, W]``; ``insert [N, 1, H, W]``;
+    ``history``: up to K (reprojected linear color ``[N, 3, H, W]``, validity)
+    pairs, newest first; missing ones are zeros with validity 0."""
+    n, _, h, w = rgba.shape
+    parts = [encode(rgba[:, :3], scale, cfg.log_range), rgba[:, 3:4], insert]
+    zero3 = torch.zeros(n, 3, h, w, dtype=rgba.dtype, device=rgba.device)
+    zero1 = torch.zeros(n, 1, h, w, dtype=rgba.dtype, device=rgba.device)
+    for k in range(cfg.context_frames):
+        if k < len(history):
+            col, val = history[k]
+            parts += [encode(col, scale, cfg.log_range) * (val > 0).to(col.dtype), val]
+        else:
+            parts += [zero3, zero1]
+    return torch.cat(parts, 1)

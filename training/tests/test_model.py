@@ -1,0 +1,96 @@
+"""Checks of the network, its runtime contract and the ONNX export (PyTorch + ONNX Runtime)."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from training import export as hz_export  # noqa: E402
+from training.model import (  # noqa: E402
+    Enhancer,
+    ModelConfig,
+    assemble_input,
+    count_macs,
+    decode,
+    encode,
+    frame_scale,
+    reproject_hop,
+)
+from training.synth import degrade  # noqa: E402
+
+
+def test_encoding_matches_the_runtime_formula():
+    rng = np.random.default_rng(0)
+    rgba = rng.random((1, 4, 6, 7)).astype(np.float32)
+    rgba[:, 3, :2] = 0.0  # holes
+    rgba[:, :3] *= rgba[:, 3:4]
+    a = rgba[0, 3]
+    lum = (0.2126 * rgba[0, 0] + 0.7152 * rgba[0, 1] + 0.0722 * rgba[0, 2])
+    ok = a >= 1e-3
+    lavg = math.exp((a[ok] * np.log(1e-4 + lum[ok] / a[ok])).sum() / a[ok].sum())
+    s = frame_scale(torch.from_numpy(rgba), 0.18)
+    assert abs(float(s[0]) - 0.18 / lavg) < 1e-4 * (0.18 / lavg)
+    x = torch.from_numpy(rgba[:, :3])
+    y = encode(x, s, 8.0)
+    assert torch.allclose(y, torch.log2(1 + x * s.view(-1, 1, 1, 1)) / 8.0, atol=1e-6)
+    assert torch.allclose(decode(y, s, 8.0), x, atol=1e-5)
+
+
+def test_reprojection_hop_agrees_with_the_convention():
+    rng = np.random.default_rng(1)
+    prev = rng.random((12, 20, 3)).astype(np.float32)
+    mv = rng.uniform(-3, 3, (12, 20, 2)).astype(np.float32)
+    ref, valid = degrade.warp_bilinear(prev, mv)
+    img = torch.from_numpy(prev.transpose(2, 0, 1))[None]
+    ones = torch.ones(1, 1, 12, 20)
+    got, val = reproject_hop(img, ones, None, None, torch.from_numpy(mv.transpose(2, 0, 1))[None])
+    inside = (val[0, 0].numpy() > 0.999) & (valid > 0)
+    assert inside.mean() > 0.5
+    assert np.abs(got[0].numpy().transpose(1, 2, 0)[inside] - ref[inside]).max() < 1e-5
+
+
+def test_reprojection_depth_test_invalidates_disocclusions():
+    img = torch.ones(1, 3, 4, 4)
+    ones = torch.ones(1, 1, 4, 4)
+    d_prev = torch.full((1, 1, 4, 4), 2.0)
+    d_cur = torch.full((1, 1, 4, 4), 2.0)
+    d_cur[..., 0, 0] = 5.0  # a surface that was hidden in the previous frame
+    _, val = reproject_hop(img, ones, d_prev, d_cur, torch.zeros(1, 2, 4, 4))
+    assert val[0, 0, 0, 0] == 0 and val[0, 0, 1:, 1:].min() == 1
+
+
+def test_network_shapes_cost_and_history_dropout():
+    cfg = ModelConfig()
+    m = Enhancer(cfg)
+    assert cfg.spatial_multiple == 16
+    assert len(cfg.input_channels()) == 5 + 4 * cfg.context_frames
+    macs, params = count_macs(m, 576, 1024)
+    assert params * 4 < 8 * 1024 * 1024
+    assert macs < 20e9
+    rgba = torch.rand(2, 4, 32, 48)
+    s = frame_scale(rgba, cfg.key)
+    x = assemble_input(cfg, rgba, torch.zeros(2, 1, 32, 48), [], s)
+    assert x.shape == (2, 21, 32, 48)
+    assert x[:, 5:].abs().max() == 0  # no history: zeros and validity 0
+    assert m(x).shape == (2, 3, 32, 48)
+
+
+def test_export_matches_pytorch_in_onnx_runtime(tmp_path):
+    pytest.importorskip("onnxruntime")
+    torch.manual_seed(0)
+    m = Enhancer(ModelConfig(widths=(8, 8, 12, 16)))
+    torch.nn.init.normal_(m.head.weight, std=0.05)  # a non-trivial residual
+    manifest = hz_export.export(m, tmp_path / "model")
+    diff = hz_export.verify(m, tmp_path / "model.onnx", sizes=((48, 64), (32, 96)))
+    assert diff < 1e-4
+    import onnx
+
+    proto = onnx.load(str(tmp_path / "model.onnx"))
+    assert proto.ir_version <= 13
+    assert [i.name for i in proto.graph.input] == ["input"]
+    on_disk = json.loads((tmp_path / "model.json").read_text())
+    assert on_disk == manifest and on_disk["residual"] is True
+    assert on_disk["input"]["channels"][:5] == ["color.r", "color.g", "color.b", "coverage", "insert"]

@@ -1,0 +1,89 @@
+"""Checks of the numpy side of the data generator (conventions, degradations)."""
+
+import numpy as np
+
+from training.synth import degrade
+
+
+def look_at(eye, target, fov_y, aspect):
+    """OpenEXR row-vector worldToCamera/worldToNDC of a pinhole camera (+z forward, y up world)."""
+    eye, target = np.asarray(eye, float), np.asarray(target, float)
+    fwd = target - eye
+    fwd /= np.linalg.norm(fwd)
+    right = np.cross(fwd, [0, 1, 0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, fwd)
+    rot = np.eye(4)
+    rot[0, :3], rot[1, :3], rot[2, :3] = right, up, fwd
+    tr = np.eye(4)
+    tr[:3, 3] = -eye
+    w2c = rot @ tr
+    f = 1 / np.tan(fov_y / 2)
+    c2n = np.array([[0.5 * f / aspect, 0, 0.5, 0], [0, -0.5 * f, 0.5, 0], [0, 0, 1, -0.1], [0, 0, 1, 0]])
+    return w2c.T.astype(np.float32), (c2n @ w2c).T.astype(np.float32)
+
+
+def test_unproject_project_round_trip():
+    w2c, w2ndc = look_at([1, 2, -5], [0, 0, 0], 0.8, 16 / 9)
+    rng = np.random.default_rng(0)
+    depth = rng.uniform(1, 20, (9, 16)).astype(np.float32)
+    pts = degrade.unproject(depth, w2c, w2ndc)
+    x, y, z = degrade.project(pts.reshape(-1, 3), w2c, w2ndc, 16, 9)
+    jj, ii = np.meshgrid(np.arange(16) + 0.5, np.arange(9) + 0.5)
+    assert np.allclose(x, jj.ravel(), atol=1e-3)
+    assert np.allclose(y, ii.ravel(), atol=1e-3)
+    assert np.allclose(z, depth.ravel(), rtol=1e-5)
+
+
+def test_warp_follows_library_motion_convention():
+    # Content moves 2 px right and 1 px down from t-1 to t: mv = (-2, -1).
+    rng = np.random.default_rng(1)
+    prev = rng.random((20, 30, 3)).astype(np.float32)
+    cur = np.zeros_like(prev)
+    cur[1:, 2:] = prev[:-1, :-2]
+    mv = np.zeros((20, 30, 2), np.float32)
+    mv[..., 0], mv[..., 1] = -2, -1
+    aligned, valid = degrade.warp_bilinear(prev, mv)
+    assert np.allclose(aligned[1:, 2:], cur[1:, 2:], atol=1e-6)
+    assert valid[0].max() == 0 and valid[:, :2].max() == 0 and valid[1:, 2:].min() == 1
+
+
+def test_splats_reproduce_a_view_and_leave_holes_where_unseen():
+    w2c, w2ndc = look_at([0, 1, -4], [0, 0.5, 0], 0.9, 2.0)
+    h, w = 24, 48
+    depth = np.full((h, w), 4.0, np.float32)
+    color = np.random.default_rng(2).random((h, w, 3)).astype(np.float32)
+    pts = degrade.unproject(depth, w2c, w2ndc).reshape(-1, 3)
+    f = degrade.focal_px(w2c, w2ndc, w)
+    rad = np.full(len(pts), 4.0 / f * 0.7)
+    rgb, cov, dep = degrade.splat_points(pts, color.reshape(-1, 3), rad, w2c, w2ndc, w, h)
+    assert cov[4:-4, 4:-4].min() > 0.99
+    assert np.abs(dep[4:-4, 4:-4] - 4.0).max() < 1e-3
+    # Seen from the side, part of the frame was never observed: holes.
+    w2c2, w2ndc2 = look_at([3, 1, -3], [0, 0.5, 0], 0.9, 2.0)
+    _, cov2, dep2 = degrade.splat_points(pts, color.reshape(-1, 3), rad, w2c2, w2ndc2, w, h)
+    assert (cov2 == 0).mean() > 0.1
+    assert np.all(dep2[cov2 == 0] == degrade.EMPTY_DEPTH)
+
+
+def test_tone_identity_and_composite():
+    rng = np.random.default_rng(3)
+    rgb = rng.random((8, 8, 3)).astype(np.float32)
+    ident = {"exposure": 0.0, "wb": [1, 1, 1], "gamma": 1.0, "saturation": 1.0}
+    assert np.allclose(degrade.apply_tone(rgb, ident), rgb, atol=1e-6)
+    up = dict(ident, exposure=1.0)
+    assert np.allclose(degrade.apply_tone(rgb, up), 2 * rgb, atol=1e-6)
+    mask = np.zeros((8, 8), np.float32)
+    mask[2:4, 2:4] = 1
+    out = degrade.composite(rgb, 2 * rgb, mask)
+    assert np.allclose(out[2:4, 2:4], 2 * rgb[2:4, 2:4]) and np.allclose(out[5:], rgb[5:])
+
+
+def test_shadow_mask_finds_darkening_outside_the_insert():
+    full = np.full((10, 10, 3), 0.5, np.float32)
+    without = full.copy()
+    full[6:, :3] = 0.2  # shadow
+    insert = np.zeros((10, 10), np.float32)
+    insert[6:, 5:] = 1
+    m = degrade.shadow_mask(full, without, insert)
+    assert m[6:, :3].min() == 1.0 and m[:5].max() == 0.0 and m[6:, 5:].max() == 0.0

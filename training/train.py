@@ -1,0 +1,344 @@
+"""Trains the temporal enhancer on rendered samples (PyTorch, CPU).
+
+    .venv-train/bin/python -m training.train --data training/data --run training/runs/main --steps 20000
+
+Resumable and seeded: ``--run`` keeps ``ckpt_last.pt`` (model, optimizer,
+step, config); rerunning the same command continues from it, and the data
+drawn at step ``i`` depends only on ``(seed, i)``. Each step unrolls the
+network over a few consecutive frames of one window per batch item: the
+history fed to frame t is the reprojection (runtime's motion-vector hop with
+the depth test) of the network's own previous outputs, prefilled with
+near-truth frames for the frames before the window. A share of the batches is
+non-temporal (history all invalid) so the model stays good without history.
+
+Losses, all on the encoded (log) color: L2; multi-scale random-patch SSIM
+and gradient terms (patch sizes drawn per step, against checkerboard
+artifacts, no pretrained network needed); a temporal warping loss between
+consecutive outputs where the target itself is temporally consistent.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from training.model import Enhancer, ModelConfig, assemble_input, decode, encode, frame_scale, reproject_hop
+from training.synth.dataset import STREAMS, list_scenes, load_sample
+
+TRAINING_DIR = Path(__file__).resolve().parent
+
+
+# ---------------------------------------------------------------------------
+# Batches
+
+
+class SampleCache:
+    """Loads samples on demand and keeps the most recent ``size`` in memory."""
+
+    def __init__(self, scenes: list[Path], size: int = 64):
+        self.scenes = scenes
+        self.size = size
+        self.cache: dict = {}
+
+    def get(self, scene: Path, stream: str) -> dict:
+        key = (str(scene), stream)
+        if key not in self.cache:
+            if len(self.cache) >= self.size:
+                self.cache.pop(next(iter(self.cache)))
+            s = load_sample(scene, stream)
+            self.cache[key] = {
+                k: s[k] for k in ("input", "target", "depth", "motion", "mask_insert", "mask_shadow")
+            }
+        return self.cache[key]
+
+
+def make_batch(cache: SampleCache, rng: np.random.Generator, cfg: dict) -> dict:
+    """A batch of windows: frames ``[B, F, C, H, W]`` tensors, F = prefill + unroll."""
+    B, K, L = cfg["batch"], cfg["context_frames"], cfg["unroll"]
+    crop_h, crop_w = cfg["crop"]
+    items = []
+    temporal = rng.random() >= cfg["p_no_history"]
+    for _ in range(B):
+        scene = cache.scenes[int(rng.integers(len(cache.scenes)))]
+        stream = STREAMS[int(rng.integers(len(STREAMS)))]
+        s = cache.get(scene, stream)
+        T, H, W = s["input"].shape[:3]
+        unroll = min(L, T) if temporal else 1
+        start = int(rng.integers(0, T - unroll + 1))
+        pre = min(start, K) if temporal else 0
+        fr = list(range(start - pre, start + unroll))
+        ch = min(crop_h, H) // 16 * 16
+        cw = min(crop_w, W) // 16 * 16
+        y0 = int(rng.integers(0, H - ch + 1))
+        x0 = int(rng.integers(0, W - cw + 1))
+        sl = (fr, slice(y0, y0 + ch), slice(x0, x0 + cw))
+        inp = s["input"][sl].copy()
+        tgt = s["target"][sl].copy()
+        dep = s["depth"][sl].copy()
+        mot = s["motion"][sl].copy()
+        ins = s["mask_insert"][sl].copy()
+        shd = s["mask_shadow"][sl].copy()
+        # The insert mask is sometimes absent (hosts without one).
+        if rng.random() < cfg["p_drop_insert"]:
+            ins[:] = 0
+        if rng.random() < 0.5:  # horizontal flip: motion x changes sign
+            inp, tgt, dep, mot, ins, shd = (a[:, :, ::-1].copy() for a in (inp, tgt, dep, mot, ins, shd))
+            mot[..., 0] *= -1
+        # Exposure augmentation (the encoding normalizes per frame, but not exactly).
+        g = float(np.exp(rng.normal(0, 0.5)))
+        inp[..., :3] *= g
+        tgt *= g
+        items.append((inp, tgt, dep, mot, ins, shd, pre))
+    pre = min(it[6] for it in items)
+    F_ = min(len(it[0]) for it in items)
+
+    def stack(i):
+        arrs = [it[i][len(it[i]) - F_ :] for it in items]
+        a = np.stack(arrs)
+        if a.ndim == 4:
+            a = a[..., None]
+        return torch.from_numpy(np.ascontiguousarray(a.transpose(0, 1, 4, 2, 3)))
+
+    return {
+        "input": stack(0),
+        "target": stack(1),
+        "depth": stack(2),
+        "motion": stack(3),
+        "insert": stack(4),
+        "shadow": stack(5),
+        "prefill": min(pre, F_ - 1),
+        "temporal": temporal,
+    }
+
+
+# ---------------------------------------------------------------------------
+# Losses
+
+
+def ssim(x: torch.Tensor, y: torch.Tensor, win: int = 7) -> torch.Tensor:
+    c1, c2 = 0.01**2, 0.03**2
+    pad = win // 2
+    mu_x = F.avg_pool2d(x, win, 1, pad, count_include_pad=False)
+    mu_y = F.avg_pool2d(y, win, 1, pad, count_include_pad=False)
+    sxx = F.avg_pool2d(x * x, win, 1, pad, count_include_pad=False) - mu_x**2
+    syy = F.avg_pool2d(y * y, win, 1, pad, count_include_pad=False) - mu_y**2
+    sxy = F.avg_pool2d(x * y, win, 1, pad, count_include_pad=False) - mu_x * mu_y
+    s = ((2 * mu_x * mu_y + c1) * (2 * sxy + c2)) / ((mu_x**2 + mu_y**2 + c1) * (sxx + syy + c2))
+    return s.mean()
+
+
+def patch_loss(out: torch.Tensor, gt: torch.Tensor, rng: np.random.Generator, n: int) -> torch.Tensor:
+    """Multi-scale random-patch SSIM + gradient loss: ``n`` patches of random
+    size and position, each compared at its own scale."""
+    _, _, h, w = out.shape
+    total = out.new_zeros(())
+    for _ in range(n):
+        size = int(rng.choice([16, 32, 64, 96]))
+        size = min(size, h, w)
+        y0 = int(rng.integers(0, h - size + 1))
+        x0 = int(rng.integers(0, w - size + 1))
+        o = out[:, :, y0 : y0 + size, x0 : x0 + size]
+        g = gt[:, :, y0 : y0 + size, x0 : x0 + size]
+        down = int(rng.choice([1, 1, 2, 4]))
+        if down > 1 and size // down >= 8:
+            o = F.avg_pool2d(o, down)
+            g = F.avg_pool2d(g, down)
+        grad = (
+            (o[..., 1:, :] - o[..., :-1, :] - (g[..., 1:, :] - g[..., :-1, :])).abs().mean()
+            + (o[..., :, 1:] - o[..., :, :-1] - (g[..., :, 1:] - g[..., :, :-1])).abs().mean()
+        )
+        total = total + (1 - ssim(o, g)) + grad
+    return total / max(n, 1)
+
+
+# ---------------------------------------------------------------------------
+# One step
+
+
+def run_window(model: Enhancer, batch: dict, cfg: dict, rng: np.random.Generator, train: bool = True):
+    """Unrolls the model over a batch window; returns (loss, parts, outputs)."""
+    mcfg = model.cfg
+    inp, tgt, dep, mot, ins = batch["input"], batch["target"], batch["depth"], batch["motion"], batch["insert"]
+    Fr = inp.shape[1]
+    pre = batch["prefill"]
+    # History: newest first, each (linear color, validity), aligned to the frame being processed.
+    hist: list[tuple[torch.Tensor, torch.Tensor]] = []
+    outs = []
+    parts = {"l2": 0.0, "patch": 0.0, "temporal": 0.0}
+    loss = inp.new_zeros(())
+    prev_out = None
+    n_frames = 0
+    for f in range(Fr):
+        if f > 0:
+            d_prev, d_cur, mv = dep[:, f - 1], dep[:, f], mot[:, f]
+            hist = [reproject_hop(c, v, d_prev, d_cur, mv) for c, v in hist]
+            # The depth of history frames is only needed one hop back (chaining).
+        rgba = inp[:, f]
+        scale = frame_scale(rgba, mcfg.key)
+        gt_enc = encode(tgt[:, f], scale, mcfg.log_range)
+        if f < pre:
+            # Prefill: a near-truth "enhanced" frame (small random gain and blur).
+            g = torch.from_numpy(np.exp(rng.normal(0, 0.03, (tgt.shape[0], 3, 1, 1))).astype(np.float32))
+            pseudo = tgt[:, f] * g
+            if rng.random() < 0.5:
+                pseudo = F.avg_pool2d(pseudo, 3, 1, 1, count_include_pad=False)
+            hist = [(pseudo, torch.ones_like(rgba[:, 3:4]))] + hist
+            hist = hist[: mcfg.context_frames]
+            continue
+        x = assemble_input(mcfg, rgba, ins[:, f], hist, scale)
+        out = model(x)
+        # Losses see the encoding times loss_gain (mid grey ~0.12, so SSIM's constants fit).
+        lg = cfg["loss_gain"]
+        l2 = F.mse_loss(out * lg, gt_enc * lg)
+        pl = patch_loss(out * lg, gt_enc * lg, rng, cfg["patches"])
+        loss = loss + l2 * cfg["w_l2"] + pl * cfg["w_patch"]
+        parts["l2"] += l2.item()
+        parts["patch"] += pl.item()
+        out_lin = decode(out, scale, mcfg.log_range)
+        if prev_out is not None:
+            po, ps, pg = prev_out
+            d_prev, d_cur, mv = dep[:, f - 1], dep[:, f], mot[:, f]
+            ones = torch.ones_like(rgba[:, 3:4])
+            warped, val = reproject_hop(torch.cat([po, pg], 1), ones, d_prev, d_cur, mv)
+            w_out = encode(warped[:, :3], scale, mcfg.log_range)
+            w_gt = encode(warped[:, 3:], scale, mcfg.log_range)
+            consistent = ((w_gt - gt_enc).abs().mean(1, keepdim=True) < 0.02).to(out.dtype) * val
+            tl = ((out - w_out).abs() * lg * consistent).sum() / (consistent.sum() * 3 + 1.0)
+            loss = loss + tl * cfg["w_temporal"]
+            parts["temporal"] += tl.item()
+        prev_out = (out_lin, scale, tgt[:, f])
+        outs.append(out)
+        n_frames += 1
+        if batch["temporal"]:
+            hist = [(out_lin.detach(), torch.ones_like(rgba[:, 3:4]))] + hist
+            hist = hist[: mcfg.context_frames]
+    n = max(n_frames, 1)
+    return loss / n, {k: v / n for k, v in parts.items()}, outs
+
+
+# ---------------------------------------------------------------------------
+# Checkpoints
+
+
+def save_checkpoint(path: Path, model, opt, step: int, cfg: dict) -> None:
+    tmp = path.with_suffix(".tmp")
+    torch.save(
+        {"model": model.state_dict(), "opt": opt.state_dict(), "step": step, "cfg": cfg, "model_cfg": model.cfg.to_dict()},
+        tmp,
+    )
+    os.replace(tmp, path)
+
+
+def load_checkpoint(path: Path) -> dict:
+    return torch.load(path, map_location="cpu", weights_only=False)
+
+
+def add_args(ap: argparse.ArgumentParser) -> None:
+    ap.add_argument("--data", type=Path, default=TRAINING_DIR / "data")
+    ap.add_argument("--run", type=Path, default=TRAINING_DIR / "runs" / "main", help="checkpoints and log")
+    ap.add_argument("--steps", type=int, default=20000)
+    ap.add_argument("--batch", type=int, default=4)
+    ap.add_argument("--crop", type=int, nargs=2, default=[128, 128], metavar=("H", "W"))
+    ap.add_argument("--unroll", type=int, default=3, help="frames per window trained with gradients")
+    ap.add_argument("--lr", type=float, default=4e-4)
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--widths", type=int, nargs="+", default=[24, 32, 48, 64])
+    ap.add_argument("--context-frames", type=int, default=4)
+    ap.add_argument("--p-no-history", type=float, default=0.3, help="share of non-temporal batches")
+    ap.add_argument("--p-drop-insert", type=float, default=0.2)
+    ap.add_argument("--patches", type=int, default=4)
+    ap.add_argument("--loss-gain", type=float, default=4.0, help="encoded color is scaled by this in the losses")
+    ap.add_argument("--w-l2", type=float, default=1.0)
+    ap.add_argument("--w-patch", type=float, default=0.2)
+    ap.add_argument("--w-temporal", type=float, default=0.5)
+    ap.add_argument("--ckpt-every", type=int, default=200)
+    ap.add_argument("--log-every", type=int, default=20)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    add_args(ap)
+    args = ap.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    scenes = list_scenes(args.data, "train")
+    if not scenes:
+        print(f"train: no complete scene under {args.data / 'train'} (render some with training.synth.generate)", file=sys.stderr)
+        return 2
+    args.run.mkdir(parents=True, exist_ok=True)
+    cfg = {
+        "batch": args.batch,
+        "crop": list(args.crop),
+        "unroll": args.unroll,
+        "context_frames": args.context_frames,
+        "p_no_history": args.p_no_history,
+        "p_drop_insert": args.p_drop_insert,
+        "patches": args.patches,
+        "loss_gain": args.loss_gain,
+        "w_l2": args.w_l2,
+        "w_patch": args.w_patch,
+        "w_temporal": args.w_temporal,
+        "lr": args.lr,
+        "seed": args.seed,
+    }
+    ckpt_path = args.run / "ckpt_last.pt"
+    torch.manual_seed(args.seed)
+    step = 0
+    if ckpt_path.exists():
+        ck = load_checkpoint(ckpt_path)
+        mcfg = ModelConfig.from_dict(ck["model_cfg"])
+        model = Enhancer(mcfg)
+        model.load_state_dict(ck["model"])
+        opt = torch.optim.Adam(model.parameters(), lr=args.lr)
+        opt.load_state_dict(ck["opt"])
+        step = ck["step"]
+        cfg = {**ck["cfg"], **{k: cfg[k] for k in ("lr",)}}
+        print(f"train: resumed {ckpt_path} at step {step}", flush=True)
+    else:
+        mcfg = ModelConfig(context_frames=args.context_frames, widths=tuple(args.widths))
+        model = Enhancer(mcfg)
+        opt = torch.optim.Adam(model.parameters(), lr=args.lr)
+    cache = SampleCache(scenes)
+    log = open(args.run / "train.log", "a")
+    t0 = time.time()
+    model.train()
+    while step < args.steps:
+        rng = np.random.default_rng([cfg["seed"], step])
+        torch.manual_seed(cfg["seed"] * 1_000_003 + step)
+        batch = make_batch(cache, rng, cfg)
+        # Cosine learning rate with a short warm-up.
+        lr = cfg["lr"] * min(1.0, (step + 1) / 200) * 0.5 * (1 + math.cos(math.pi * min(step / max(args.steps, 1), 1.0)))
+        for gparam in opt.param_groups:
+            gparam["lr"] = lr
+        loss, parts, _ = run_window(model, batch, cfg, rng)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+        opt.step()
+        step += 1
+        if not math.isfinite(float(loss)):
+            print(f"train: loss is {float(loss)} at step {step}; stopping", file=sys.stderr)
+            return 1
+        if step % args.log_every == 0 or step == args.steps:
+            rec = {"step": step, "loss": float(loss), **parts, "lr": lr, "sec": round(time.time() - t0, 1)}
+            print("train: " + json.dumps(rec), flush=True)
+            log.write(json.dumps(rec) + "\n")
+            log.flush()
+        if step % args.ckpt_every == 0 or step == args.steps:
+            save_checkpoint(ckpt_path, model, opt, step, cfg)
+    save_checkpoint(ckpt_path, model, opt, step, cfg)
+    print(f"train: done at step {step}; checkpoint {ckpt_path}", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
