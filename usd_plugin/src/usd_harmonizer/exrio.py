@@ -87,7 +87,9 @@ def read_exr(path: Path, where: str) -> ExrImage:
             data = inp.read_image(i, 0, 0, spec.nchannels, "float")
             if data is None:
                 raise ProductFileError(f"{where}: cannot read part {i} of {path}: {inp.geterror()}")
-            data = np.array(data, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
+            data = np.asarray(data, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
+            if not data.flags.writeable:
+                data = data.copy()
             parts.append(Part(oiio.ImageSpec(spec), data, list(spec.channelnames)))
             i += 1
     finally:
