@@ -36,6 +36,47 @@ def _bind(prim: Usd.Prim, mat: UsdShade.Material) -> None:
     UsdShade.MaterialBindingAPI.Apply(prim).Bind(mat)
 
 
+def _box_mesh(stage: Usd.Stage, path: str, h: float) -> UsdGeom.Mesh:
+    mesh = UsdGeom.Mesh.Define(stage, path)
+    pts = [(x, y, z) for z in (-h, h) for y in (-h, h) for x in (-h, h)]
+    faces = [(0, 2, 3, 1), (4, 5, 7, 6), (0, 1, 5, 4), (2, 6, 7, 3), (0, 4, 6, 2), (1, 3, 7, 5)]
+    mesh.CreatePointsAttr(pts)
+    mesh.CreateFaceVertexCountsAttr([4] * 6)
+    mesh.CreateFaceVertexIndicesAttr([i for f in faces for i in f])
+    mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+    return mesh
+
+
+def _sphere_mesh(stage: Usd.Stage, path: str, r: float, rings: int = 16, segs: int = 32) -> UsdGeom.Mesh:
+    mesh = UsdGeom.Mesh.Define(stage, path)
+    pts = [(0.0, 0.0, -r)]
+    for i in range(1, rings):
+        th = math.pi * i / rings - math.pi / 2
+        for j in range(segs):
+            ph = 2 * math.pi * j / segs
+            pts.append((r * math.cos(th) * math.cos(ph), r * math.cos(th) * math.sin(ph), r * math.sin(th)))
+    pts.append((0.0, 0.0, r))
+    top = len(pts) - 1
+    counts, idx = [], []
+    for j in range(segs):
+        counts.append(3)
+        idx += [0, 1 + (j + 1) % segs, 1 + j]
+    for i in range(rings - 2):
+        a, b = 1 + i * segs, 1 + (i + 1) * segs
+        for j in range(segs):
+            counts.append(4)
+            idx += [a + j, a + (j + 1) % segs, b + (j + 1) % segs, b + j]
+    last = 1 + (rings - 2) * segs
+    for j in range(segs):
+        counts.append(3)
+        idx += [last + j, last + (j + 1) % segs, top]
+    mesh.CreatePointsAttr(pts)
+    mesh.CreateFaceVertexCountsAttr(counts)
+    mesh.CreateFaceVertexIndicesAttr(idx)
+    mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.catmullClark)
+    return mesh
+
+
 def camera_eye(frame: float) -> Gf.Vec3d:
     """World position of the camera at ``frame`` (a lateral dolly with a push-in)."""
     t = frame - FIRST_FRAME
@@ -68,16 +109,16 @@ def author_scene(path: str) -> None:
     floor.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
     _bind(floor.GetPrim(), floor_mat)
 
-    cube = UsdGeom.Cube.Define(stage, "/World/Box")
-    cube.CreateSizeAttr(1.2)
+    # Meshes, not UsdGeom.Cube/Sphere: Blender's USD importer drops material
+    # bindings on implicit shapes.
+    cube = _box_mesh(stage, "/World/Box", 0.6)
     xf = UsdGeom.XformCommonAPI(cube)
     xf.SetTranslate(Gf.Vec3d(-0.9, 0.4, 0.6))
     xf.SetRotate(Gf.Vec3f(0, 0, 25))
     _bind(cube.GetPrim(), red_mat)
 
     # The inserted object: a sphere marked for harmonization.
-    sphere = UsdGeom.Sphere.Define(stage, INSERT_PRIM)
-    sphere.CreateRadiusAttr(0.55)
+    sphere = _sphere_mesh(stage, INSERT_PRIM, 0.55)
     UsdGeom.XformCommonAPI(sphere).SetTranslate(Gf.Vec3d(0.9, -0.3, 0.55))
     sphere.GetPrim().CreateAttribute("harmonizer:insert", Sdf.ValueTypeNames.Bool, custom=True).Set(True)
     _bind(sphere.GetPrim(), blue_mat)
@@ -104,4 +145,3 @@ if __name__ == "__main__":
     import sys
 
     author_scene(sys.argv[1])
-    print(math.pi and "ok")
