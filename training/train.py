@@ -325,11 +325,12 @@ def main(argv: list[str] | None = None) -> int:
         torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
         opt.step()
         step += 1
-        if not math.isfinite(float(loss)):
-            print(f"train: loss is {float(loss)} at step {step}; stopping", file=sys.stderr)
+        loss_value = loss.item()
+        if not math.isfinite(loss_value):
+            print(f"train: loss is {loss_value} at step {step}; stopping", file=sys.stderr)
             return 1
         if step % args.log_every == 0 or step == args.steps:
-            rec = {"step": step, "loss": float(loss), **parts, "lr": lr, "sec": round(time.time() - t0, 1)}
+            rec = {"step": step, "loss": loss_value, **parts, "lr": lr, "sec": round(time.time() - t0, 1)}
             print("train: " + json.dumps(rec), flush=True)
             log.write(json.dumps(rec) + "\n")
             log.flush()

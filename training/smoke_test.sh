@@ -1,0 +1,94 @@
+#!/usr/bin/env bash
+# Smoke test of the data generator and the trainer on a tiny configuration:
+# renders one tiny scene (one sample of each of the five streams) with Blender,
+# checks the samples and their conventions, trains 2 steps, exports to ONNX
+# and checks the export against PyTorch in ONNX Runtime.
+#
+#   bash training/smoke_test.sh            (uses .venv-bpy and .venv-train)
+#   HZ_BPY_PYTHON=... HZ_TRAIN_PYTHON=... bash training/smoke_test.sh
+#
+# Needs: bpy 5.0.1 + OpenEXR (training/requirements-synth.txt), torch + onnx +
+# onnxruntime (training/requirements.txt), the sweethome3d-furniture package
+# (installed by the script with apt-get when run as root).
+set -euo pipefail
+here="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
+repo="$(dirname "$here")"
+bpy_py="${HZ_BPY_PYTHON:-$repo/.venv-bpy/bin/python}"
+train_py="${HZ_TRAIN_PYTHON:-$repo/.venv-train/bin/python}"
+for p in "$bpy_py" "$train_py"; do
+  if [ ! -x "$p" ]; then
+    echo "smoke_test: interpreter $p not found; see training/README.md (Setup)" >&2
+    exit 2
+  fi
+done
+work="$(mktemp -d "${TMPDIR:-/tmp}/hz-smoke.XXXXXX")"
+trap 'rm -rf "$work"' EXIT
+cd "$repo"
+
+echo "== assets"
+"$bpy_py" -m training.synth.assets --no-attribution
+
+echo "== render 1 tiny scene (5 streams)"
+start=$(date +%s)
+nice -n 10 "$bpy_py" -m training.synth.render_scene --scene-id 0 --out "$work/data/train/scene_000000" \
+  --width 64 --height 48 --frames 3 --samples 4 --threads 2 > "$work/render.log" 2>&1 || {
+  tail -40 "$work/render.log" >&2
+  echo "smoke_test: render failed" >&2
+  exit 1
+}
+echo "rendered in $(( $(date +%s) - start )) s"
+
+echo "== check samples"
+"$train_py" - "$work/data/train/scene_000000" <<'PY'
+import sys
+import numpy as np
+from training.synth.dataset import STREAMS, load_sample
+
+d = sys.argv[1]
+fail = []
+for st in STREAMS:
+    s = load_sample(d, st)
+    T, H, W, C = s["input"].shape
+    if (T, H, W, C) != (3, 48, 64, 4):
+        fail.append(f"{st}: input shape {s['input'].shape}")
+    for k in ("input", "target", "motion", "normal", "mask_insert", "mask_shadow"):
+        if not np.isfinite(s[k]).all():
+            fail.append(f"{st}: {k} has NaN/Inf")
+    cov = s["input"][..., 3]
+    if cov.min() < 0 or cov.max() > 1:
+        fail.append(f"{st}: coverage outside [0,1]: {cov.min()}..{cov.max()}")
+    if (s["depth"] <= 0).any():
+        fail.append(f"{st}: non-positive depth")
+    if s["world_to_camera"].shape != (3, 4, 4):
+        fail.append(f"{st}: camera shape {s['world_to_camera'].shape}")
+    diff = np.abs(s["input"][..., :3] - s["target"]).mean()
+    if diff <= 1e-5:
+        fail.append(f"{st}: input equals target (mean |diff| {diff})")
+    print(f"{st}: mean |input-target| {diff:.4f}, coverage mean {cov.mean():.3f}, "
+          f"insert {s['mask_insert'].mean():.3f}, shadow {s['mask_shadow'].mean():.3f}")
+meta = load_sample(d, "s2_tone")["meta"]
+chk = meta["checks"]
+print("checks:", chk)
+if chk["median_px_err_camera_vs_motion"] > 0.1:
+    fail.append(f"camera matrices disagree with motion vectors by {chk['median_px_err_camera_vs_motion']} px")
+if chk["mean_abs_err_warped_prev"] > chk["mean_abs_err_unwarped_prev"] * 1.05 + 1e-3:
+    fail.append("motion vectors do not align the previous frame: " + str(chk))
+if load_sample(d, "s2_tone")["mask_insert"].max() < 0.5:
+    fail.append("insert mask is empty")
+if fail:
+    print("smoke_test: FAILED:\n  " + "\n  ".join(fail), file=sys.stderr)
+    sys.exit(1)
+PY
+
+echo "== train 2 steps"
+"$train_py" -m training.train --data "$work/data" --run "$work/run" --steps 2 --batch 1 --crop 48 64 \
+  --unroll 2 --widths 8 8 12 16 --log-every 1 --ckpt-every 1 --p-no-history 0
+
+echo "== resume to step 3"
+"$train_py" -m training.train --data "$work/data" --run "$work/run" --steps 3 --batch 1 --crop 48 64 \
+  --unroll 2 --log-every 1 --ckpt-every 1 | tee "$work/resume.log"
+grep -q "resumed .* at step 2" "$work/resume.log"
+
+echo "== export"
+"$train_py" -m training.export --ckpt "$work/run/ckpt_last.pt" --out "$work/model"
+echo "smoke_test: 1 passed, 0 failed"
