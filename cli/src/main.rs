@@ -1,4 +1,711 @@
-//! The `harmonize` command.
-fn main() {
-    println!("harmonize {}", harmonizer_core::VERSION);
+//! The `harmonize` command: enhance EXR sequences (`run`), the synthetic
+//! demo (`demo`), benchmarks (`bench`) and file inspection (`info`).
+//! The logic lives in `harmonizer-core`; this is argument handling and output.
+
+use std::io::IsTerminal;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::sync::Arc;
+
+use clap::{Parser, Subcommand};
+use harmonizer_core::io::layout::{ChannelMapping, LayoutOptions, LayoutPreset};
+use harmonizer_core::io::pattern::FrameRange;
+use harmonizer_core::io::run::{plan, run_sequence, FrameResult, RunOptions};
+use harmonizer_core::params::BackendKind;
+use harmonizer_core::synth::{self, Scene, Sequence, SynthConfig};
+use harmonizer_core::{
+    Device, DeviceOptions, Error, ModelSource, ParamValue, Params, Result, Session,
+};
+use serde_json::{json, Map, Value};
+
+#[derive(Parser)]
+#[command(
+    name = "harmonize",
+    version,
+    about = "Temporal post-render enhancer for rendered EXR sequences"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(clap::Args)]
+struct SessionArgs {
+    /// Backend: auto (neural when a model is available, else classical), neural, classical or bypass.
+    #[arg(long, default_value = "auto")]
+    backend: String,
+    /// ONNX model file (its manifest `<name>.json` beside it); default: the embedded model.
+    #[arg(long)]
+    model: Option<PathBuf>,
+    /// Previous enhanced frames used as context (0..=8).
+    #[arg(long, default_value_t = 4)]
+    context: usize,
+    /// Worker threads (0 = one per core).
+    #[arg(long, default_value_t = 0)]
+    threads: usize,
+    /// Any session parameter, `name=value` (repeatable), e.g. `--set strength=0.8`.
+    #[arg(long = "set", value_name = "NAME=VALUE")]
+    set: Vec<String>,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Enhance an EXR sequence: `harmonize run in/####.exr -o out/####.exr`.
+    Run {
+        /// Input frame pattern (`####`, `%04d`, `$F4`, `${F4}` or `<F4>`).
+        input: String,
+        /// Output frame pattern.
+        #[arg(short, long)]
+        output: String,
+        /// Channel layout: auto, generic or blender.
+        #[arg(long, default_value = "auto")]
+        layout: String,
+        /// Map a role to channels: color=R,G,B; coverage=A; depth=Z; motion=X,Y
+        /// (prefix `-` negates); normal=X,Y,Z; insert=M. Repeatable.
+        #[arg(long = "channel", value_name = "ROLE=CH[,CH...]")]
+        channel: Vec<String>,
+        /// Blender layout: the object index (Object Index pass) of the inserted object.
+        #[arg(long)]
+        insert_index: Option<i64>,
+        /// Only frames A-B (all must exist).
+        #[arg(long)]
+        frames: Option<String>,
+        /// What a gap in frame numbers does: reset the temporal state or keep it (with a warning).
+        #[arg(long, default_value = "reset")]
+        gap: String,
+        /// Write per-frame timings, resets and warnings as JSON.
+        #[arg(long)]
+        report: Option<PathBuf>,
+        #[command(flatten)]
+        session: SessionArgs,
+    },
+    /// Generate the synthetic demo sequence, enhance it, write a contact sheet and print metrics.
+    Demo {
+        /// Output directory.
+        #[arg(long, default_value = "harmonize-demo")]
+        out: PathBuf,
+        #[command(flatten)]
+        session: SessionArgs,
+    },
+    /// Time the backends on synthetic frames against a plain copy of the same bytes.
+    Bench {
+        /// Print one JSON object.
+        #[arg(long)]
+        json: bool,
+        /// Worker threads (0 = one per core).
+        #[arg(long, default_value_t = 0)]
+        threads: usize,
+        /// Frame sizes, WxH, comma separated.
+        #[arg(long, default_value = "1024x576,1920x1080")]
+        sizes: String,
+        /// Measured frames per run (after 2 warm-up frames); the median is reported.
+        #[arg(long, default_value_t = 10)]
+        frames: usize,
+        /// Backends to time (default: classical, plus neural when a model is available).
+        #[arg(long)]
+        backend: Vec<String>,
+        /// ONNX model file for the neural backend.
+        #[arg(long)]
+        model: Option<PathBuf>,
+        /// Previous frames used as context.
+        #[arg(long, default_value_t = 4)]
+        context: usize,
+    },
+    /// Describe an EXR file: parts, channels, detected layout, camera.
+    Info {
+        /// The file.
+        file: PathBuf,
+    },
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let r = match cli.command {
+        Command::Run {
+            input,
+            output,
+            layout,
+            channel,
+            insert_index,
+            frames,
+            gap,
+            report,
+            session,
+        } => cmd_run(
+            input,
+            output,
+            layout,
+            channel,
+            insert_index,
+            frames,
+            gap,
+            report,
+            session,
+        ),
+        Command::Demo { out, session } => cmd_demo(&out, session),
+        Command::Bench {
+            json,
+            threads,
+            sizes,
+            frames,
+            backend,
+            model,
+            context,
+        } => cmd_bench(json, threads, &sizes, frames, backend, model, context),
+        Command::Info { file } => cmd_info(&file),
+    };
+    match r {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("harmonize: error: {e}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+/// Parses `--set` values: true/false, integers, numbers, else strings.
+fn parse_value(v: &str) -> ParamValue {
+    match v {
+        "true" => ParamValue::Bool(true),
+        "false" => ParamValue::Bool(false),
+        _ => v
+            .parse::<i64>()
+            .map(ParamValue::Int)
+            .or_else(|_| v.parse::<f64>().map(ParamValue::Float))
+            .unwrap_or_else(|_| ParamValue::Str(v.to_string())),
+    }
+}
+
+fn make_session(args: &SessionArgs, gap: Option<&str>) -> Result<Session> {
+    let mut params = Params::default();
+    params.set("backend", &ParamValue::Str(args.backend.clone()))?;
+    params.set("context_frames", &ParamValue::Int(args.context as i64))?;
+    if let Some(g) = gap {
+        params.set("gap_policy", &ParamValue::Str(g.to_string()))?;
+    }
+    for s in &args.set {
+        let (k, v) = s.split_once('=').ok_or_else(|| {
+            Error::invalid(format!(
+                "--set {s:?}: expected NAME=VALUE, e.g. strength=0.8"
+            ))
+        })?;
+        params.set(k.trim(), &parse_value(v.trim()))?;
+    }
+    let device = Device::new(DeviceOptions {
+        threads: args.threads,
+        model: args
+            .model
+            .clone()
+            .map(ModelSource::File)
+            .unwrap_or_default(),
+        ..DeviceOptions::default()
+    })?;
+    Session::new(device, params)
+}
+
+fn stages_json(stages: &harmonizer_core::backend::Stages) -> Value {
+    let mut m = Map::new();
+    for (k, v) in &stages.0 {
+        m.insert(k.clone(), json!(v));
+    }
+    Value::Object(m)
+}
+
+fn frame_json(r: &FrameResult) -> Value {
+    let mut warnings: Vec<String> = r.read_warnings.clone();
+    warnings.extend(r.report.warnings.iter().cloned());
+    json!({
+        "frame": r.planned.frame,
+        "input": r.planned.input.display().to_string(),
+        "output": r.planned.output.display().to_string(),
+        "backend": r.report.backend,
+        "reset": r.report.reset.map(|x| x.name()),
+        "history_used": r.report.history_used,
+        "sanitized": r.report.sanitized,
+        "warnings": warnings,
+        "read_ms": r.read_ms,
+        "process_ms": r.report.total_ms,
+        "write_ms": r.write_ms,
+        "stages": stages_json(&r.report.stages),
+    })
+}
+
+fn summary_json(results: &[FrameResult]) -> Value {
+    let n = results.len().max(1) as f64;
+    let resets: Vec<Value> = results
+        .iter()
+        .filter_map(|r| {
+            r.report
+                .reset
+                .map(|x| json!({"frame": r.planned.frame, "reason": x.name()}))
+        })
+        .collect();
+    json!({
+        "frames": results.len(),
+        "resets": resets,
+        "sanitized": results.iter().map(|r| r.report.sanitized).sum::<usize>(),
+        "warnings": results.iter().map(|r| r.report.warnings.len() + r.read_warnings.len()).sum::<usize>(),
+        "mean_process_ms": results.iter().map(|r| r.report.total_ms).sum::<f64>() / n,
+        "mean_read_ms": results.iter().map(|r| r.read_ms).sum::<f64>() / n,
+        "mean_write_ms": results.iter().map(|r| r.write_ms).sum::<f64>() / n,
+    })
+}
+
+fn write_json(path: &Path, v: &Value) -> Result<()> {
+    let text = serde_json::to_string_pretty(v).map_err(|e| Error::io(path, e))?;
+    harmonizer_core::io::exr::write_atomic(path, |tmp| std::fs::write(tmp, text.as_bytes()))
+}
+
+fn layout_options(
+    layout: &str,
+    channel: &[String],
+    insert_index: Option<i64>,
+) -> Result<LayoutOptions> {
+    let mut mapping = ChannelMapping::default();
+    for c in channel {
+        mapping.add(c)?;
+    }
+    Ok(LayoutOptions {
+        preset: LayoutPreset::parse(layout)?,
+        mapping,
+        insert_index,
+    })
+}
+
+fn print_summary(results: &[FrameResult], output: &str) {
+    let s = summary_json(results);
+    let resets: Vec<String> = results
+        .iter()
+        .filter_map(|r| {
+            r.report
+                .reset
+                .map(|x| format!("{} ({})", r.planned.frame, x.name()))
+        })
+        .collect();
+    let backend = results.first().map_or("-", |r| r.report.backend.as_str());
+    println!(
+        "harmonize: {} frame(s) written to {output}; backend {backend}; {:.1} ms/frame processing ({:.1} read, {:.1} write)",
+        results.len(),
+        s["mean_process_ms"].as_f64().unwrap_or(0.0),
+        s["mean_read_ms"].as_f64().unwrap_or(0.0),
+        s["mean_write_ms"].as_f64().unwrap_or(0.0),
+    );
+    println!(
+        "  resets: {}",
+        if resets.is_empty() {
+            "none".into()
+        } else {
+            resets.join(", ")
+        }
+    );
+    println!(
+        "  sanitized color samples (NaN, Inf, negative): {}; warnings: {}",
+        s["sanitized"], s["warnings"]
+    );
+    for r in results {
+        for w in r.read_warnings.iter().chain(&r.report.warnings) {
+            println!("  warning: {w}");
+        }
+    }
+}
+
+#[allow(clippy::too_many_arguments)]
+fn cmd_run(
+    input: String,
+    output: String,
+    layout: String,
+    channel: Vec<String>,
+    insert_index: Option<i64>,
+    frames: Option<String>,
+    gap: String,
+    report: Option<PathBuf>,
+    session_args: SessionArgs,
+) -> Result<()> {
+    let options = RunOptions {
+        input,
+        output: output.clone(),
+        layout: layout_options(&layout, &channel, insert_index)?,
+        frames: frames.as_deref().map(FrameRange::parse).transpose()?,
+    };
+    let planned = plan(&options)?;
+    let mut session = make_session(&session_args, Some(&gap))?;
+    let bar = progress_bar(planned.len() as u64);
+    let mut done: Vec<FrameResult> = Vec::new();
+    let r = run_sequence(&mut session, &options, &planned, false, &mut |res| {
+        bar.set_message(format!("frame {}", res.planned.frame));
+        bar.inc(1);
+        done.push(res.clone());
+    });
+    bar.finish_and_clear();
+    if let Some(path) = &report {
+        let mut v = json!({
+            "input": options.input,
+            "output": options.output,
+            "layout": layout,
+            "version": harmonizer_core::VERSION,
+            "frames": done.iter().map(frame_json).collect::<Vec<_>>(),
+            "summary": summary_json(&done),
+        });
+        if let Err(e) = &r {
+            v["error"] = json!(e.to_string());
+        }
+        write_json(path, &v)?;
+    }
+    r?;
+    print_summary(&done, &output);
+    if let Some(path) = &report {
+        println!("  report: {}", path.display());
+    }
+    Ok(())
+}
+
+fn progress_bar(len: u64) -> indicatif::ProgressBar {
+    if !std::io::stderr().is_terminal() {
+        return indicatif::ProgressBar::hidden();
+    }
+    let bar = indicatif::ProgressBar::new(len);
+    if let Ok(style) =
+        indicatif::ProgressStyle::with_template("{bar:40} {pos}/{len} {msg} [{elapsed} < {eta}]")
+    {
+        bar.set_style(style);
+    }
+    bar
+}
+
+fn srgb_oetf(v: f32) -> u8 {
+    let v = v.clamp(0.0, 1.0);
+    let s = if v <= 0.003_130_8 {
+        12.92 * v
+    } else {
+        1.055 * v.powf(1.0 / 2.4) - 0.055
+    };
+    (s * 255.0 + 0.5) as u8
+}
+
+/// A contact sheet: one row per frame, columns input | enhanced | truth.
+fn contact_sheet(path: &Path, rows: &[[(&[f32], usize); 3]], w: usize, h: usize) -> Result<()> {
+    let gap = 4;
+    let (sw, sh) = (
+        3 * w + 2 * gap,
+        rows.len() * h + (rows.len().saturating_sub(1)) * gap,
+    );
+    let mut img = image::RgbImage::from_pixel(sw as u32, sh as u32, image::Rgb([24, 24, 24]));
+    for (r, row) in rows.iter().enumerate() {
+        for (c, (data, ch)) in row.iter().enumerate() {
+            for y in 0..h {
+                for x in 0..w {
+                    let k = (y * w + x) * ch;
+                    let px = image::Rgb([
+                        srgb_oetf(data[k]),
+                        srgb_oetf(data[k + 1]),
+                        srgb_oetf(data[k + 2]),
+                    ]);
+                    img.put_pixel((c * (w + gap) + x) as u32, (r * (h + gap) + y) as u32, px);
+                }
+            }
+        }
+    }
+    let enc = |tmp: &Path| img.save_with_format(tmp, image::ImageFormat::Png);
+    harmonizer_core::io::exr::write_atomic(path, enc)
+}
+
+fn cmd_demo(out: &Path, args: SessionArgs) -> Result<()> {
+    let config = SynthConfig::default();
+    println!(
+        "harmonize demo: {} frames {}x{} (holes, an inserted sphere with a tone mismatch and no contact shadow, flicker)",
+        config.frames, config.width, config.height
+    );
+    let seq = Sequence::generate(config)?;
+    let (input, truth) = seq.write_generic(out, "frame.####.exr")?;
+    let output = out
+        .join("output")
+        .join("frame.####.exr")
+        .to_string_lossy()
+        .to_string();
+    let options = RunOptions {
+        input: input.clone(),
+        output: output.clone(),
+        layout: LayoutOptions::default(),
+        frames: None,
+    };
+    let planned = plan(&options)?;
+    let mut session = make_session(&args, None)?;
+    let bar = progress_bar(planned.len() as u64);
+    let results = run_sequence(&mut session, &options, &planned, true, &mut |_| bar.inc(1))?;
+    bar.finish_and_clear();
+    let outs: Vec<Vec<f32>> = results
+        .iter()
+        .map(|r| synth::interleave(r.output.as_ref().expect("outputs kept"), 4))
+        .collect();
+    let ins: Vec<Vec<f32>> = seq.frames.iter().map(|f| f.input.color.clone()).collect();
+    let m = json!({
+        "backend": results.first().map(|r| r.report.backend.clone()),
+        "psnr_input": seq.psnr(&ins, 4, "all"),
+        "psnr_output": seq.psnr(&outs, 4, "all"),
+        "psnr_holes_input": seq.psnr(&ins, 4, "holes"),
+        "psnr_holes_output": seq.psnr(&outs, 4, "holes"),
+        "psnr_insert_input": seq.psnr(&ins, 4, "insert"),
+        "psnr_insert_output": seq.psnr(&outs, 4, "insert"),
+        "psnr_shadow_input": seq.psnr(&ins, 4, "shadow"),
+        "psnr_shadow_output": seq.psnr(&outs, 4, "shadow"),
+        "warping_error_input": seq.warping_error(&ins, 4),
+        "warping_error_output": seq.warping_error(&outs, 4),
+        "mean_process_ms": results.iter().map(|r| r.report.total_ms).sum::<f64>() / results.len().max(1) as f64,
+    });
+    let sheet = out.join("contact_sheet.png");
+    let picks: Vec<usize> = [0, 7, 15, 23]
+        .into_iter()
+        .filter(|&i| i < seq.frames.len())
+        .collect();
+    let rows: Vec<[(&[f32], usize); 3]> = picks
+        .iter()
+        .map(|&i| {
+            [
+                (&ins[i][..], 4),
+                (&outs[i][..], 4),
+                (&seq.frames[i].truth[..], 3),
+            ]
+        })
+        .collect();
+    contact_sheet(&sheet, &rows, config.width, config.height)?;
+    let metrics = out.join("metrics.json");
+    write_json(&metrics, &m)?;
+    let f = |k: &str| m[k].as_f64().unwrap_or(f64::NAN);
+    println!("  input:   {input}");
+    println!("  output:  {output}");
+    println!("  truth:   {truth}");
+    println!(
+        "  contact sheet (input | enhanced | truth): {}",
+        sheet.display()
+    );
+    println!("  metrics: {}", metrics.display());
+    println!("  backend: {}", m["backend"].as_str().unwrap_or("-"));
+    println!(
+        "  PSNR vs truth, all pixels:  input {:6.2} dB -> output {:6.2} dB",
+        f("psnr_input"),
+        f("psnr_output")
+    );
+    println!(
+        "  PSNR vs truth, holes:       input {:6.2} dB -> output {:6.2} dB",
+        f("psnr_holes_input"),
+        f("psnr_holes_output")
+    );
+    println!(
+        "  PSNR vs truth, insert:      input {:6.2} dB -> output {:6.2} dB",
+        f("psnr_insert_input"),
+        f("psnr_insert_output")
+    );
+    println!(
+        "  PSNR vs truth, shadow:      input {:6.2} dB -> output {:6.2} dB",
+        f("psnr_shadow_input"),
+        f("psnr_shadow_output")
+    );
+    println!(
+        "  warping error:              input {:.5} -> output {:.5}",
+        f("warping_error_input"),
+        f("warping_error_output")
+    );
+    Ok(())
+}
+
+fn parse_sizes(s: &str) -> Result<Vec<(usize, usize)>> {
+    s.split(',')
+        .map(|t| {
+            let t = t.trim();
+            let (w, h) = t
+                .split_once('x')
+                .ok_or_else(|| Error::invalid(format!("--sizes: {t:?} is not WxH")))?;
+            let w: usize = w
+                .parse()
+                .map_err(|_| Error::invalid(format!("--sizes: bad width in {t:?}")))?;
+            let h: usize = h
+                .parse()
+                .map_err(|_| Error::invalid(format!("--sizes: bad height in {t:?}")))?;
+            if w < 8 || h < 8 {
+                return Err(Error::invalid(format!(
+                    "--sizes: {t:?} is too small (at least 8x8)"
+                )));
+            }
+            Ok((w, h))
+        })
+        .collect()
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    v.sort_by(|a, b| a.total_cmp(b));
+    let n = v.len();
+    if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        0.5 * (v[n / 2 - 1] + v[n / 2])
+    }
+}
+
+fn bench_one(
+    device: &Arc<Device>,
+    backend: &str,
+    size: (usize, usize),
+    frames: usize,
+    context: usize,
+) -> Result<Value> {
+    let warmup = 2usize;
+    let mut params = Params::default();
+    params.set("backend", &ParamValue::Str(backend.to_string()))?;
+    params.set("context_frames", &ParamValue::Int(context as i64))?;
+    let mut session = Session::new(device.clone(), params)?;
+    let scene = Scene::new(SynthConfig {
+        width: size.0,
+        height: size.1,
+        frames: warmup + frames,
+        seed: 1,
+        first_frame: 1,
+    })?;
+    let mut totals = Vec::new();
+    let mut copies = Vec::new();
+    let mut stages: Vec<(String, Vec<f64>)> = Vec::new();
+    for t in 0..(warmup + frames) {
+        let f = scene.frame(1 + t as i64);
+        let (out, report) = session.process(&f.input.frame_input(), None)?;
+        // The memory-bandwidth floor: copy the same bytes (input buffers and output).
+        let bufs: [&[f32]; 7] = [
+            &f.input.color,
+            &f.input.depth,
+            &f.input.motion,
+            &f.input.normal,
+            &f.input.coverage,
+            &f.input.insert_mask,
+            &out.data,
+        ];
+        let mut dst: Vec<Vec<f32>> = bufs.iter().map(|b| vec![0.0f32; b.len()]).collect();
+        let tc = std::time::Instant::now();
+        for (d, s) in dst.iter_mut().zip(bufs) {
+            d.copy_from_slice(s);
+        }
+        std::hint::black_box(&dst);
+        let copy_ms = tc.elapsed().as_secs_f64() * 1e3;
+        if t < warmup {
+            continue;
+        }
+        totals.push(report.total_ms);
+        copies.push(copy_ms);
+        for (k, v) in &report.stages.0 {
+            match stages.iter_mut().find(|(n, _)| n == k) {
+                Some(e) => e.1.push(*v),
+                None => stages.push((k.clone(), vec![*v])),
+            }
+        }
+    }
+    let mut sm = Map::new();
+    for (k, v) in stages {
+        sm.insert(k, json!(median(v)));
+    }
+    Ok(json!({
+        "backend": session.backend_name(),
+        "width": size.0,
+        "height": size.1,
+        "context": context,
+        "threads": device.threads(),
+        "frames": frames,
+        "ms_per_frame": median(totals),
+        "copy_floor_ms": median(copies),
+        "stages": Value::Object(sm),
+    }))
+}
+
+fn cmd_bench(
+    as_json: bool,
+    threads: usize,
+    sizes: &str,
+    frames: usize,
+    backends: Vec<String>,
+    model: Option<PathBuf>,
+    context: usize,
+) -> Result<()> {
+    let sizes = parse_sizes(sizes)?;
+    if frames == 0 {
+        return Err(Error::invalid("--frames: must be at least 1"));
+    }
+    let device = Device::new(DeviceOptions {
+        threads,
+        model: model.map(ModelSource::File).unwrap_or_default(),
+        ..DeviceOptions::default()
+    })?;
+    let backends = if backends.is_empty() {
+        let mut b = vec!["classical".to_string()];
+        match device.neural_model() {
+            Ok(Some(_)) => b.push("neural".to_string()),
+            Ok(None) => {}
+            Err(e) => eprintln!("harmonize bench: neural backend skipped: {e}"),
+        }
+        b
+    } else {
+        for b in &backends {
+            BackendKind::parse(b)?;
+        }
+        backends
+    };
+    let mut runs = Vec::new();
+    for b in &backends {
+        for &size in &sizes {
+            let run = bench_one(&device, b, size, frames, context)?;
+            if !as_json {
+                let stages: Vec<String> = run["stages"]
+                    .as_object()
+                    .map(|m| {
+                        m.iter()
+                            .map(|(k, v)| format!("{k} {:.2}", v.as_f64().unwrap_or(0.0)))
+                            .collect()
+                    })
+                    .unwrap_or_default();
+                println!(
+                    "{:<10} {:>5}x{:<5} K={} threads={}  {:8.2} ms/frame  copy floor {:6.2} ms  ({:.1}x)  stages: {}",
+                    run["backend"].as_str().unwrap_or("?"),
+                    size.0,
+                    size.1,
+                    context,
+                    device.threads(),
+                    run["ms_per_frame"].as_f64().unwrap_or(f64::NAN),
+                    run["copy_floor_ms"].as_f64().unwrap_or(f64::NAN),
+                    run["ms_per_frame"].as_f64().unwrap_or(f64::NAN) / run["copy_floor_ms"].as_f64().unwrap_or(f64::NAN),
+                    stages.join(", ")
+                );
+            }
+            runs.push(run);
+        }
+    }
+    if as_json {
+        println!("{}", json!({ "runs": runs }));
+    }
+    Ok(())
+}
+
+fn cmd_info(path: &Path) -> Result<()> {
+    let i = harmonizer_core::io::exr::info(path)?;
+    println!("{}", path.display());
+    println!("  size: {}x{} (display window)", i.display.0, i.display.1);
+    println!("  parts: {}", i.parts.len());
+    for (k, (name, w, h)) in i.parts.iter().enumerate() {
+        println!("    [{k}] {:?} {w}x{h}", name);
+    }
+    println!("  channels: {}", i.channels.len());
+    for (name, kind) in &i.channels {
+        println!("    {name} ({})", kind.name());
+    }
+    match &i.view_layer {
+        Some(l) => println!("  layout: {} (view layer {l:?})", i.layout.name()),
+        None => println!("  layout: {}", i.layout.name()),
+    }
+    println!("  roles found: {}", i.roles.join(", "));
+    println!(
+        "  camera: {}",
+        if i.camera {
+            "present (worldToCamera, worldToNDC)"
+        } else {
+            "absent"
+        }
+    );
+    Ok(())
 }

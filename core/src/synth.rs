@@ -541,15 +541,15 @@ impl Sequence {
         Ok(Sequence { config, frames })
     }
 
-    /// Writes the inputs as `generic` EXRs to `dir/pattern` and the ground
-    /// truth (RGB, A = 1, exact `motion.X/Y`, region masks `mask.hole`,
-    /// `mask.insert`, `mask.shadow`, `mask.temporal`) to `dir/truth/pattern`.
-    /// Returns the input and truth patterns as paths.
+    /// Writes the inputs as `generic` EXRs to `dir/input/<pattern>` and the
+    /// ground truth (RGB, A = 1, exact `motion.X/Y`, region masks
+    /// `mask.hole`, `mask.insert`, `mask.shadow`, `mask.temporal`) to
+    /// `dir/truth/<pattern>`. Returns the input and truth patterns.
     pub fn write_generic(&self, dir: &std::path::Path, pattern: &str) -> Result<(String, String)> {
-        let input_pattern = dir.join(pattern);
-        let truth_pattern = dir.join("truth").join(pattern);
-        let ip = crate::io::FramePattern::parse(&input_pattern.to_string_lossy())?;
-        let tp = crate::io::FramePattern::parse(&truth_pattern.to_string_lossy())?;
+        let ip =
+            crate::io::FramePattern::parse(&dir.join("input").join(pattern).to_string_lossy())?;
+        let tp =
+            crate::io::FramePattern::parse(&dir.join("truth").join(pattern).to_string_lossy())?;
         for d in [ip.dir(), tp.dir()] {
             std::fs::create_dir_all(d).map_err(|e| Error::io(d, e))?;
         }
