@@ -22,7 +22,9 @@ FOCAL_LENGTH = 30.0
 INSERT_PRIM = "/World/Insert"
 
 
-def _material(stage: Usd.Stage, path: str, color: tuple[float, float, float], roughness: float):
+def _material(
+    stage: Usd.Stage, path: str, color: tuple[float, float, float], roughness: float
+):
     mat = UsdShade.Material.Define(stage, path)
     shader = UsdShade.Shader.Define(stage, path + "/Surface")
     shader.CreateIdAttr("UsdPreviewSurface")
@@ -39,7 +41,14 @@ def _bind(prim: Usd.Prim, mat: UsdShade.Material) -> None:
 def _box_mesh(stage: Usd.Stage, path: str, h: float) -> UsdGeom.Mesh:
     mesh = UsdGeom.Mesh.Define(stage, path)
     pts = [(x, y, z) for z in (-h, h) for y in (-h, h) for x in (-h, h)]
-    faces = [(0, 2, 3, 1), (4, 5, 7, 6), (0, 1, 5, 4), (2, 6, 7, 3), (0, 4, 6, 2), (1, 3, 7, 5)]
+    faces = [
+        (0, 2, 3, 1),
+        (4, 5, 7, 6),
+        (0, 1, 5, 4),
+        (2, 6, 7, 3),
+        (0, 4, 6, 2),
+        (1, 3, 7, 5),
+    ]
     mesh.CreatePointsAttr(pts)
     mesh.CreateFaceVertexCountsAttr([4] * 6)
     mesh.CreateFaceVertexIndicesAttr([i for f in faces for i in f])
@@ -47,14 +56,22 @@ def _box_mesh(stage: Usd.Stage, path: str, h: float) -> UsdGeom.Mesh:
     return mesh
 
 
-def _sphere_mesh(stage: Usd.Stage, path: str, r: float, rings: int = 16, segs: int = 32) -> UsdGeom.Mesh:
+def _sphere_mesh(
+    stage: Usd.Stage, path: str, r: float, rings: int = 16, segs: int = 32
+) -> UsdGeom.Mesh:
     mesh = UsdGeom.Mesh.Define(stage, path)
     pts = [(0.0, 0.0, -r)]
     for i in range(1, rings):
         th = math.pi * i / rings - math.pi / 2
         for j in range(segs):
             ph = 2 * math.pi * j / segs
-            pts.append((r * math.cos(th) * math.cos(ph), r * math.cos(th) * math.sin(ph), r * math.sin(th)))
+            pts.append(
+                (
+                    r * math.cos(th) * math.cos(ph),
+                    r * math.cos(th) * math.sin(ph),
+                    r * math.sin(th),
+                )
+            )
     pts.append((0.0, 0.0, r))
     top = len(pts) - 1
     counts, idx = [], []
@@ -120,7 +137,9 @@ def author_scene(path: str) -> None:
     # The inserted object: a sphere marked for harmonization.
     sphere = _sphere_mesh(stage, INSERT_PRIM, 0.55)
     UsdGeom.XformCommonAPI(sphere).SetTranslate(Gf.Vec3d(0.9, -0.3, 0.55))
-    sphere.GetPrim().CreateAttribute("harmonizer:insert", Sdf.ValueTypeNames.Bool, custom=True).Set(True)
+    sphere.GetPrim().CreateAttribute(
+        "harmonizer:insert", Sdf.ValueTypeNames.Bool, custom=True
+    ).Set(True)
     _bind(sphere.GetPrim(), blue_mat)
 
     sun = UsdLux.DistantLight.Define(stage, "/World/Sun")

@@ -27,11 +27,18 @@ def main(argv: list[str]) -> int:
     insert_names = {n for n in names.split(",") if n}
 
     bpy.ops.wm.read_factory_settings(use_empty=True)
-    bpy.ops.wm.usd_import(filepath=os.path.abspath(stage_path), set_frame_range=True, import_usd_preview=True)
+    bpy.ops.wm.usd_import(
+        filepath=os.path.abspath(stage_path),
+        set_frame_range=True,
+        import_usd_preview=True,
+    )
     scene = bpy.context.scene
     cams = [o for o in scene.objects if o.type == "CAMERA"]
     if len(cams) != 1:
-        print(f"expected one camera in {stage_path}, found {[c.name for c in cams]}", file=sys.stderr)
+        print(
+            f"expected one camera in {stage_path}, found {[c.name for c in cams]}",
+            file=sys.stderr,
+        )
         return 2
     scene.camera = cams[0]
     found = set()
@@ -40,7 +47,10 @@ def main(argv: list[str]) -> int:
             obj.pass_index = 1
             found.add(obj.name)
     if found != insert_names:
-        print(f"insert prims not imported: {sorted(insert_names - found)}", file=sys.stderr)
+        print(
+            f"insert prims not imported: {sorted(insert_names - found)}",
+            file=sys.stderr,
+        )
         return 2
 
     if scene.world is None:

@@ -12,7 +12,7 @@ import pytest
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
-import fixtures  # noqa: E402
+import fixtures
 
 
 @pytest.fixture(scope="session")
@@ -25,5 +25,9 @@ def rendered() -> Path:
 def shot(rendered: Path, tmp_path: Path) -> Path:
     """A private copy of the rendered shot; returns its ``shot.usda``."""
     dst = tmp_path / "shot"
-    shutil.copytree(rendered, dst, ignore=shutil.ignore_patterns("blender", "harmonized", "*.harmonized.usda"))
+    shutil.copytree(
+        rendered,
+        dst,
+        ignore=shutil.ignore_patterns("blender", "harmonized", "*.harmonized.usda"),
+    )
     return dst / "shot.usda"

@@ -15,13 +15,14 @@ from pathlib import Path
 import numpy as np
 import OpenImageIO as oiio
 import PyOpenColorIO as ocio
-
 from usd_harmonizer.exrio import read_exr
 
 
 def to_srgb(rgb: np.ndarray) -> np.ndarray:
     cfg = ocio.Config.CreateFromFile("ocio://default")
-    cpu = cfg.getProcessor("lin_rec709_srgb", "srgb_rec709_scene").getDefaultCPUProcessor()
+    cpu = cfg.getProcessor(
+        "lin_rec709_srgb", "srgb_rec709_scene"
+    ).getDefaultCPUProcessor()
     out = np.ascontiguousarray(np.clip(rgb, 0, 1), np.float32).copy()
     cpu.applyRGB(out)
     return out
@@ -30,7 +31,9 @@ def to_srgb(rgb: np.ndarray) -> np.ndarray:
 def main(shot_dir: str, out: str) -> int:
     d = Path(shot_dir)
     a = read_exr(d / "render/beauty.1003.exr", "before").stack(["R", "G", "B"])
-    b = read_exr(d / "render/harmonized/beauty.1003.exr", "after").stack(["R", "G", "B"])
+    b = read_exr(d / "render/harmonized/beauty.1003.exr", "after").stack(
+        ["R", "G", "B"]
+    )
     gap = np.ones((a.shape[0], 4, 3), np.float32)
     img = np.concatenate([to_srgb(a), gap, to_srgb(b)], axis=1)
     img = np.repeat(np.repeat(img, 3, 0), 3, 1)

@@ -40,7 +40,7 @@ HERE = Path(__file__).resolve().parent
 REPO = HERE.parents[1]
 sys.path.insert(0, str(HERE))
 
-import author_scene  # noqa: E402
+import author_scene
 
 FRAMES = list(range(author_scene.FIRST_FRAME, author_scene.LAST_FRAME + 1))
 W, H = author_scene.WIDTH, author_scene.HEIGHT
@@ -82,7 +82,9 @@ def _read_parts(path: Path) -> dict[str, np.ndarray]:
     return out
 
 
-def write_exr(path: Path, channels: dict[str, np.ndarray], fmt: str, attrs: dict[str, object]) -> None:
+def write_exr(
+    path: Path, channels: dict[str, np.ndarray], fmt: str, attrs: dict[str, object]
+) -> None:
     """Single-part EXR with the channels in the given order."""
     path.parent.mkdir(parents=True, exist_ok=True)
     names = list(channels)
@@ -93,7 +95,9 @@ def write_exr(path: Path, channels: dict[str, np.ndarray], fmt: str, attrs: dict
         spec.attribute(k, v) if isinstance(v, str) else spec.attribute(k, "int", int(v))
     out = oiio.ImageOutput.create(str(path))
     assert out.open(str(path), spec), out.geterror()
-    assert out.write_image(np.stack([channels[n] for n in names], axis=-1).astype(np.float32))
+    assert out.write_image(
+        np.stack([channels[n] for n in names], axis=-1).astype(np.float32)
+    )
     assert out.close()
 
 
@@ -106,7 +110,9 @@ def aces_from_lin709(rgb: np.ndarray) -> np.ndarray:
     return out
 
 
-def _var(stage: Usd.Stage, name: str, source: str, dtype: str, **attrs: object) -> Sdf.Path:
+def _var(
+    stage: Usd.Stage, name: str, source: str, dtype: str, **attrs: object
+) -> Sdf.Path:
     v = UsdRender.Var.Define(stage, f"/Render/Vars/{name}")
     v.CreateSourceNameAttr(source)
     v.CreateDataTypeAttr(dtype)
@@ -114,7 +120,9 @@ def _var(stage: Usd.Stage, name: str, source: str, dtype: str, **attrs: object) 
     for k, val in attrs.items():
         k = k.replace("__", ":")
         if isinstance(val, tuple):
-            p.CreateAttribute(k, Sdf.ValueTypeNames.Float2, custom=True).Set(Gf.Vec2f(*val))
+            p.CreateAttribute(k, Sdf.ValueTypeNames.Float2, custom=True).Set(
+                Gf.Vec2f(*val)
+            )
         else:
             p.CreateAttribute(k, Sdf.ValueTypeNames.String, custom=True).Set(val)
     return v.GetPath()
@@ -129,14 +137,24 @@ def write_products(root: Path, blender_dir: Path) -> Path:
     stage.SetTimeCodesPerSecond(24)
     color = _var(stage, "color", "color", "color4f")
     depth = _var(stage, "depth", "depth", "float", driver__parameters__aov__name="Z")
-    motion = _var(stage, "motion", "Vector", "float4", harmonizer__motionVectorScale=(1.0, -1.0))
+    motion = _var(
+        stage, "motion", "Vector", "float4", harmonizer__motionVectorScale=(1.0, -1.0)
+    )
     normal = _var(stage, "N", "normal", "normal3f")
-    insert = _var(stage, "insert", "insertMask", "float", driver__parameters__aov__name="mask.insert")
+    insert = _var(
+        stage,
+        "insert",
+        "insertMask",
+        "float",
+        driver__parameters__aov__name="mask.insert",
+    )
     index = _var(stage, "objectIndex", "object_index", "float")
 
     beauty = UsdRender.Product.Define(stage, "/Render/Products/beauty")
     beauty.CreateProductNameAttr("render/beauty.####.exr")
-    beauty.CreateOrderedVarsRel().SetTargets([color, depth, motion, normal, insert, index])
+    beauty.CreateOrderedVarsRel().SetTargets(
+        [color, depth, motion, normal, insert, index]
+    )
 
     nomv = UsdRender.Product.Define(stage, "/Render/Products/nomv")
     name = nomv.CreateProductNameAttr("render/nomv/shot_nomv.exr")
@@ -197,18 +215,41 @@ def build() -> Path:
         return root
     py = bpy_python()
     if not py.is_file():
-        raise RuntimeError(f"Blender's bpy venv is missing ({py}); run tests/usd/run.sh, which creates it")
+        raise RuntimeError(
+            f"Blender's bpy venv is missing ({py}); run tests/usd/run.sh, which creates it"
+        )
+    # Drop fixtures of older script versions, then render afresh.
+    if root.parent.is_dir():
+        for stale in root.parent.iterdir():
+            if stale.is_dir() and stale.name != root.name and (stale / "DONE").is_file():
+                shutil.rmtree(stale)
     if root.exists():
         shutil.rmtree(root)
     root.mkdir(parents=True)
     author_scene.author_scene(str(root / "scene.usda"))
     cmd = [
-        str(py), str(HERE / "blender_render.py"), str(root / "scene.usda"), str(root / "blender"),
-        str(W), str(H), "4", str(FRAMES[0]), str(FRAMES[-1]), author_scene.INSERT_PRIM.rsplit("/", 1)[1],
+        str(py),
+        str(HERE / "blender_render.py"),
+        str(root / "scene.usda"),
+        str(root / "blender"),
+        str(W),
+        str(H),
+        "4",
+        str(FRAMES[0]),
+        str(FRAMES[-1]),
+        author_scene.INSERT_PRIM.rsplit("/", 1)[1],
     ]
-    r = subprocess.run(["nice", "-n", "10", *cmd], capture_output=True, text=True, timeout=900)
+    r = subprocess.run(
+        ["nice", "-n", "10", *cmd],
+        capture_output=True,
+        text=True,
+        timeout=900,
+        check=False,
+    )
     if r.returncode != 0:
-        raise RuntimeError(f"Blender render failed ({r.returncode}):\n{r.stdout[-3000:]}\n{r.stderr[-3000:]}")
+        raise RuntimeError(
+            f"Blender render failed ({r.returncode}):\n{r.stdout[-3000:]}\n{r.stderr[-3000:]}"
+        )
     write_products(root, root / "blender")
     done.write_text("ok\n")
     return root

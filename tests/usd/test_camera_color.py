@@ -4,14 +4,18 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import fixtures
 import numpy as np
 import pytest
 from pxr import Gf, Usd
-
-import fixtures
 from usd_harmonizer import ColorSpaceError
 from usd_harmonizer.camera import conform_window, exr_matrices, project, unproject
-from usd_harmonizer.color import ColorConverter, converter_for, find_color_space, load_config
+from usd_harmonizer.color import (
+    ColorConverter,
+    converter_for,
+    find_color_space,
+    load_config,
+)
 from usd_harmonizer.exrio import read_exr
 
 
@@ -27,10 +31,14 @@ def test_camera_matrices_match_cycles_vector_pass(rendered: Path) -> None:
     for f in fixtures.FRAMES[1:]:
         img = read_exr(rendered / f"render/beauty.{f:04d}.exr", "test")
         w2c, w2n = exr_matrices(cam, f, (w, h))
-        pw2c, pw2n = exr_matrices(cam, f - 1, (w, h))
-        world = unproject(w2c, w2n, px, img.channel("Z").ravel().astype(np.float64), w, h)
+        _, pw2n = exr_matrices(cam, f - 1, (w, h))
+        world = unproject(
+            w2c, w2n, px, img.channel("Z").ravel().astype(np.float64), w, h
+        )
         mv = project(pw2n, world, w, h) - px
-        cycles = np.stack([img.channel("Vector.X").ravel(), -img.channel("Vector.Y").ravel()], axis=1)
+        cycles = np.stack(
+            [img.channel("Vector.X").ravel(), -img.channel("Vector.Y").ravel()], axis=1
+        )
         err = np.linalg.norm(mv - cycles, axis=1)
         assert np.abs(cycles).max() > 1.0, "the camera must move"
         assert np.median(err) < 0.02, (f, np.median(err))
@@ -42,8 +50,10 @@ def test_camera_matrices_match_cycles_vector_pass(rendered: Path) -> None:
 
 def test_conform_window() -> None:
     win = Gf.Range2d(Gf.Vec2d(-1, -1), Gf.Vec2d(1, 1))  # aspect 1
+
     def size(r: Gf.Range2d) -> tuple[float, float]:
         return (round(r.GetSize()[0], 6), round(r.GetSize()[1], 6))
+
     assert size(conform_window(win, "expandAperture", 2.0)) == (4.0, 2.0)
     assert size(conform_window(win, "cropAperture", 2.0)) == (2.0, 1.0)
     assert size(conform_window(win, "adjustApertureWidth", 2.0)) == (4.0, 2.0)
@@ -59,7 +69,9 @@ def test_ndc_corners(rendered: Path) -> None:
     from pxr import UsdGeom
 
     fr = UsdGeom.Camera(prim).GetCamera(Usd.TimeCode(1003)).frustum
-    corners = fr.ComputeCornersAtDistance(5.0)  # bottom-left, bottom-right, top-left, top-right
+    corners = fr.ComputeCornersAtDistance(
+        5.0
+    )  # bottom-left, bottom-right, top-left, top-right
     _, w2n = exr_matrices(prim, 1003, (128, 72))
     pts = np.array([[c[0], c[1], c[2]] for c in corners])
     uv = project(w2n, pts, 1, 1)
@@ -70,11 +82,16 @@ def test_color_space_lookup() -> None:
     cfg, _ = load_config("ocio://default")
     for name in ("ACEScg", "acescg", "lin_ap1_scene", "lin_ap1"):
         assert find_color_space(cfg, name).getName() == "ACEScg"
-    assert find_color_space(cfg, "lin_rec709_scene").getName() == "Linear Rec.709 (sRGB)"
+    assert (
+        find_color_space(cfg, "lin_rec709_scene").getName() == "Linear Rec.709 (sRGB)"
+    )
     assert find_color_space(cfg, "no such space") is None
 
 
-@pytest.mark.parametrize("space", ["ACEScg", "Linear Rec.709 (sRGB)", "lin_rec2020_scene", "srgb_rec709_scene"])
+@pytest.mark.parametrize(
+    "space",
+    ["ACEScg", "Linear Rec.709 (sRGB)", "lin_rec2020_scene", "srgb_rec709_scene"],
+)
 def test_round_trip(space: str) -> None:
     rng = np.random.default_rng(1)
     rgb = rng.uniform(0, 4, (16, 16, 3)).astype(np.float32)
@@ -94,9 +111,16 @@ def test_acescg_to_linear_rec709_is_the_real_conversion() -> None:
 
 
 def test_color_space_precedence_and_errors() -> None:
-    c = converter_for(("ACEScg", "/Render/Vars/color.colorSpace"), {"colorInteropID": "lin_rec709_scene"}, "f.exr", None)
+    c = converter_for(
+        ("ACEScg", "/Render/Vars/color.colorSpace"),
+        {"colorInteropID": "lin_rec709_scene"},
+        "f.exr",
+        None,
+    )
     assert c.source_name == "ACEScg"
-    c = converter_for(None, {"colorInteropID": "lin_ap1_scene"}, "f.exr", "lin_rec709_scene")
+    c = converter_for(
+        None, {"colorInteropID": "lin_ap1_scene"}, "f.exr", "lin_rec709_scene"
+    )
     assert c.source_name == "ACEScg"
     c = converter_for(None, {"oiio:ColorSpace": "lin_rec2020_scene"}, "f.exr", None)
     assert c.source_name == "Linear Rec.2020"
@@ -104,9 +128,21 @@ def test_color_space_precedence_and_errors() -> None:
     assert c.source_name == "ACEScg"
     c = converter_for(None, {}, "f.exr", None, "ocio://default")
     assert c.source_name == "ACEScg"  # the default config's scene_linear role
-    with pytest.raises(ColorSpaceError, match=r"color space 'ProPhoto Film' \(declared by /P.colorSpace\) is unknown to the OCIO config ocio://default \(known: "):
-        converter_for(("ProPhoto Film", "/P.colorSpace"), {}, "f.exr", None, "ocio://default")
-    with pytest.raises(ColorSpaceError, match=r"'weird' \(attribute colorInteropID of f.exr\) is unknown"):
-        converter_for(None, {"colorInteropID": "weird"}, "f.exr", None, "ocio://default")
-    with pytest.raises(ColorSpaceError, match=r"OCIO config /nonexistent.ocio: cannot load"):
+    with pytest.raises(
+        ColorSpaceError,
+        match=r"color space 'ProPhoto Film' \(declared by /P.colorSpace\) is unknown to the OCIO config ocio://default \(known: ",
+    ):
+        converter_for(
+            ("ProPhoto Film", "/P.colorSpace"), {}, "f.exr", None, "ocio://default"
+        )
+    with pytest.raises(
+        ColorSpaceError,
+        match=r"'weird' \(attribute colorInteropID of f.exr\) is unknown",
+    ):
+        converter_for(
+            None, {"colorInteropID": "weird"}, "f.exr", None, "ocio://default"
+        )
+    with pytest.raises(
+        ColorSpaceError, match=r"OCIO config /nonexistent.ocio: cannot load"
+    ):
         load_config("/nonexistent.ocio")

@@ -8,7 +8,6 @@ from pathlib import Path
 
 import pytest
 from pxr import Usd
-
 from usd_harmonizer import PostFrameHook, ProductFileError
 from usd_harmonizer.exrio import read_exr
 
@@ -34,7 +33,12 @@ def test_hook_in_order_then_out_of_order(shot: Path) -> None:
         layer = hook.write_layer()
     stage = Usd.Stage.Open(str(layer))
     prim = stage.GetPrimAtPath("/Render/Products/beauty_harmonized")
-    assert list(prim.GetAttribute("harmonizer:frames").Get()) == [1001, 1002, 1003, 1005]
+    assert list(prim.GetAttribute("harmonizer:frames").Get()) == [
+        1001,
+        1002,
+        1003,
+        1005,
+    ]
     assert list(prim.GetAttribute("harmonizer:resetFrames").Get()) == [1001, 1002, 1005]
     name = prim.GetAttribute("productName")
     assert name.Get(1005) == "render/harmonized/beauty.1005.exr"
@@ -46,7 +50,10 @@ def test_failed_frame_leaves_state(shot: Path, tmp_path: Path) -> None:
     with PostFrameHook(str(shot), products=["beauty"], backend="bypass") as hook:
         hook(1001)
         hook(1002)
-        with pytest.raises(ProductFileError, match=r"/Render/Products/beauty frame 1003 .*beauty.1003.exr does not exist"):
+        with pytest.raises(
+            ProductFileError,
+            match=r"/Render/Products/beauty frame 1003 .*beauty.1003.exr does not exist",
+        ):
             hook(1003)
         assert not (shot.parent / "render/harmonized/beauty.1003.exr").exists()
         shutil.move(tmp_path / "held.exr", src)
@@ -57,7 +64,12 @@ def test_failed_frame_leaves_state(shot: Path, tmp_path: Path) -> None:
 def test_hook_all_products(shot: Path) -> None:
     with PostFrameHook(str(shot), backend="bypass") as hook:
         out = hook(1001)
-        assert [r.product for r in out] == ["/Render/Products/beauty", "/Render/Products/nomv"]
+        assert [r.product for r in out] == [
+            "/Render/Products/beauty",
+            "/Render/Products/nomv",
+        ]
         assert [r.color_space for r in out] == ["Linear Rec.709 (sRGB)", "ACEScg"]
-        assert out[1].output == shot.parent / "render/nomv/harmonized/shot_nomv_f1001.exr"
+        assert (
+            out[1].output == shot.parent / "render/nomv/harmonized/shot_nomv_f1001.exr"
+        )
         assert "camera" in out[1].inputs and "motion" not in out[1].inputs

@@ -10,18 +10,22 @@ import subprocess
 import sys
 from pathlib import Path
 
+import fixtures
 import numpy as np
 import OpenImageIO as oiio
-import pytest
 from pxr import Gf, Sdf, Usd, UsdRender
-
-import fixtures
 from usd_harmonizer import resolve
 from usd_harmonizer.cli import main
 from usd_harmonizer.exrio import read_exr
 
 CLI = Path(sys.executable).with_name("usd-harmonize")
-HARMONIZER_ATTRS = ("harmonizer:version", "harmonizer:backend", "harmonizer:model", "harmonizer:frame", "harmonizer:reset")
+HARMONIZER_ATTRS = (
+    "harmonizer:version",
+    "harmonizer:backend",
+    "harmonizer:model",
+    "harmonizer:frame",
+    "harmonizer:reset",
+)
 
 
 def digest(p: Path) -> str:
@@ -29,7 +33,9 @@ def digest(p: Path) -> str:
 
 
 def run_cli(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([str(CLI), *args], capture_output=True, text=True, timeout=600)
+    return subprocess.run(
+        [str(CLI), *args], capture_output=True, text=True, timeout=600, check=False
+    )
 
 
 def spec_of(path: Path) -> oiio.ImageSpec:
@@ -39,7 +45,9 @@ def spec_of(path: Path) -> oiio.ImageSpec:
     return spec
 
 
-def check_products(shot: Path, layer: Path, backend: str, exact: bool) -> dict[str, list[Path]]:
+def check_products(
+    shot: Path, layer: Path, backend: str, exact: bool
+) -> dict[str, list[Path]]:
     """Checks every output frame of both products; returns the output files."""
     stage = Usd.Stage.Open(str(shot))
     info = resolve(stage)
@@ -55,7 +63,11 @@ def check_products(shot: Path, layer: Path, backend: str, exact: bool) -> dict[s
             # Every channel kept, same pixel types, same size.
             assert sorted(a.channel_names) == sorted(b.channel_names)
             sa, sb = spec_of(src), spec_of(out)
-            assert (sa.width, sa.height) == (sb.width, sb.height) == (fixtures.W, fixtures.H)
+            assert (
+                (sa.width, sa.height)
+                == (sb.width, sb.height)
+                == (fixtures.W, fixtures.H)
+            )
             assert [str(sa.channelformat(k)) for k in range(sa.nchannels)] == [
                 str(sb.channelformat(k)) for k in range(sb.nchannels)
             ]
@@ -78,29 +90,41 @@ def check_products(shot: Path, layer: Path, backend: str, exact: bool) -> dict[s
             rgb_a, rgb_b = a.stack(["R", "G", "B"]), b.stack(["R", "G", "B"])
             assert np.isfinite(rgb_b).all()
             if exact:
-                assert np.abs(rgb_a - rgb_b).max() < 1e-4, (out, np.abs(rgb_a - rgb_b).max())
+                assert np.abs(rgb_a - rgb_b).max() < 1e-4, (
+                    out,
+                    np.abs(rgb_a - rgb_b).max(),
+                )
                 assert np.abs(a.channel("A") - b.channel("A")).max() < 1e-6
         outputs[prod.path] = outs
     return outputs
 
 
-def check_layer(shot: Path, layer: Path, outputs: dict[str, list[Path]], backend: str) -> None:
+def check_layer(
+    shot: Path, layer: Path, outputs: dict[str, list[Path]], backend: str
+) -> None:
     text = layer.read_text()
     assert "@shot.usda@" in text  # sublayers the original, relative
     stage = Usd.Stage.Open(str(layer))
     assert stage.GetRootLayer().subLayerPaths[0] == "shot.usda"
     info = resolve(stage, settings="/Render/Settings_harmonized")
-    assert [p.path for p in info.products] == ["/Render/Products/beauty_harmonized", "/Render/Products/nomv_harmonized"]
+    assert [p.path for p in info.products] == [
+        "/Render/Products/beauty_harmonized",
+        "/Render/Products/nomv_harmonized",
+    ]
     for prod, (src_path, outs) in zip(info.products, outputs.items()):
         prim = stage.GetPrimAtPath(prod.path)
-        assert prim.GetRelationship("harmonizer:sourceProduct").GetTargets() == [Sdf.Path(src_path)]
+        assert prim.GetRelationship("harmonizer:sourceProduct").GetTargets() == [
+            Sdf.Path(src_path)
+        ]
         assert prim.GetAttribute("harmonizer:backend").Get() == backend
         assert list(prim.GetAttribute("harmonizer:frames").Get()) == fixtures.FRAMES
-        assert list(prim.GetAttribute("harmonizer:resetFrames").Get()) == [fixtures.FRAMES[0]]
-        src_prod = UsdRender.Product(stage.GetPrimAtPath(src_path))
-        assert [str(t) for t in UsdRender.Product(prim).GetOrderedVarsRel().GetTargets()] == [
-            str(t) for t in src_prod.GetOrderedVarsRel().GetTargets()
+        assert list(prim.GetAttribute("harmonizer:resetFrames").Get()) == [
+            fixtures.FRAMES[0]
         ]
+        src_prod = UsdRender.Product(stage.GetPrimAtPath(src_path))
+        assert [
+            str(t) for t in UsdRender.Product(prim).GetOrderedVarsRel().GetTargets()
+        ] == [str(t) for t in src_prod.GetOrderedVarsRel().GetTargets()]
         assert prod.camera_path == "/World/Cam"
         for f, out in zip(fixtures.FRAMES, outs):
             assert prod.file_for(f).resolve() == out.resolve()
@@ -114,9 +138,15 @@ def test_cli_bypass_round_trip(shot: Path) -> None:
     inputs_before = {p: digest(p) for p in shot.parent.glob("render/**/*.exr")}
     r = run_cli(str(shot), "--backend", "bypass")
     assert r.returncode == 0, r.stderr
-    assert "/Render/Products/beauty: 6 frames 1001-1006, backend bypass, color space Linear Rec.709 (sRGB)" in r.stdout
+    assert (
+        "/Render/Products/beauty: 6 frames 1001-1006, backend bypass, color space Linear Rec.709 (sRGB)"
+        in r.stdout
+    )
     assert "inputs color+depth+motion+normal+coverage+insert_mask+camera" in r.stdout
-    assert "/Render/Products/nomv: 6 frames 1001-1006, backend bypass, color space ACEScg" in r.stdout
+    assert (
+        "/Render/Products/nomv: 6 frames 1001-1006, backend bypass, color space ACEScg"
+        in r.stdout
+    )
     assert "inputs color+depth+normal+coverage+camera" in r.stdout
     layer = shot.with_name("shot.harmonized.usda")
     assert f"layer: {layer}" in r.stdout
@@ -131,7 +161,17 @@ def test_cli_classical_enhances_with_history(shot: Path, tmp_path: Path) -> None
     input, are finite, and frames after the first use history."""
     out_dir = tmp_path / "enh"
     layer = tmp_path / "layers" / "enh.usda"
-    r = run_cli(str(shot), "--backend", "classical", "--product", "beauty", "--out-dir", str(out_dir), "--layer", str(layer))
+    r = run_cli(
+        str(shot),
+        "--backend",
+        "classical",
+        "--product",
+        "beauty",
+        "--out-dir",
+        str(out_dir),
+        "--layer",
+        str(layer),
+    )
     assert r.returncode == 0, r.stderr
     files = sorted(out_dir.glob("beauty.*.exr"))
     assert [p.name for p in files] == [f"beauty.{f}.exr" for f in fixtures.FRAMES]
@@ -151,10 +191,28 @@ def test_cli_classical_enhances_with_history(shot: Path, tmp_path: Path) -> None
 
 
 def test_frames_option_and_in_place(shot: Path) -> None:
-    assert main([str(shot), "--backend", "bypass", "--frames", "1002-1003", "--product", "nomv", "--in-place", "--quiet"]) == 0
+    assert (
+        main(
+            [
+                str(shot),
+                "--backend",
+                "bypass",
+                "--frames",
+                "1002-1003",
+                "--product",
+                "nomv",
+                "--in-place",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     stage = Usd.Stage.Open(str(shot))
     prim = stage.GetPrimAtPath("/Render/Products/nomv_harmonized")
-    assert prim.IsValid() and list(prim.GetAttribute("harmonizer:frames").Get()) == [1002, 1003]
+    assert prim.IsValid() and list(prim.GetAttribute("harmonizer:frames").Get()) == [
+        1002,
+        1003,
+    ]
     assert not stage.GetPrimAtPath("/Render/Products/beauty_harmonized").IsValid()
     out = sorted(p.name for p in (shot.parent / "render/nomv/harmonized").glob("*.exr"))
     assert out == ["shot_nomv_f1002.exr", "shot_nomv_f1003.exr"]
@@ -165,53 +223,82 @@ def test_missing_product_file(shot: Path) -> None:
     missing.unlink()
     r = run_cli(str(shot), "--backend", "bypass")
     assert r.returncode == 1
-    assert f"render product /Render/Products/beauty frame 1004 ({missing}): file {missing} does not exist" in r.stderr
+    assert (
+        f"render product /Render/Products/beauty frame 1004 ({missing}): file {missing} does not exist"
+        in r.stderr
+    )
     assert "Traceback" not in r.stderr
 
 
 def test_missing_var_channels(shot: Path) -> None:
     stage = Usd.Stage.Open(str(shot))
-    stage.GetPrimAtPath("/Render/Vars/insert").GetAttribute("driver:parameters:aov:name").Set("mask.hero")
+    stage.GetPrimAtPath("/Render/Vars/insert").GetAttribute(
+        "driver:parameters:aov:name"
+    ).Set("mask.hero")
     stage.Save()
     r = run_cli(str(shot), "--backend", "bypass", "--no-layer")
     assert r.returncode == 1
     assert "render product /Render/Products/beauty frame 1001" in r.stderr
-    assert "RenderVar /Render/Vars/insert (insert_mask, dataType float): no matching channels (tried mask.hero;" in r.stderr
+    assert (
+        "RenderVar /Render/Vars/insert (insert_mask, dataType float): no matching channels (tried mask.hero;"
+        in r.stderr
+    )
     assert "channels present: ['A', 'B', 'G', 'N.X'" in r.stderr
 
 
 def test_missing_var_prim(shot: Path) -> None:
     stage = Usd.Stage.Open(str(shot))
-    UsdRender.Product(stage.GetPrimAtPath("/Render/Products/beauty")).GetOrderedVarsRel().AddTarget("/Render/Vars/albedo")
+    UsdRender.Product(
+        stage.GetPrimAtPath("/Render/Products/beauty")
+    ).GetOrderedVarsRel().AddTarget("/Render/Vars/albedo")
     stage.Save()
     r = run_cli(str(shot), "--backend", "bypass")
     assert r.returncode == 1
-    assert "render product /Render/Products/beauty: RenderVar /Render/Vars/albedo (orderedVars) does not exist on the stage" in r.stderr
+    assert (
+        "render product /Render/Products/beauty: RenderVar /Render/Vars/albedo (orderedVars) does not exist on the stage"
+        in r.stderr
+    )
 
 
 def test_unknown_color_space(shot: Path) -> None:
     stage = Usd.Stage.Open(str(shot))
-    stage.GetPrimAtPath("/Render/Vars/color").CreateAttribute("colorSpace", Sdf.ValueTypeNames.String, custom=True).Set(
-        "Kodak 5219"
-    )
+    stage.GetPrimAtPath("/Render/Vars/color").CreateAttribute(
+        "colorSpace", Sdf.ValueTypeNames.String, custom=True
+    ).Set("Kodak 5219")
     stage.Save()
     r = run_cli(str(shot), "--backend", "bypass", "--product", "beauty")
     assert r.returncode == 1
-    assert "color space 'Kodak 5219' (declared by /Render/Vars/color.colorSpace) is unknown to the OCIO config ocio://default" in r.stderr
+    assert (
+        "color space 'Kodak 5219' (declared by /Render/Vars/color.colorSpace) is unknown to the OCIO config ocio://default"
+        in r.stderr
+    )
 
 
 def test_aspect_mismatch(shot: Path) -> None:
     stage = Usd.Stage.Open(str(shot))
-    UsdRender.Settings(stage.GetPrimAtPath("/Render/Settings")).GetResolutionAttr().Set(Gf.Vec2i(100, 100))
+    UsdRender.Settings(stage.GetPrimAtPath("/Render/Settings")).GetResolutionAttr().Set(
+        Gf.Vec2i(100, 100)
+    )
     stage.Save()
     r = run_cli(str(shot), "--backend", "bypass", "--product", "beauty")
     assert r.returncode == 1
-    assert "frame 1001" in r.stderr and "the file is 128x72 but the product's resolution is 100x100" in r.stderr
+    assert (
+        "frame 1001" in r.stderr
+        and "the file is 128x72 but the product's resolution is 100x100" in r.stderr
+    )
 
 
 def test_output_never_overwrites_input(shot: Path) -> None:
     before = digest(shot.parent / "render/beauty.1001.exr")
-    r = run_cli(str(shot), "--backend", "bypass", "--product", "beauty", "--out-dir", str(shot.parent / "render"))
+    r = run_cli(
+        str(shot),
+        "--backend",
+        "bypass",
+        "--product",
+        "beauty",
+        "--out-dir",
+        str(shot.parent / "render"),
+    )
     assert r.returncode == 1
     assert "the output would overwrite the input; choose another --out-dir" in r.stderr
     assert digest(shot.parent / "render/beauty.1001.exr") == before

@@ -6,25 +6,40 @@ from pathlib import Path
 
 import pytest
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdRender
-
-from usd_harmonizer import CameraError, SettingsError, VarError, expand_frame_tokens, parse_frame_range, resolve
+from usd_harmonizer import (
+    CameraError,
+    SettingsError,
+    VarError,
+    expand_frame_tokens,
+    parse_frame_range,
+    resolve,
+)
 from usd_harmonizer.frames import has_frame_token, to_hash_pattern
 from usd_harmonizer.settings import VarInfo, find_settings_prim
 from usd_harmonizer.varmap import find_channels, map_vars, role_of
 
 
-def make_stage(tmp_path: Path, name: str = "s.usda", product_name: str = "out/beauty.####.exr") -> Usd.Stage:
+def make_stage(
+    tmp_path: Path, name: str = "s.usda", product_name: str = "out/beauty.####.exr"
+) -> Usd.Stage:
     stage = Usd.Stage.CreateNew(str(tmp_path / name))
     stage.SetStartTimeCode(1)
     stage.SetEndTimeCode(3)
     UsdGeom.Camera.Define(stage, "/Cam")
-    for n, src, dt in (("Ci", "Ci", "color3f"), ("a", "a", "float"), ("z", "z", "float"), ("mv", "motion", "float2")):
+    for n, src, dt in (
+        ("Ci", "Ci", "color3f"),
+        ("a", "a", "float"),
+        ("z", "z", "float"),
+        ("mv", "motion", "float2"),
+    ):
         v = UsdRender.Var.Define(stage, f"/Render/Vars/{n}")
         v.CreateSourceNameAttr(src)
         v.CreateDataTypeAttr(dt)
     p = UsdRender.Product.Define(stage, "/Render/Beauty")
     p.CreateProductNameAttr(product_name)
-    p.CreateOrderedVarsRel().SetTargets([Sdf.Path(f"/Render/Vars/{n}") for n in ("Ci", "a", "z", "mv")])
+    p.CreateOrderedVarsRel().SetTargets(
+        [Sdf.Path(f"/Render/Vars/{n}") for n in ("Ci", "a", "z", "mv")]
+    )
     s = UsdRender.Settings.Define(stage, "/Render/Settings")
     s.CreateProductsRel().SetTargets([p.GetPath()])
     s.CreateCameraRel().SetTargets([Sdf.Path("/Cam")])
@@ -95,7 +110,10 @@ def test_time_sampled_product_name(tmp_path: Path) -> None:
 def test_product_name_without_token_is_an_error_for_a_range(tmp_path: Path) -> None:
     stage = make_stage(tmp_path, product_name="out/beauty.exr")
     prod = resolve(stage).products[0]
-    with pytest.raises(SettingsError, match=r"frames 1 and 2 both resolve to .*beauty.exr.*no frame token"):
+    with pytest.raises(
+        SettingsError,
+        match=r"frames 1 and 2 both resolve to .*beauty.exr.*no frame token",
+    ):
         prod.check_frames_distinct([1, 2, 3])
 
 
@@ -106,11 +124,15 @@ def test_settings_selection(tmp_path: Path) -> None:
     assert find_settings_prim(stage).GetPath() == "/Render/Settings"
     assert resolve(stage, settings="/Render/Other").path == "/Render/Other"
     stage.SetMetadata("renderSettingsPrimPath", "")
-    with pytest.raises(SettingsError, match=r"2 RenderSettings prims.*/Render/Settings, /Render/Other"):
+    with pytest.raises(
+        SettingsError, match=r"2 RenderSettings prims.*/Render/Settings, /Render/Other"
+    ):
         resolve(stage)
     with pytest.raises(SettingsError, match=r"no prim at --settings '/Nope'"):
         resolve(stage, settings="/Nope")
-    with pytest.raises(SettingsError, match=r"/Cam is a 'Camera', not a RenderSettings"):
+    with pytest.raises(
+        SettingsError, match=r"/Cam is a 'Camera', not a RenderSettings"
+    ):
         resolve(stage, settings="/Cam")
 
 
@@ -122,35 +144,56 @@ def test_product_selection_and_overrides(tmp_path: Path) -> None:
     p2.CreateResolutionAttr(Gf.Vec2i(32, 16))
     UsdGeom.Camera.Define(stage, "/Cam2")
     p2.CreateCameraRel().SetTargets([Sdf.Path("/Cam2")])
-    UsdRender.Settings(stage.GetPrimAtPath("/Render/Settings")).GetProductsRel().AddTarget("/Render/Extra")
+    UsdRender.Settings(
+        stage.GetPrimAtPath("/Render/Settings")
+    ).GetProductsRel().AddTarget("/Render/Extra")
     info = resolve(stage, products=["Extra"], frames=[5, 6])
     (prod,) = info.products
     assert prod.path == "/Render/Extra"
     assert prod.resolution == (32, 16)
     assert prod.camera_path == "/Cam2"
     assert info.frames == [5, 6]
-    with pytest.raises(SettingsError, match=r"no product named 'Nope' \(products: /Render/Beauty, /Render/Extra\)"):
+    with pytest.raises(
+        SettingsError,
+        match=r"no product named 'Nope' \(products: /Render/Beauty, /Render/Extra\)",
+    ):
         resolve(stage, products=["Nope"])
 
 
 def test_missing_var_and_product_targets(tmp_path: Path) -> None:
     stage = make_stage(tmp_path)
-    UsdRender.Product(stage.GetPrimAtPath("/Render/Beauty")).GetOrderedVarsRel().AddTarget("/Render/Vars/gone")
-    with pytest.raises(VarError, match=r"/Render/Beauty: RenderVar /Render/Vars/gone \(orderedVars\) does not exist"):
+    UsdRender.Product(
+        stage.GetPrimAtPath("/Render/Beauty")
+    ).GetOrderedVarsRel().AddTarget("/Render/Vars/gone")
+    with pytest.raises(
+        VarError,
+        match=r"/Render/Beauty: RenderVar /Render/Vars/gone \(orderedVars\) does not exist",
+    ):
         resolve(stage)
     stage = make_stage(tmp_path, name="t.usda")
-    UsdRender.Settings(stage.GetPrimAtPath("/Render/Settings")).GetProductsRel().AddTarget("/Render/Missing")
+    UsdRender.Settings(
+        stage.GetPrimAtPath("/Render/Settings")
+    ).GetProductsRel().AddTarget("/Render/Missing")
     with pytest.raises(SettingsError, match=r"product /Render/Missing does not exist"):
         resolve(stage)
 
 
 def test_camera_errors(tmp_path: Path) -> None:
     stage = make_stage(tmp_path)
-    UsdRender.Settings(stage.GetPrimAtPath("/Render/Settings")).GetCameraRel().SetTargets(["/NoCam"])
-    with pytest.raises(CameraError, match=r"/Render/Beauty: camera /NoCam does not exist"):
+    UsdRender.Settings(
+        stage.GetPrimAtPath("/Render/Settings")
+    ).GetCameraRel().SetTargets(["/NoCam"])
+    with pytest.raises(
+        CameraError, match=r"/Render/Beauty: camera /NoCam does not exist"
+    ):
         resolve(stage).products[0].camera_prim()
-    UsdRender.Settings(stage.GetPrimAtPath("/Render/Settings")).GetCameraRel().SetTargets(["/Render/Vars"])
-    with pytest.raises(CameraError, match=r"camera /Render/Vars is a typeless prim, not a UsdGeom.Camera"):
+    UsdRender.Settings(
+        stage.GetPrimAtPath("/Render/Settings")
+    ).GetCameraRel().SetTargets(["/Render/Vars"])
+    with pytest.raises(
+        CameraError,
+        match=r"camera /Render/Vars is a typeless prim, not a UsdGeom.Camera",
+    ):
         resolve(stage).products[0].camera_prim()
 
 
@@ -158,18 +201,34 @@ def test_var_roles(tmp_path: Path) -> None:
     stage = make_stage(tmp_path)
     prod = resolve(stage).products[0]
     roles = map_vars(prod)
-    assert {r: v.name for r, v in roles.items()} == {"color": "Ci", "coverage": "a", "depth": "z", "motion": "mv"}
+    assert {r: v.name for r, v in roles.items()} == {
+        "color": "Ci",
+        "coverage": "a",
+        "depth": "z",
+        "motion": "mv",
+    }
     # User mapping wins over names; "ignore" drops a var.
     roles = map_vars(prod, {"z": "ignore", "a": "insert_mask"})
-    assert {r: v.name for r, v in roles.items()} == {"color": "Ci", "insert_mask": "a", "motion": "mv"}
+    assert {r: v.name for r, v in roles.items()} == {
+        "color": "Ci",
+        "insert_mask": "a",
+        "motion": "mv",
+    }
     # harmonizer:role on the var.
-    stage.GetPrimAtPath("/Render/Vars/a").CreateAttribute("harmonizer:role", Sdf.ValueTypeNames.String).Set("mask")
-    assert role_of(VarInfo.from_prim(stage.GetPrimAtPath("/Render/Vars/a"))) == "insert_mask"
+    stage.GetPrimAtPath("/Render/Vars/a").CreateAttribute(
+        "harmonizer:role", Sdf.ValueTypeNames.String
+    ).Set("mask")
+    assert (
+        role_of(VarInfo.from_prim(stage.GetPrimAtPath("/Render/Vars/a")))
+        == "insert_mask"
+    )
     with pytest.raises(VarError, match=r"both map to depth"):
         map_vars(prod, {"a": "depth"})
     with pytest.raises(VarError, match=r"--map a: unknown role 'albedo'"):
         map_vars(prod, {"a": "albedo"})
-    with pytest.raises(VarError, match=r"no color RenderVar among orderedVars \[Ci \(sourceName 'Ci'\)"):
+    with pytest.raises(
+        VarError, match=r"no color RenderVar among orderedVars \[Ci \(sourceName 'Ci'\)"
+    ):
         map_vars(prod, {"Ci": "ignore"})
 
 
@@ -177,18 +236,38 @@ def test_find_channels(tmp_path: Path) -> None:
     stage = make_stage(tmp_path)
     prod = resolve(stage).products[0]
     v = {x.name: x for x in prod.vars}
-    names = ["A", "B", "G", "R", "z", "mv.x", "mv.y", "N.X", "N.Y", "N.Z"]  # OIIO order is not USD order
+    names = [
+        "A",
+        "B",
+        "G",
+        "R",
+        "z",
+        "mv.x",
+        "mv.y",
+        "N.X",
+        "N.Y",
+        "N.Z",
+    ]  # OIIO order is not USD order
     b = find_channels("color", v["Ci"], names, "here")
     assert b.channels == ["R", "G", "B"] and b.alpha == "A"
     assert find_channels("depth", v["z"], names, "here").channels == ["z"]
     assert find_channels("motion", v["mv"], names, "here").channels == ["mv.x", "mv.y"]
     assert find_channels("coverage", v["a"], names, "here").channels == ["A"]
-    with pytest.raises(VarError, match=r"here: RenderVar /Render/Vars/mv \(motion, dataType float2\): no matching channels.*channels present: \['A', 'B'"):
+    with pytest.raises(
+        VarError,
+        match=r"here: RenderVar /Render/Vars/mv \(motion, dataType float2\): no matching channels.*channels present: \['A', 'B'",
+    ):
         find_channels("motion", v["mv"], ["R", "G", "B", "A"], "here")
-    stage.GetPrimAtPath("/Render/Vars/mv").CreateAttribute("harmonizer:channels", Sdf.ValueTypeNames.StringArray).Set(
-        ["vel.u", "vel.v"]
-    )
+    stage.GetPrimAtPath("/Render/Vars/mv").CreateAttribute(
+        "harmonizer:channels", Sdf.ValueTypeNames.StringArray
+    ).Set(["vel.u", "vel.v"])
     mv = VarInfo.from_prim(stage.GetPrimAtPath("/Render/Vars/mv"))
-    assert find_channels("motion", mv, ["vel.v", "vel.u"], "here").channels == ["vel.u", "vel.v"]
-    with pytest.raises(VarError, match=r"harmonizer:channels \['vel.u', 'vel.v'\] not in the file \(missing \['vel.v'\]"):
+    assert find_channels("motion", mv, ["vel.v", "vel.u"], "here").channels == [
+        "vel.u",
+        "vel.v",
+    ]
+    with pytest.raises(
+        VarError,
+        match=r"harmonizer:channels \['vel.u', 'vel.v'\] not in the file \(missing \['vel.v'\]",
+    ):
         find_channels("motion", mv, ["vel.u"], "here")

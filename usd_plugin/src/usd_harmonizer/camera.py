@@ -45,17 +45,25 @@ def conform_window(window: Gf.Range2d, policy: str, target_aspect: float) -> Gf.
     if policy == "adjustPixelAspectRatio" or abs(aspect - target_aspect) < 1e-12:
         return window
     if policy == "expandAperture":
-        policy = "adjustApertureHeight" if aspect > target_aspect else "adjustApertureWidth"
+        policy = (
+            "adjustApertureHeight" if aspect > target_aspect else "adjustApertureWidth"
+        )
     elif policy == "cropAperture":
-        policy = "adjustApertureWidth" if aspect > target_aspect else "adjustApertureHeight"
+        policy = (
+            "adjustApertureWidth" if aspect > target_aspect else "adjustApertureHeight"
+        )
     cx, cy = (lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2
     if policy == "adjustApertureWidth":
         w = h * target_aspect
     elif policy == "adjustApertureHeight":
         h = w / target_aspect
     else:
-        raise CameraError(f"aspectRatioConformPolicy {policy!r} is not a UsdRender policy")
-    return Gf.Range2d(Gf.Vec2d(cx - w / 2, cy - h / 2), Gf.Vec2d(cx + w / 2, cy + h / 2))
+        raise CameraError(
+            f"aspectRatioConformPolicy {policy!r} is not a UsdRender policy"
+        )
+    return Gf.Range2d(
+        Gf.Vec2d(cx - w / 2, cy - h / 2), Gf.Vec2d(cx + w / 2, cy + h / 2)
+    )
 
 
 def exr_matrices(
@@ -79,7 +87,9 @@ def exr_matrices(
     w2c = view @ _FLIP_Z
     w2n = view @ proj @ _CLIP_TO_NDC
     if not (np.isfinite(w2c).all() and np.isfinite(w2n).all()):
-        raise CameraError(f"camera {prim.GetPath()} at frame {frame}: the transform or frustum is degenerate")
+        raise CameraError(
+            f"camera {prim.GetPath()} at frame {frame}: the transform or frustum is degenerate"
+        )
     return w2c, w2n
 
 
@@ -89,7 +99,14 @@ def project(w2n: np.ndarray, points: np.ndarray, width: int, height: int) -> np.
     return np.stack([p[:, 0] / p[:, 3] * width, p[:, 1] / p[:, 3] * height], axis=1)
 
 
-def unproject(w2c: np.ndarray, w2n: np.ndarray, px: np.ndarray, depth: np.ndarray, width: int, height: int) -> np.ndarray:
+def unproject(
+    w2c: np.ndarray,
+    w2n: np.ndarray,
+    px: np.ndarray,
+    depth: np.ndarray,
+    width: int,
+    height: int,
+) -> np.ndarray:
     """World points seen through pixel positions ``px`` (N, 2) at planar ``depth`` (N,)."""
     c2n = np.linalg.inv(w2c) @ w2n  # camera -> NDC (row-vector)
     u = px[:, 0] / width

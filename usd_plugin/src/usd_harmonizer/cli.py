@@ -1,9 +1,9 @@
 """``usd-harmonize``: enhance the render products of a USD stage.
 
-    usd-harmonize STAGE [--settings PRIM] [--product NAME] [--frames 1001-1024]
-                  [--out-dir DIR] [--layer FILE | --in-place | --no-layer]
-                  [--backend auto|neural|classical|bypass] [--param NAME=VALUE]
-                  [--map VAR=ROLE] [--motion-scale SX,SY] [--ocio CONFIG]
+usd-harmonize STAGE [--settings PRIM] [--product NAME] [--frames 1001-1024]
+              [--out-dir DIR] [--layer FILE | --in-place | --no-layer]
+              [--backend auto|neural|classical|bypass] [--param NAME=VALUE]
+              [--map VAR=ROLE] [--motion-scale SX,SY] [--ocio CONFIG]
 """
 
 from __future__ import annotations
@@ -47,29 +47,92 @@ def _pairs(items: list[str], flag: str) -> dict[str, str]:
 
 def add_cmdline_args(parser: argparse.ArgumentParser) -> None:
     """Adds the shared options (also usable by pipeline tools wrapping this one)."""
-    parser.add_argument("--settings", metavar="PRIM", help="RenderSettings prim path (default: the stage's)")
-    parser.add_argument("--product", action="append", metavar="NAME", help="product name or path (repeatable; default: all)")
-    parser.add_argument("--frames", metavar="RANGE", help="frames, e.g. 1001-1024, 1001-1024x2, 1001,1005 (default: the stage's range)")
-    parser.add_argument("--out-dir", type=Path, metavar="DIR", help="output directory (default: <product dir>/harmonized)")
-    parser.add_argument("--base-dir", type=Path, metavar="DIR", help="directory relative productNames resolve against (default: the stage's)")
+    parser.add_argument(
+        "--settings",
+        metavar="PRIM",
+        help="RenderSettings prim path (default: the stage's)",
+    )
+    parser.add_argument(
+        "--product",
+        action="append",
+        metavar="NAME",
+        help="product name or path (repeatable; default: all)",
+    )
+    parser.add_argument(
+        "--frames",
+        metavar="RANGE",
+        help="frames, e.g. 1001-1024, 1001-1024x2, 1001,1005 (default: the stage's range)",
+    )
+    parser.add_argument(
+        "--out-dir",
+        type=Path,
+        metavar="DIR",
+        help="output directory (default: <product dir>/harmonized)",
+    )
+    parser.add_argument(
+        "--base-dir",
+        type=Path,
+        metavar="DIR",
+        help="directory relative productNames resolve against (default: the stage's)",
+    )
     g = parser.add_mutually_exclusive_group()
-    g.add_argument("--layer", type=Path, metavar="FILE", help="layer to write (default: <stage>.harmonized.usda)")
-    g.add_argument("--in-place", action="store_true", help="add the new products to the stage's root layer")
+    g.add_argument(
+        "--layer",
+        type=Path,
+        metavar="FILE",
+        help="layer to write (default: <stage>.harmonized.usda)",
+    )
+    g.add_argument(
+        "--in-place",
+        action="store_true",
+        help="add the new products to the stage's root layer",
+    )
     g.add_argument("--no-layer", action="store_true", help="write no layer")
-    parser.add_argument("--backend", default="auto", choices=["auto", "neural", "classical", "bypass"])
-    parser.add_argument("--strength", type=float, help="blend of enhanced over input, 0..1")
-    parser.add_argument("--context-frames", type=int, help="previous enhanced frames used, 0..8")
-    parser.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="any session parameter (repeatable)")
-    parser.add_argument("--map", action="append", default=[], metavar="VAR=ROLE",
-                        help="map a RenderVar to color, depth, motion, normal, coverage, insert_mask or ignore")
-    parser.add_argument("--motion-scale", metavar="SX,SY", help="motion-vector scale for every product, e.g. 1,-1 for +y up")
-    parser.add_argument("--ocio", metavar="CONFIG", help="OCIO config (default: $OCIO, else ocio://default)")
-    parser.add_argument("--threads", type=int, default=0, help="library threads (0 = all cores)")
-    parser.add_argument("--model", metavar="FILE", help="ONNX model (default: the embedded one)")
+    parser.add_argument(
+        "--backend", default="auto", choices=["auto", "neural", "classical", "bypass"]
+    )
+    parser.add_argument(
+        "--strength", type=float, help="blend of enhanced over input, 0..1"
+    )
+    parser.add_argument(
+        "--context-frames", type=int, help="previous enhanced frames used, 0..8"
+    )
+    parser.add_argument(
+        "--param",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="any session parameter (repeatable)",
+    )
+    parser.add_argument(
+        "--map",
+        action="append",
+        default=[],
+        metavar="VAR=ROLE",
+        help="map a RenderVar to color, depth, motion, normal, coverage, insert_mask or ignore",
+    )
+    parser.add_argument(
+        "--motion-scale",
+        metavar="SX,SY",
+        help="motion-vector scale for every product, e.g. 1,-1 for +y up",
+    )
+    parser.add_argument(
+        "--ocio",
+        metavar="CONFIG",
+        help="OCIO config (default: $OCIO, else ocio://default)",
+    )
+    parser.add_argument(
+        "--threads", type=int, default=0, help="library threads (0 = all cores)"
+    )
+    parser.add_argument(
+        "--model", metavar="FILE", help="ONNX model (default: the embedded one)"
+    )
 
 
 def _options(args: argparse.Namespace) -> Options:
-    params: dict[str, Any] = {k: _value(v) for k, v in _pairs(args.param, "--param").items()}
+    params: dict[str, Any] = {
+        k: _value(v) for k, v in _pairs(args.param, "--param").items()
+    }
     if args.strength is not None:
         params["strength"] = args.strength
     if args.context_frames is not None:
@@ -79,7 +142,9 @@ def _options(args: argparse.Namespace) -> Options:
         try:
             sx, sy = (float(x) for x in args.motion_scale.split(","))
         except ValueError:
-            raise UsdHarmonizerError(f"--motion-scale {args.motion_scale!r}: expected SX,SY (e.g. 1,-1)") from None
+            raise UsdHarmonizerError(
+                f"--motion-scale {args.motion_scale!r}: expected SX,SY (e.g. 1,-1)"
+            ) from None
         ms = (sx, sy)
     return Options(
         backend=args.backend,
@@ -112,10 +177,16 @@ class _Progress:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``usd-harmonize``; returns the exit status."""
-    parser = argparse.ArgumentParser(prog="usd-harmonize", description=__doc__.split("\n")[0].split(": ", 1)[1])
-    parser.add_argument("stage", type=Path, help="USD stage whose render products were rendered")
+    parser = argparse.ArgumentParser(
+        prog="usd-harmonize", description=__doc__.split("\n")[0].split(": ", 1)[1]
+    )
+    parser.add_argument(
+        "stage", type=Path, help="USD stage whose render products were rendered"
+    )
     add_cmdline_args(parser)
-    parser.add_argument("--quiet", action="store_true", help="no progress bar or summary")
+    parser.add_argument(
+        "--quiet", action="store_true", help="no progress bar or summary"
+    )
     args = parser.parse_args(argv)
     try:
         options = _options(args)
@@ -139,7 +210,9 @@ def main(argv: list[str] | None = None) -> int:
         for path, (prod, res) in summary.results.items():
             if not res:
                 continue
-            resets = ", ".join(f"{r.frame} ({r.reset})" for r in res if r.reset) or "none"
+            resets = (
+                ", ".join(f"{r.frame} ({r.reset})" for r in res if r.reset) or "none"
+            )
             ms = sum(r.total_ms for r in res) / len(res)
             warns = sum(len(r.warnings) for r in res)
             print(

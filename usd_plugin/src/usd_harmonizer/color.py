@@ -20,7 +20,13 @@ import PyOpenColorIO as ocio
 from .errors import ColorSpaceError
 
 #: Interop ID and common names of the library's working space.
-LINEAR_REC709 = ("lin_rec709_scene", "lin_rec709_srgb", "Linear Rec.709 (sRGB)", "Linear Rec.709", "lin_rec709")
+LINEAR_REC709 = (
+    "lin_rec709_scene",
+    "lin_rec709_srgb",
+    "Linear Rec.709 (sRGB)",
+    "Linear Rec.709",
+    "lin_rec709",
+)
 
 _configs: dict[str, ocio.Config] = {}
 
@@ -54,7 +60,9 @@ def _working(config: ocio.Config, where: str) -> ocio.ColorSpace:
         cs = find_color_space(config, n)
         if cs is not None:
             return cs
-    raise ColorSpaceError(f"OCIO config {where}: has no Linear Rec.709 color space (interop ID lin_rec709_scene)")
+    raise ColorSpaceError(
+        f"OCIO config {where}: has no Linear Rec.709 color space (interop ID lin_rec709_scene)"
+    )
 
 
 @dataclass
@@ -77,11 +85,15 @@ class ColorConverter:
         dst = _working(self.config, self.config_name)
         self.source_name = src.getName()
         self.identity = src.getName() == dst.getName()
-        self.linear = self.identity or bool(self.config.isColorSpaceLinear(src.getName(), ocio.REFERENCE_SPACE_SCENE))
+        self.linear = self.identity or bool(
+            self.config.isColorSpaceLinear(src.getName(), ocio.REFERENCE_SPACE_SCENE)
+        )
         self._to = self.config.getProcessor(src, dst).getDefaultCPUProcessor()
         self._from = self.config.getProcessor(dst, src).getDefaultCPUProcessor()
 
-    def _apply(self, cpu: ocio.CPUProcessor, rgb: np.ndarray, alpha: np.ndarray | None) -> np.ndarray:
+    def _apply(
+        self, cpu: ocio.CPUProcessor, rgb: np.ndarray, alpha: np.ndarray | None
+    ) -> np.ndarray:
         out = np.ascontiguousarray(rgb, dtype=np.float32).copy()
         if self.identity:
             return out
@@ -101,7 +113,9 @@ class ColorConverter:
         """Product color space -> Linear Rec.709 (a new float32 array)."""
         return self._apply(self._to, rgb, alpha)
 
-    def from_linear(self, rgb: np.ndarray, alpha: np.ndarray | None = None) -> np.ndarray:
+    def from_linear(
+        self, rgb: np.ndarray, alpha: np.ndarray | None = None
+    ) -> np.ndarray:
         """Linear Rec.709 -> product color space (a new float32 array)."""
         return self._apply(self._from, rgb, alpha)
 
@@ -122,8 +136,12 @@ def converter_for(
         if isinstance(v, str) and v:
             return ColorConverter(config, cname, v, f"attribute {key} of {file_name}")
     if rendering_color_space:
-        return ColorConverter(config, cname, rendering_color_space, "RenderSettings renderingColorSpace")
+        return ColorConverter(
+            config, cname, rendering_color_space, "RenderSettings renderingColorSpace"
+        )
     role = config.getRoleColorSpace("scene_linear")
     if not role:
-        raise ColorSpaceError(f"OCIO config {cname}: no color space declared for {file_name} and no scene_linear role")
+        raise ColorSpaceError(
+            f"OCIO config {cname}: no color space declared for {file_name} and no scene_linear role"
+        )
     return ColorConverter(config, cname, role, f"scene_linear role of {cname}")

@@ -60,7 +60,9 @@ class ExrImage:
 
     def stack(self, names: list[str]) -> np.ndarray:
         """Channels stacked to (H, W, len(names)) float32 (a new array)."""
-        return np.stack([self.channel(n) for n in names], axis=-1).astype(np.float32, copy=False)
+        return np.stack([self.channel(n) for n in names], axis=-1).astype(
+            np.float32, copy=False
+        )
 
     def set_channel(self, name: str, values: np.ndarray) -> None:
         """Replaces one channel's pixels."""
@@ -86,8 +88,12 @@ def read_exr(path: Path, where: str) -> ExrImage:
             spec = inp.spec()
             data = inp.read_image(i, 0, 0, spec.nchannels, "float")
             if data is None:
-                raise ProductFileError(f"{where}: cannot read part {i} of {path}: {inp.geterror()}")
-            data = np.asarray(data, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
+                raise ProductFileError(
+                    f"{where}: cannot read part {i} of {path}: {inp.geterror()}"
+                )
+            data = np.asarray(data, dtype=np.float32).reshape(
+                spec.height, spec.width, spec.nchannels
+            )
             if not data.flags.writeable:
                 data = data.copy()
             parts.append(Part(oiio.ImageSpec(spec), data, list(spec.channelnames)))
@@ -98,7 +104,9 @@ def read_exr(path: Path, where: str) -> ExrImage:
         raise ProductFileError(f"{where}: {path} has no image")
     dims = {(p.spec.width, p.spec.height, p.spec.x, p.spec.y) for p in parts}
     if len(dims) > 1:
-        raise ProductFileError(f"{where}: the parts of {path} have different data windows {sorted(dims)}")
+        raise ProductFileError(
+            f"{where}: the parts of {path} have different data windows {sorted(dims)}"
+        )
     return ExrImage(path, parts)
 
 
@@ -113,7 +121,9 @@ def _set_attr(spec: oiio.ImageSpec, name: str, value: Any) -> None:
         spec.attribute(name, str(value))
 
 
-def write_exr_atomic(image: ExrImage, path: Path, attributes: dict[str, Any], where: str) -> None:
+def write_exr_atomic(
+    image: ExrImage, path: Path, attributes: dict[str, Any], where: str
+) -> None:
     """Writes every part of ``image`` to ``path`` with ``attributes`` added to
     each part's header, through a temporary file renamed into place."""
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -128,12 +138,20 @@ def write_exr_atomic(image: ExrImage, path: Path, attributes: dict[str, Any], wh
     if out is None:
         raise FrameError(f"{where}: cannot create {tmp}: {oiio.geterror()}")
     try:
-        ok = out.open(str(tmp), specs) if len(specs) > 1 else out.open(str(tmp), specs[0])
+        ok = (
+            out.open(str(tmp), specs)
+            if len(specs) > 1
+            else out.open(str(tmp), specs[0])
+        )
         if not ok:
-            raise FrameError(f"{where}: cannot open {tmp} for writing: {out.geterror()}")
+            raise FrameError(
+                f"{where}: cannot open {tmp} for writing: {out.geterror()}"
+            )
         for i, p in enumerate(image.parts):
             if i > 0 and not out.open(str(tmp), specs[i], "AppendSubimage"):
-                raise FrameError(f"{where}: cannot append part {i} to {tmp}: {out.geterror()}")
+                raise FrameError(
+                    f"{where}: cannot append part {i} to {tmp}: {out.geterror()}"
+                )
             if not out.write_image(np.ascontiguousarray(p.pixels)):
                 raise FrameError(f"{where}: cannot write {tmp}: {out.geterror()}")
         if not out.close():

@@ -70,7 +70,9 @@ def parse_frame_range(text: str) -> list[int]:
         part = part.strip()
         m = re.fullmatch(r"(-?\d+)(?:\s*(?:-|:)\s*(-?\d+)(?:\s*x\s*(\d+))?)?", part)
         if not m:
-            raise SettingsError(f"--frames: cannot parse {part!r} (expected e.g. 1001, 1001-1024 or 1001-1024x2)")
+            raise SettingsError(
+                f"--frames: cannot parse {part!r} (expected e.g. 1001, 1001-1024 or 1001-1024x2)"
+            )
         first = int(m.group(1))
         last = int(m.group(2)) if m.group(2) is not None else first
         step = int(m.group(3)) if m.group(3) is not None else 1

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Any
+from typing import Any, Self
 
 from . import binding
 from .layer import write_layer
@@ -42,14 +42,19 @@ class PostFrameHook:
         elif kw:
             raise TypeError("pass either options or keyword options, not both")
         self.options = options
-        self.stage = open_stage(stage) if isinstance(stage, (str, os.PathLike)) else stage
+        self.stage = (
+            open_stage(stage) if isinstance(stage, (str, os.PathLike)) else stage
+        )
         self._settings_path = settings
         self._products = products
         self._base_dir = base_dir
-        self.info: SettingsInfo = resolve(self.stage, settings, products, frames=[], base_dir=base_dir)
+        self.info: SettingsInfo = resolve(
+            self.stage, settings, products, frames=[], base_dir=base_dir
+        )
         self.device = make_device(options)
         self.runners: dict[str, ProductRunner] = {
-            p.path: ProductRunner(p, self.info, self.device, options) for p in self.info.products
+            p.path: ProductRunner(p, self.info, self.device, options)
+            for p in self.info.products
         }
 
     def __call__(self, frame: int) -> list[FrameResult]:
@@ -67,11 +72,17 @@ class PostFrameHook:
             r.session.reset()
             r.last_frame = None
 
-    def write_layer(self, path: str | os.PathLike[str] | None = None, in_place: bool = False) -> Path:
+    def write_layer(
+        self, path: str | os.PathLike[str] | None = None, in_place: bool = False
+    ) -> Path:
         """Records the outputs so far as new RenderProducts (see :mod:`usd_harmonizer.layer`)."""
         results = {p: (r.product, _latest(r.results)) for p, r in self.runners.items()}
         return write_layer(
-            self.info, results, Path(path) if path else None, in_place=in_place, version=binding.load().version()
+            self.info,
+            results,
+            Path(path) if path else None,
+            in_place=in_place,
+            version=binding.load().version(),
         )
 
     def close(self) -> None:
@@ -81,7 +92,7 @@ class PostFrameHook:
         self.runners.clear()
         self.device.close()
 
-    def __enter__(self) -> PostFrameHook:
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(self, *exc: object) -> None:

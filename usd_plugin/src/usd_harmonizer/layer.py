@@ -53,7 +53,9 @@ def write_layer(
     else:
         path = Path(layer_path) if layer_path is not None else default_layer_path(stage)
         if root.realPath and path.resolve() == Path(root.realPath).resolve():
-            raise UsdHarmonizerError(f"--layer {path} is the stage's root layer; use --in-place to edit it")
+            raise UsdHarmonizerError(
+                f"--layer {path} is the stage's root layer; use --in-place to edit it"
+            )
         path.parent.mkdir(parents=True, exist_ok=True)
         # Authored under a temporary name in the final directory (so the
         # relative sublayer path resolves), then renamed into place.
@@ -61,8 +63,17 @@ def write_layer(
         layer = Sdf.Layer.CreateNew(os.fspath(tmp))
         if layer is None:
             raise UsdHarmonizerError(f"cannot create the layer {tmp}")
-        layer.subLayerPaths.append(_rel_path(Path(root.realPath), path.parent) if root.realPath else root.identifier)
-        for key in ("startTimeCode", "endTimeCode", "timeCodesPerSecond", "framesPerSecond"):
+        layer.subLayerPaths.append(
+            _rel_path(Path(root.realPath), path.parent)
+            if root.realPath
+            else root.identifier
+        )
+        for key in (
+            "startTimeCode",
+            "endTimeCode",
+            "timeCodesPerSecond",
+            "framesPerSecond",
+        ):
             if root.pseudoRoot.HasInfo(key):
                 layer.pseudoRoot.SetInfo(key, root.pseudoRoot.GetInfo(key))
     base = path.parent
@@ -79,7 +90,9 @@ def write_layer(
         name_attr = np_.CreateProductNameAttr()
         first = frames[0]
         default = prod.product_name_attr.Get(Usd.TimeCode.Default())
-        pattern_name = Path(str(default) if default else prod.product_name(first.frame)).name
+        pattern_name = Path(
+            str(default) if default else prod.product_name(first.frame)
+        ).name
         name_attr.Set(_rel_path(first.output.parent / pattern_name, base))
         for r in frames:
             name_attr.Set(_rel_path(r.output, base), Usd.TimeCode(r.frame))
@@ -90,16 +103,24 @@ def write_layer(
         np_.CreateAspectRatioConformPolicyAttr(prod.conform_policy)
         np_.CreateOrderedVarsRel().SetTargets([Sdf.Path(v.path) for v in prod.vars])
         prim = np_.GetPrim()
-        prim.CreateRelationship("harmonizer:sourceProduct", custom=True).SetTargets([src])
-        prim.CreateAttribute("harmonizer:version", Sdf.ValueTypeNames.String, custom=True).Set(version)
-        prim.CreateAttribute("harmonizer:backend", Sdf.ValueTypeNames.String, custom=True).Set(frames[-1].backend)
-        prim.CreateAttribute("harmonizer:colorSpace", Sdf.ValueTypeNames.String, custom=True).Set(frames[-1].color_space)
-        prim.CreateAttribute("harmonizer:frames", Sdf.ValueTypeNames.IntArray, custom=True).Set(
-            Vt.IntArray([r.frame for r in frames])
+        prim.CreateRelationship("harmonizer:sourceProduct", custom=True).SetTargets(
+            [src]
         )
-        prim.CreateAttribute("harmonizer:resetFrames", Sdf.ValueTypeNames.IntArray, custom=True).Set(
-            Vt.IntArray([r.frame for r in frames if r.reset])
-        )
+        prim.CreateAttribute(
+            "harmonizer:version", Sdf.ValueTypeNames.String, custom=True
+        ).Set(version)
+        prim.CreateAttribute(
+            "harmonizer:backend", Sdf.ValueTypeNames.String, custom=True
+        ).Set(frames[-1].backend)
+        prim.CreateAttribute(
+            "harmonizer:colorSpace", Sdf.ValueTypeNames.String, custom=True
+        ).Set(frames[-1].color_space)
+        prim.CreateAttribute(
+            "harmonizer:frames", Sdf.ValueTypeNames.IntArray, custom=True
+        ).Set(Vt.IntArray([r.frame for r in frames]))
+        prim.CreateAttribute(
+            "harmonizer:resetFrames", Sdf.ValueTypeNames.IntArray, custom=True
+        ).Set(Vt.IntArray([r.frame for r in frames if r.reset]))
         new_products.append(dst)
     if not new_products:
         raise UsdHarmonizerError("no frame was processed; nothing to record")
@@ -107,7 +128,9 @@ def write_layer(
     sdst = sp.GetParentPath().AppendChild(sp.name + SUFFIX)
     ns = UsdRender.Settings.Define(edit_stage, sdst)
     ns.CreateProductsRel().SetTargets(new_products)
-    ns.GetPrim().CreateRelationship("harmonizer:sourceSettings", custom=True).SetTargets([sp])
+    ns.GetPrim().CreateRelationship(
+        "harmonizer:sourceSettings", custom=True
+    ).SetTargets([sp])
     if in_place:
         root.Save()
     else:

@@ -14,9 +14,10 @@ product, frame and file, and leaves the session's temporal state unchanged.
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -93,7 +94,13 @@ def _header_matrix(attrs: dict[str, Any], name: str) -> np.ndarray | None:
 class ProductRunner:
     """Runs one product's frames through one session, keeping temporal state."""
 
-    def __init__(self, product: ProductInfo, settings: SettingsInfo, device: Any, options: Options) -> None:
+    def __init__(
+        self,
+        product: ProductInfo,
+        settings: SettingsInfo,
+        device: Any,
+        options: Options,
+    ) -> None:
         hz = binding.load()
         self.hz = hz
         self.product = product
@@ -108,7 +115,9 @@ class ProductRunner:
         try:
             self.session = hz.Session(device, **params)
         except hz.HarmonizerError as e:
-            raise UsdHarmonizerError(f"render product {product.path}: cannot create a session: {e}") from e
+            raise UsdHarmonizerError(
+                f"render product {product.path}: cannot create a session: {e}"
+            ) from e
         self.camera = product.camera_prim()
         self.last_frame: int | None = None
         self.results: list[FrameResult] = []
@@ -117,7 +126,11 @@ class ProductRunner:
     # -- paths ---------------------------------------------------------------
     def out_dir_for(self, source: Path) -> Path:
         """The directory enhanced files go to."""
-        return self.options.out_dir if self.options.out_dir is not None else source.parent / "harmonized"
+        return (
+            self.options.out_dir
+            if self.options.out_dir is not None
+            else source.parent / "harmonized"
+        )
 
     def output_for(self, frame: int) -> Path:
         """The enhanced file of ``frame``."""
@@ -127,21 +140,37 @@ class ProductRunner:
     # -- one frame -------------------------------------------------------------
     def _converter(self, attrs: dict[str, Any], file_name: str) -> ColorConverter:
         declared = self.roles["color"].color_space or self.product.color_space
-        key = (declared, attrs.get("colorInteropID"), attrs.get("oiio:ColorSpace"), self.settings.rendering_color_space)
+        key = (
+            declared,
+            attrs.get("colorInteropID"),
+            attrs.get("oiio:ColorSpace"),
+            self.settings.rendering_color_space,
+        )
         if key not in self._converters:
             self._converters[key] = converter_for(
-                declared, attrs, file_name, self.settings.rendering_color_space, self.options.ocio_config
+                declared,
+                attrs,
+                file_name,
+                self.settings.rendering_color_space,
+                self.options.ocio_config,
             )
         return self._converters[key]
 
-    def process_frame(self, frame: int, reset: bool = False, progress: Callable[[float], bool] | None = None) -> FrameResult:
+    def process_frame(
+        self,
+        frame: int,
+        reset: bool = False,
+        progress: Callable[[float], bool] | None = None,
+    ) -> FrameResult:
         """Enhances ``frame`` and writes its output; returns what happened."""
         prod = self.product
         src = self.product.file_for(frame)
         where = f"render product {prod.path} frame {frame} ({src})"
         out_path = self.output_for(frame)
         if out_path.resolve() == src.resolve():
-            raise FrameError(f"{where}: the output would overwrite the input; choose another --out-dir")
+            raise FrameError(
+                f"{where}: the output would overwrite the input; choose another --out-dir"
+            )
         img = read_exr(src, where)
         w, h = img.size
         rw, rh = prod.resolution
@@ -150,11 +179,22 @@ class ProductRunner:
                 f"{where}: the file is {w}x{h} but the product's resolution is {rw}x{rh} (a different aspect ratio)"
             )
         names = img.channel_names
-        b: dict[str, Binding] = {r: find_channels(r, v, names, where) for r, v in self.roles.items()}
+        b: dict[str, Binding] = {
+            r: find_channels(r, v, names, where) for r, v in self.roles.items()
+        }
         color_b = b["color"]
         rgb = img.stack(color_b.channels)
-        cov_channels = [c for c in (b["coverage"].channels[0] if "coverage" in b else None, color_b.alpha) if c]
-        coverage = img.channel(cov_channels[0]).astype(np.float32) if cov_channels else None
+        cov_channels = [
+            c
+            for c in (
+                b["coverage"].channels[0] if "coverage" in b else None,
+                color_b.alpha,
+            )
+            if c
+        ]
+        coverage = (
+            img.channel(cov_channels[0]).astype(np.float32) if cov_channels else None
+        )
         attrs = img.attributes()
         conv = self._converter(attrs, str(src))
         lin = conv.to_linear(rgb, coverage)
@@ -165,7 +205,11 @@ class ProductRunner:
             inputs.append("depth")
         if "motion" in b:
             kw["motion"] = img.stack(b["motion"].channels)
-            scale = self.options.motion_scale or self.roles["motion"].motion_scale or (1.0, 1.0)
+            scale = (
+                self.options.motion_scale
+                or self.roles["motion"].motion_scale
+                or (1.0, 1.0)
+            )
             kw["motion_vector_scale"] = scale
             inputs.append("motion")
         if "normal" in b:
@@ -175,24 +219,39 @@ class ProductRunner:
             kw["coverage"] = coverage
             inputs.append("coverage")
         if "insert_mask" in b:
-            kw["insert_mask"] = np.clip(img.channel(b["insert_mask"].channels[0]), 0.0, 1.0).astype(np.float32)
+            kw["insert_mask"] = np.clip(
+                img.channel(b["insert_mask"].channels[0]), 0.0, 1.0
+            ).astype(np.float32)
             inputs.append("insert_mask")
         if self.options.always_cameras or "motion" not in b:
             if self.camera is not None:
-                w2c, w2n = exr_matrices(self.camera, frame, prod.resolution, prod.pixel_aspect, prod.conform_policy)
+                w2c, w2n = exr_matrices(
+                    self.camera,
+                    frame,
+                    prod.resolution,
+                    prod.pixel_aspect,
+                    prod.conform_policy,
+                )
             else:
-                w2c, w2n = _header_matrix(attrs, "worldToCamera"), _header_matrix(attrs, "worldToNDC")
+                w2c, w2n = (
+                    _header_matrix(attrs, "worldToCamera"),
+                    _header_matrix(attrs, "worldToNDC"),
+                )
             if w2c is not None and w2n is not None:
                 kw["world_to_camera"] = w2c.astype(np.float32)
                 kw["world_to_ndc"] = w2n.astype(np.float32)
                 inputs.append("camera")
         hz = self.hz
         try:
-            out = self.session.process(lin, frame_index=frame, reset=reset, progress=progress, **kw)
+            out = self.session.process(
+                lin, frame_index=frame, reset=reset, progress=progress, **kw
+            )
         except hz.HarmonizerError as e:
             raise FrameError(f"{where}: {e}") from e
         report = self.session.last_report or {}
-        back = conv.from_linear(out[..., :3], out[..., 3] if coverage is not None else None)
+        back = conv.from_linear(
+            out[..., :3], out[..., 3] if coverage is not None else None
+        )
         for i, c in enumerate(color_b.channels):
             img.set_channel(c, back[..., i])
         for c in cov_channels:

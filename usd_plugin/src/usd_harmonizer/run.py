@@ -4,9 +4,9 @@ outputs in a layer: what ``usd-harmonize`` does."""
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 from . import binding
 from .layer import write_layer
@@ -19,7 +19,9 @@ class RunSummary:
     """Results of one run."""
 
     settings: SettingsInfo
-    results: dict[str, tuple[ProductInfo, list[FrameResult]]] = field(default_factory=dict)
+    results: dict[str, tuple[ProductInfo, list[FrameResult]]] = field(
+        default_factory=dict
+    )
     layer: Path | None = None
 
 
@@ -67,6 +69,10 @@ def run_stage(
         on_frame(done, total, info.products[-1], order[-1])
     if write_layer_file:
         summary.layer = write_layer(
-            info, summary.results, Path(layer) if layer else None, in_place, version=binding.load().version()
+            info,
+            summary.results,
+            Path(layer) if layer else None,
+            in_place,
+            version=binding.load().version(),
         )
     return summary

@@ -30,15 +30,16 @@ ATTR_DEPTH_KIND = "harmonizer:depthKind"
 ATTR_AOV_NAME = "driver:parameters:aov:name"
 
 
-def _authored(attr: Usd.Attribute | None, time: Usd.TimeCode = Usd.TimeCode.Default()):
+def _authored(attr: Usd.Attribute | None):
+    """The authored default value, or None."""
     if attr is None or not attr.IsValid() or not attr.HasAuthoredValue():
         return None
-    return attr.Get(time)
+    return attr.Get(Usd.TimeCode.Default())
 
 
-def _schema_value(attr: Usd.Attribute, time: Usd.TimeCode = Usd.TimeCode.Default()):
-    """The value including the schema fallback."""
-    return attr.Get(time) if attr and attr.IsValid() else None
+def _schema_value(attr: Usd.Attribute):
+    """The default value including the schema fallback."""
+    return attr.Get(Usd.TimeCode.Default()) if attr and attr.IsValid() else None
 
 
 def _color_space_of(prim: Usd.Prim) -> tuple[str, str] | None:
@@ -95,10 +96,9 @@ class VarInfo:
     def components(self) -> int:
         """Number of components its ``dataType`` has."""
         t = self.data_type.lower()
-        if t.endswith("[]"):
-            t = t[:-2]
+        t = t.removesuffix("[]")
         for n in (4, 3, 2):
-            if t.endswith(f"{n}f") or t.endswith(f"{n}h") or t.endswith(f"{n}d") or t.endswith(f"{n}i"):
+            if t.endswith((f"{n}f", f"{n}h", f"{n}d", f"{n}i")):
                 return n
         if t in ("color", "point", "vector", "normal"):
             return 3
@@ -126,7 +126,9 @@ class ProductInfo:
         """``productName`` at ``frame`` (time samples honoured), unexpanded."""
         v = self.product_name_attr.Get(Usd.TimeCode(frame))
         if not v:
-            raise SettingsError(f"render product {self.path}: productName is empty at frame {frame}")
+            raise SettingsError(
+                f"render product {self.path}: productName is empty at frame {frame}"
+            )
         return str(v)
 
     def file_for(self, frame: int) -> Path:
@@ -162,7 +164,9 @@ class ProductInfo:
             return None
         prim = self.stage.GetPrimAtPath(self.camera_path)
         if not prim or not prim.IsValid():
-            raise CameraError(f"render product {self.path}: camera {self.camera_path} does not exist on the stage")
+            raise CameraError(
+                f"render product {self.path}: camera {self.camera_path} does not exist on the stage"
+            )
         if not prim.IsA(UsdGeom.Camera):
             raise CameraError(
                 f"render product {self.path}: camera {self.camera_path} is a {prim.GetTypeName() or 'typeless prim'}, "
@@ -201,11 +205,17 @@ def find_settings_prim(stage: Usd.Stage, settings: str | None = None) -> Usd.Pri
     stage's ``renderSettingsPrimPath``, else the only RenderSettings prim."""
     where = stage.GetRootLayer().identifier
     if settings:
-        prim = stage.GetPrimAtPath(settings) if Sdf.Path.IsValidPathString(settings) else None
+        prim = (
+            stage.GetPrimAtPath(settings)
+            if Sdf.Path.IsValidPathString(settings)
+            else None
+        )
         if not prim or not prim.IsValid():
             raise SettingsError(f"stage {where}: no prim at --settings {settings!r}")
         if not prim.IsA(UsdRender.Settings):
-            raise SettingsError(f"stage {where}: {settings} is a {prim.GetTypeName()!r}, not a RenderSettings prim")
+            raise SettingsError(
+                f"stage {where}: {settings} is a {prim.GetTypeName()!r}, not a RenderSettings prim"
+            )
         return prim
     s = UsdRender.Settings.GetStageRenderSettings(stage)
     if s:
@@ -214,7 +224,9 @@ def find_settings_prim(stage: Usd.Stage, settings: str | None = None) -> Usd.Pri
     if len(found) == 1:
         return found[0]
     if not found:
-        raise SettingsError(f"stage {where}: no RenderSettings prim (and no renderSettingsPrimPath metadata)")
+        raise SettingsError(
+            f"stage {where}: no RenderSettings prim (and no renderSettingsPrimPath metadata)"
+        )
     raise SettingsError(
         f"stage {where}: {len(found)} RenderSettings prims and no renderSettingsPrimPath; "
         f"pick one with --settings ({', '.join(str(p.GetPath()) for p in found)})"
@@ -250,13 +262,19 @@ def resolve(
     result: list[ProductInfo] = []
     targets = _rel_targets(rs.GetProductsRel())
     if not targets:
-        raise SettingsError(f"render settings {sprim.GetPath()}: the products relationship is empty")
+        raise SettingsError(
+            f"render settings {sprim.GetPath()}: the products relationship is empty"
+        )
     for t in targets:
         pprim = stage.GetPrimAtPath(t)
         if not pprim or not pprim.IsValid():
-            raise SettingsError(f"render settings {sprim.GetPath()}: product {t} does not exist on the stage")
+            raise SettingsError(
+                f"render settings {sprim.GetPath()}: product {t} does not exist on the stage"
+            )
         if not pprim.IsA(UsdRender.Product):
-            raise SettingsError(f"render settings {sprim.GetPath()}: {t} is a {pprim.GetTypeName()!r}, not a RenderProduct")
+            raise SettingsError(
+                f"render settings {sprim.GetPath()}: {t} is a {pprim.GetTypeName()!r}, not a RenderProduct"
+            )
         if products and pprim.GetName() not in products and str(t) not in products:
             continue
         prod = UsdRender.Product(pprim)
@@ -264,16 +282,24 @@ def resolve(
         for vt in _rel_targets(prod.GetOrderedVarsRel()):
             vprim = stage.GetPrimAtPath(vt)
             if not vprim or not vprim.IsValid():
-                raise VarError(f"render product {t}: RenderVar {vt} (orderedVars) does not exist on the stage")
+                raise VarError(
+                    f"render product {t}: RenderVar {vt} (orderedVars) does not exist on the stage"
+                )
             if not vprim.IsA(UsdRender.Var):
-                raise VarError(f"render product {t}: {vt} (orderedVars) is a {vprim.GetTypeName()!r}, not a RenderVar")
+                raise VarError(
+                    f"render product {t}: {vt} (orderedVars) is a {vprim.GetTypeName()!r}, not a RenderVar"
+                )
             vars_.append(VarInfo.from_prim(vprim))
         if not vars_:
             raise VarError(f"render product {t}: orderedVars is empty")
         cam = _rel_targets(prod.GetCameraRel()) or s_camera
         res_attr = prod.GetResolutionAttr()
         res = _authored(res_attr) if res_attr.HasAuthoredValue() else s_res
-        par = _authored(prod.GetPixelAspectRatioAttr()) if prod.GetPixelAspectRatioAttr().HasAuthoredValue() else s_par
+        par = (
+            _authored(prod.GetPixelAspectRatioAttr())
+            if prod.GetPixelAspectRatioAttr().HasAuthoredValue()
+            else s_par
+        )
         conform = (
             _authored(prod.GetAspectRatioConformPolicyAttr())
             if prod.GetAspectRatioConformPolicyAttr().HasAuthoredValue()
@@ -287,7 +313,9 @@ def resolve(
                 product_name_attr=prod.GetProductNameAttr(),
                 vars=vars_,
                 camera_path=str(cam[0]) if cam else None,
-                resolution=(int(res[0]), int(res[1])) if res is not None else (2048, 1080),
+                resolution=(int(res[0]), int(res[1]))
+                if res is not None
+                else (2048, 1080),
                 pixel_aspect=float(par) if par else 1.0,
                 conform_policy=str(conform or "expandAperture"),
                 color_space=_color_space_of(pprim) or s_cs,
@@ -300,17 +328,24 @@ def resolve(
         missing = [p for p in products if p not in names]
         if missing:
             avail = ", ".join(str(t) for t in targets)
-            raise SettingsError(f"render settings {sprim.GetPath()}: no product named {missing[0]!r} (products: {avail})")
+            raise SettingsError(
+                f"render settings {sprim.GetPath()}: no product named {missing[0]!r} (products: {avail})"
+            )
     if frames is None:
         if stage.HasAuthoredTimeCodeRange():
             first, last = stage.GetStartTimeCode(), stage.GetEndTimeCode()
-            frames = list(range(int(round(first)), int(round(last)) + 1))
+            frames = list(range(round(first), round(last) + 1))
         else:
             tc = Usd.TimeCode.Default()
-            samples = sorted({int(s) for p in result for s in p.product_name_attr.GetTimeSamples()})
+            samples = sorted(
+                {int(s) for p in result for s in p.product_name_attr.GetTimeSamples()}
+            )
             if samples:
                 frames = samples
-            elif all(not has_frame_token(str(p.product_name_attr.Get(tc) or "")) for p in result):
+            elif all(
+                not has_frame_token(str(p.product_name_attr.Get(tc) or ""))
+                for p in result
+            ):
                 frames = [0]
             else:
                 raise SettingsError(

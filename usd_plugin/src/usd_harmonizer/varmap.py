@@ -17,22 +17,71 @@ from .errors import VarError
 from .settings import ProductInfo, VarInfo
 
 #: Roles (harmonizer inputs) and the components each needs.
-ROLES: dict[str, int] = {"color": 3, "depth": 1, "motion": 2, "normal": 3, "coverage": 1, "insert_mask": 1}
+ROLES: dict[str, int] = {
+    "color": 3,
+    "depth": 1,
+    "motion": 2,
+    "normal": 3,
+    "coverage": 1,
+    "insert_mask": 1,
+}
 
 _ALIASES: dict[str, set[str]] = {
-    "color": {"color", "ci", "c", "beauty", "rgba", "rgb", "combined", "c.*", "lpe:c.*"},
+    "color": {
+        "color",
+        "ci",
+        "c",
+        "beauty",
+        "rgba",
+        "rgb",
+        "combined",
+        "c.*",
+        "lpe:c.*",
+    },
     "depth": {"depth", "z", "pz", "cameradepth", "zdepth", "depth.z"},
-    "motion": {"motion", "motionvector", "motionvectors", "mv", "vector", "motion_vector"},
+    "motion": {
+        "motion",
+        "motionvector",
+        "motionvectors",
+        "mv",
+        "vector",
+        "motion_vector",
+    },
     "normal": {"normal", "normals", "n", "nn"},
     "coverage": {"alpha", "a", "coverage"},
-    "insert_mask": {"insert", "insertmask", "insert_mask", "mask.insert", "mask_insert"},
+    "insert_mask": {
+        "insert",
+        "insertmask",
+        "insert_mask",
+        "mask.insert",
+        "mask_insert",
+    },
 }
 
 _SUFFIXES: dict[int, list[tuple[str, ...]]] = {
-    4: [("R", "G", "B", "A"), ("r", "g", "b", "a"), ("X", "Y", "Z", "W"), ("x", "y", "z", "w")],
+    4: [
+        ("R", "G", "B", "A"),
+        ("r", "g", "b", "a"),
+        ("X", "Y", "Z", "W"),
+        ("x", "y", "z", "w"),
+    ],
     3: [("R", "G", "B"), ("r", "g", "b"), ("X", "Y", "Z"), ("x", "y", "z")],
     2: [("X", "Y"), ("x", "y"), ("U", "V"), ("u", "v"), ("R", "G"), ("r", "g")],
-    1: [("",), ("Z",), ("z",), ("X",), ("x",), ("R",), ("r",), ("Y",), ("y",), ("V",), ("v",), ("A",), ("a",)],
+    1: [
+        ("",),
+        ("Z",),
+        ("z",),
+        ("X",),
+        ("x",),
+        ("R",),
+        ("r",),
+        ("Y",),
+        ("y",),
+        ("V",),
+        ("v",),
+        ("A",),
+        ("a",),
+    ],
 }
 
 
@@ -42,7 +91,9 @@ def parse_role(text: str, where: str) -> str:
     if r == "mask":
         r = "insert_mask"
     if r not in ROLES and r != "ignore":
-        raise VarError(f"{where}: unknown role {text!r} (expected one of {', '.join(ROLES)} or ignore)")
+        raise VarError(
+            f"{where}: unknown role {text!r} (expected one of {', '.join(ROLES)} or ignore)"
+        )
     return r
 
 
@@ -77,7 +128,9 @@ class Binding:
     alpha: str | None = None
 
 
-def map_vars(product: ProductInfo, user_map: dict[str, str] | None = None) -> dict[str, VarInfo]:
+def map_vars(
+    product: ProductInfo, user_map: dict[str, str] | None = None
+) -> dict[str, VarInfo]:
     """Role -> var for one product. Raises when two vars claim one role or when
     there is no color var."""
     out: dict[str, VarInfo] = {}
@@ -88,14 +141,16 @@ def map_vars(product: ProductInfo, user_map: dict[str, str] | None = None) -> di
         if r in out:
             raise VarError(
                 f"render product {product.path}: RenderVars {out[r].path} and {v.path} both map to {r}; "
-                f"set harmonizer:role = \"ignore\" on one or pass --map {v.name}=ignore"
+                f'set harmonizer:role = "ignore" on one or pass --map {v.name}=ignore'
             )
         out[r] = v
     if "color" not in out:
-        names = ", ".join(f"{v.name} (sourceName {v.source_name!r})" for v in product.vars)
+        names = ", ".join(
+            f"{v.name} (sourceName {v.source_name!r})" for v in product.vars
+        )
         raise VarError(
             f"render product {product.path}: no color RenderVar among orderedVars [{names}]; "
-            "name one color/Ci/beauty, set harmonizer:role = \"color\" or pass --map VAR=color"
+            'name one color/Ci/beauty, set harmonizer:role = "color" or pass --map VAR=color'
         )
     return out
 
@@ -118,7 +173,11 @@ def find_channels(role: str, var: VarInfo, names: list[str], where: str) -> Bind
         if missing or len(var.channels) < need:
             raise VarError(
                 f"{where}: RenderVar {var.path} ({role}): harmonizer:channels {var.channels} "
-                + (f"not in the file (missing {missing}; " if missing else f"has fewer than {need} channels (")
+                + (
+                    f"not in the file (missing {missing}; "
+                    if missing
+                    else f"has fewer than {need} channels ("
+                )
                 + f"channels present: {sorted(have)})"
             )
         alpha = var.channels[3] if role == "color" and len(var.channels) > 3 else None
