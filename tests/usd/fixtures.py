@@ -221,7 +221,11 @@ def build() -> Path:
     # Drop fixtures of older script versions, then render afresh.
     if root.parent.is_dir():
         for stale in root.parent.iterdir():
-            if stale.is_dir() and stale.name != root.name and (stale / "DONE").is_file():
+            if (
+                stale.is_dir()
+                and stale.name != root.name
+                and (stale / "DONE").is_file()
+            ):
                 shutil.rmtree(stale)
     if root.exists():
         shutil.rmtree(root)

@@ -308,3 +308,94 @@ def test_bad_backend_parameter(shot: Path) -> None:
     r = run_cli(str(shot), "--backend", "bypass", "--param", "strength=7")
     assert r.returncode == 1
     assert "strength" in r.stderr and "7" in r.stderr
+
+
+def test_multipart_blender_product(rendered: Path, tmp_path: Path) -> None:
+    """A product whose files are Blender's own multi-part EXRs: channels found
+    through the AOV names, every part, channel and header kept, exact bypass."""
+    stage = Usd.Stage.CreateNew(str(tmp_path / "mp.usda"))
+    stage.GetRootLayer().subLayerPaths.append(str(rendered / "scene.usda"))
+    stage.SetStartTimeCode(fixtures.FRAMES[0])
+    stage.SetEndTimeCode(fixtures.FRAMES[-1])
+    vars_ = []
+    for name, src, dtype, aov in (
+        ("combined", "Combined", "color4f", "ViewLayer.Combined"),
+        ("depth", "depth", "float", "ViewLayer.Depth"),
+        ("vector", "Vector", "float4", "ViewLayer.Vector"),
+        ("normal", "Normal", "normal3f", "ViewLayer.Normal"),
+        ("index", "Object Index", "float", "ViewLayer.Object Index"),
+    ):
+        v = UsdRender.Var.Define(stage, f"/Render/Vars/{name}")
+        v.CreateSourceNameAttr(src)
+        v.CreateDataTypeAttr(dtype)
+        p = v.GetPrim()
+        p.CreateAttribute(
+            "driver:parameters:aov:name", Sdf.ValueTypeNames.String, custom=True
+        ).Set(aov)
+        vars_.append(v.GetPath())
+    stage.GetPrimAtPath("/Render/Vars/vector").CreateAttribute(
+        "harmonizer:motionVectorScale", Sdf.ValueTypeNames.Float2, custom=True
+    ).Set(Gf.Vec2f(1, -1))
+    stage.GetPrimAtPath("/Render/Vars/index").CreateAttribute(
+        "harmonizer:role", Sdf.ValueTypeNames.String, custom=True
+    ).Set("insert_mask")
+    prod = UsdRender.Product.Define(stage, "/Render/Products/blender")
+    prod.CreateProductNameAttr("blender/blender.$F4.exr")
+    prod.CreateOrderedVarsRel().SetTargets(vars_)
+    prod.CreateCameraRel().SetTargets([Sdf.Path("/World/Cam")])
+    prod.CreateResolutionAttr(Gf.Vec2i(fixtures.W, fixtures.H))
+    settings = UsdRender.Settings.Define(stage, "/Render/Settings")
+    settings.CreateProductsRel().SetTargets([prod.GetPath()])
+    stage.GetRootLayer().Save()
+    out_dir = tmp_path / "out"
+    before = digest(rendered / "blender/blender.1001.exr")
+    r = run_cli(
+        str(tmp_path / "mp.usda"),
+        "--backend",
+        "bypass",
+        "--base-dir",
+        str(rendered),
+        "--out-dir",
+        str(out_dir),
+        "--settings",
+        "/Render/Settings",
+    )
+    assert r.returncode == 0, r.stderr
+    assert "inputs color+depth+motion+normal+coverage+insert_mask+camera" in r.stdout
+    assert digest(rendered / "blender/blender.1001.exr") == before
+    for f in fixtures.FRAMES:
+        a = read_exr(rendered / f"blender/blender.{f}.exr", "src")
+        b = read_exr(out_dir / f"blender.{f}.exr", "out")
+        assert [p.names for p in a.parts] == [p.names for p in b.parts]
+        assert [p.spec.get_string_attribute("name") for p in b.parts] == [
+            "ViewLayer.Combined",
+            "ViewLayer.Depth",
+            "ViewLayer.Normal",
+            "ViewLayer.Vector",
+            "ViewLayer.Object Index",
+        ]
+        for k in ("Software", "Camera", "Frame", "colorInteropID"):
+            assert a.attributes()[k] == b.attributes()[k], k
+        assert b.attributes()["harmonizer:frame"] == f
+        for pa, pb in zip(a.parts, b.parts, strict=True):
+            assert np.abs(pa.pixels - pb.pixels).max() < 1e-4
+
+
+def test_missing_camera(shot: Path) -> None:
+    stage = Usd.Stage.Open(str(shot))
+    UsdRender.Settings(
+        stage.GetPrimAtPath("/Render/Settings")
+    ).GetCameraRel().SetTargets([Sdf.Path("/World/NoCam")])
+    stage.Save()
+    r = subprocess.run(
+        [sys.executable, "-m", "usd_harmonizer", str(shot), "--backend", "bypass"],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        check=False,
+    )
+    assert r.returncode == 1
+    assert (
+        "usd-harmonize: error: render product /Render/Products/beauty: "
+        "camera /World/NoCam does not exist on the stage"
+    ) in r.stderr
