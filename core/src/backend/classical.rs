@@ -1,13 +1,143 @@
 //! The classical backend: hole filling, insert harmonization, contact
-//! shadows and temporal stabilization (see `crate::ops`).
+//! shadows and temporal stabilization (see `crate::ops`), in that order.
+//!
+//! 1. **inpaint** (`fill_holes`): pixels with coverage < 1 are completed
+//!    from the reprojected history (frame 0, then older frames only where
+//!    still missing), then by push-pull over a window around what is left.
+//! 2. **harmonize** (`harmonize`, needs the insert mask): the insert's color
+//!    statistics are matched part of the way to a ring of background; the
+//!    filter parameters are smoothed over time in the [`Carry`] (key
+//!    [`TONE_KEY`]) with the weight `temporal_blend` on the past.
+//! 3. **shadow** (`contact_shadows`, needs mask and depth): a soft contact
+//!    shadow of strength `shadow_strength` under the insert.
+//! 4. **stabilize** (`stabilize`): blend with the reprojected previous result
+//!    (`temporal_blend` times validity), history clamped to the local range.
+//!
+//! Everything runs on the device's pool, row-parallel in fixed bands, so the
+//! output does not depend on the thread count.
+
+use rayon::prelude::*;
 
 use super::{Backend, BackendInput, Carry, Progress, Stages};
 use crate::error::Result;
-use crate::frame::Image;
+use crate::frame::{Image, PreparedFrame};
+use crate::ops::{harmonize, inpaint, par_bands_mut, shadow, stabilize};
+
+/// Carry key of the smoothed harmonization filter ([`harmonize::Tone::to_vec`]).
+pub const TONE_KEY: &str = "classical.harmonize.tone";
 
 /// The classical pipeline.
 #[derive(Debug, Default)]
 pub struct Classical;
+
+/// The frame as a 4-plane RGBA image: RGB premultiplied, A = coverage (1 when absent).
+pub fn rgba_from_frame(frame: &PreparedFrame) -> Image {
+    let (w, h) = (frame.width(), frame.height());
+    let mut out = Image::zeros(w, h, 4);
+    let color = &frame.color;
+    let coverage = frame.coverage.as_deref();
+    par_bands_mut(&mut out, 0, h).for_each(|(y0, [r, g, b, a])| {
+        let s = y0 * w..y0 * w + a.len();
+        r.copy_from_slice(&color.plane(0)[s.clone()]);
+        g.copy_from_slice(&color.plane(1)[s.clone()]);
+        b.copy_from_slice(&color.plane(2)[s.clone()]);
+        match coverage {
+            Some(c) => a.copy_from_slice(&c[s]),
+            None => a.fill(1.0),
+        }
+    });
+    out
+}
+
+/// Runs the four operations on `img` (the frame as [`rgba_from_frame`] makes
+/// it) with the parameters in `input`; the neural backend's `classical_post`
+/// stage calls this on its own output.
+pub fn run_ops(
+    img: &mut Image,
+    input: &BackendInput<'_>,
+    carry: &mut Carry,
+    progress: &mut Progress<'_>,
+    stages: &mut Stages,
+) -> Result<()> {
+    let frame = input.frame;
+    let params = input.params;
+    let pool = input.pool;
+    let history = input.history;
+    let (w, h) = (img.width, img.height);
+
+    if params.fill_holes {
+        let mut holes = stages.time("inpaint", || pool.install(|| inpaint::find_holes(img)));
+        let mut k = 0;
+        while let Some(hh) = holes {
+            if k >= history.len() {
+                break;
+            }
+            let past = stages.time("reproject", || pool.install(|| history.reproject(k)));
+            holes = stages.time("inpaint", || {
+                pool.install(|| inpaint::fill_from_history(img, past, hh.rect))
+            });
+            k += 1;
+        }
+        if let Some(hh) = holes {
+            let window = inpaint::fill_window(hh.rect, w, h);
+            stages.time("inpaint", || {
+                pool.install(|| inpaint::push_pull(img, window))
+            });
+        }
+    }
+    progress.report(0.4)?;
+
+    match (&frame.insert_mask, params.harmonize) {
+        (Some(mask), true) => {
+            let estimate = stages.time("harmonize", || {
+                pool.install(|| {
+                    harmonize::estimate(
+                        img,
+                        mask,
+                        frame.coverage.as_deref(),
+                        frame.depth.as_deref(),
+                    )
+                })
+            });
+            let previous = carry
+                .values
+                .get(TONE_KEY)
+                .and_then(|v| harmonize::Tone::from_slice(v));
+            let tone = match (previous, estimate) {
+                (Some(p), Some(e)) => Some(p.toward(&e, 1.0 - params.temporal_blend)),
+                (p, e) => e.or(p),
+            };
+            if let Some(tone) = tone {
+                stages.time("harmonize", || {
+                    pool.install(|| harmonize::apply(img, mask, &tone))
+                });
+                carry.values.insert(TONE_KEY.to_string(), tone.to_vec());
+            }
+        }
+        _ => {
+            carry.values.remove(TONE_KEY);
+        }
+    }
+    progress.report(0.6)?;
+
+    if params.contact_shadows && params.shadow_strength > 0.0 {
+        if let (Some(mask), Some(depth)) = (&frame.insert_mask, &frame.depth) {
+            stages.time("shadow", || {
+                pool.install(|| shadow::contact_shadow(img, mask, depth, params.shadow_strength))
+            });
+        }
+    }
+    progress.report(0.7)?;
+
+    if params.stabilize && params.temporal_blend > 0.0 && !history.is_empty() {
+        let past = stages.time("reproject", || pool.install(|| history.reproject(0)));
+        stages.time("stabilize", || {
+            pool.install(|| stabilize::stabilize(img, past, params.temporal_blend))
+        });
+    }
+    progress.report(1.0)?;
+    Ok(())
+}
 
 impl Backend for Classical {
     fn name(&self) -> &str {
@@ -21,7 +151,11 @@ impl Backend for Classical {
         progress: &mut Progress<'_>,
         stages: &mut Stages,
     ) -> Result<Image> {
-        // Placeholder wiring until the ops land: behave as bypass.
-        super::Bypass.process(input, carry, progress, stages)
+        let mut img = stages.time("prepare", || {
+            input.pool.install(|| rgba_from_frame(input.frame))
+        });
+        progress.report(0.05)?;
+        run_ops(&mut img, input, carry, progress, stages)?;
+        Ok(img)
     }
 }

@@ -1,2 +1,287 @@
 //! Image operations of the classical pipeline: inpainting, insert
 //! harmonization, contact shadows, temporal stabilization.
+//!
+//! Every operation works in place on a 4-plane [`Image`] (RGB premultiplied by
+//! A, A the coverage) and runs its parallel loops on the current rayon pool:
+//! call them inside `ThreadPool::install` to use a device's pool. Work is split
+//! into bands of [`BAND_ROWS`] rows, a constant, and reductions are summed per
+//! band and then sequentially, so results do not depend on the thread count.
+
+pub mod harmonize;
+pub mod inpaint;
+pub mod shadow;
+pub mod stabilize;
+
+use rayon::prelude::*;
+
+use crate::frame::Image;
+
+/// Rows per parallel work item (fixed, so results never depend on threads).
+pub const BAND_ROWS: usize = 16;
+
+/// Rec.709 luminance weights (linear RGB).
+pub const LUMA: [f32; 3] = [0.2126, 0.7152, 0.0722];
+
+/// Depth at or above this value means "no surface" (sky, holes).
+pub const EMPTY_DEPTH: f32 = 1e9;
+
+/// A half-open pixel rectangle `[x0, x1) x [y0, y1)`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Rect {
+    /// First column.
+    pub x0: usize,
+    /// First row.
+    pub y0: usize,
+    /// One past the last column.
+    pub x1: usize,
+    /// One past the last row.
+    pub y1: usize,
+}
+
+impl Rect {
+    /// The whole `width x height` image.
+    pub fn full(width: usize, height: usize) -> Rect {
+        Rect {
+            x0: 0,
+            y0: 0,
+            x1: width,
+            y1: height,
+        }
+    }
+
+    /// Width in pixels.
+    pub fn width(&self) -> usize {
+        self.x1.saturating_sub(self.x0)
+    }
+
+    /// Height in pixels.
+    pub fn height(&self) -> usize {
+        self.y1.saturating_sub(self.y0)
+    }
+
+    /// True when the rectangle holds no pixel.
+    pub fn is_empty(&self) -> bool {
+        self.width() == 0 || self.height() == 0
+    }
+
+    /// Grown by `margin` pixels on every side, clipped to `width x height`.
+    pub fn expand(&self, margin: usize, width: usize, height: usize) -> Rect {
+        Rect {
+            x0: self.x0.saturating_sub(margin),
+            y0: self.y0.saturating_sub(margin),
+            x1: (self.x1 + margin).min(width),
+            y1: (self.y1 + margin).min(height),
+        }
+    }
+
+    /// The smallest rectangle holding both.
+    pub fn union(&self, other: &Rect) -> Rect {
+        if self.is_empty() {
+            return *other;
+        }
+        if other.is_empty() {
+            return *self;
+        }
+        Rect {
+            x0: self.x0.min(other.x0),
+            y0: self.y0.min(other.y0),
+            x1: self.x1.max(other.x1),
+            y1: self.y1.max(other.y1),
+        }
+    }
+
+    /// True when pixel `(x, y)` is inside.
+    pub fn contains(&self, x: usize, y: usize) -> bool {
+        x >= self.x0 && x < self.x1 && y >= self.y0 && y < self.y1
+    }
+}
+
+/// The four planes of an RGBA image, mutable.
+///
+/// # Panics
+/// When the image does not have 4 planes.
+pub fn rgba_planes_mut(img: &mut Image) -> [&mut [f32]; 4] {
+    assert_eq!(
+        img.channels, 4,
+        "the classical operations work on 4-plane RGBA images"
+    );
+    let n = img.len();
+    let (r, rest) = img.data.split_at_mut(n);
+    let (g, rest) = rest.split_at_mut(n);
+    let (b, a) = rest.split_at_mut(n);
+    [r, g, b, a]
+}
+
+/// Rows `y0..y1` of an RGBA image as parallel bands of [`BAND_ROWS`] rows:
+/// `(first row, [r, g, b, a])`, each plane slice holding whole rows.
+pub fn par_bands_mut(
+    img: &mut Image,
+    y0: usize,
+    y1: usize,
+) -> impl IndexedParallelIterator<Item = (usize, [&mut [f32]; 4])> {
+    let w = img.width;
+    let [r, g, b, a] = rgba_planes_mut(img);
+    let (lo, hi) = (y0 * w, y1 * w);
+    let chunk = (BAND_ROWS * w).max(1);
+    r[lo..hi]
+        .par_chunks_mut(chunk)
+        .zip(g[lo..hi].par_chunks_mut(chunk))
+        .zip(b[lo..hi].par_chunks_mut(chunk))
+        .zip(a[lo..hi].par_chunks_mut(chunk))
+        .enumerate()
+        .map(move |(i, (((r, g), b), a))| (y0 + i * BAND_ROWS, [r, g, b, a]))
+}
+
+/// The bounding box of the pixels where `plane > threshold`, with their count.
+pub fn bbox_above(
+    plane: &[f32],
+    width: usize,
+    height: usize,
+    threshold: f32,
+) -> Option<(Rect, usize)> {
+    bbox_where(plane, width, height, |v| v > threshold)
+}
+
+/// The bounding box of the pixels where `plane < threshold`, with their count.
+pub fn bbox_below(
+    plane: &[f32],
+    width: usize,
+    height: usize,
+    threshold: f32,
+) -> Option<(Rect, usize)> {
+    bbox_where(plane, width, height, |v| v < threshold)
+}
+
+fn bbox_where(
+    plane: &[f32],
+    width: usize,
+    height: usize,
+    pred: impl Fn(f32) -> bool + Sync,
+) -> Option<(Rect, usize)> {
+    if width == 0 || height == 0 {
+        return None;
+    }
+    let parts: Vec<Option<(Rect, usize)>> = plane[..width * height]
+        .par_chunks(BAND_ROWS * width)
+        .enumerate()
+        .map(|(i, band)| {
+            let mut out: Option<(Rect, usize)> = None;
+            for (dy, row) in band.chunks(width).enumerate() {
+                let mut first = None;
+                let mut last = 0;
+                let mut count = 0;
+                for (x, &v) in row.iter().enumerate() {
+                    if pred(v) {
+                        first.get_or_insert(x);
+                        last = x;
+                        count += 1;
+                    }
+                }
+                if let Some(x0) = first {
+                    let y = i * BAND_ROWS + dy;
+                    let r = Rect {
+                        x0,
+                        y0: y,
+                        x1: last + 1,
+                        y1: y + 1,
+                    };
+                    out = Some(match out {
+                        Some((o, c)) => (o.union(&r), c + count),
+                        None => (r, count),
+                    });
+                }
+            }
+            out
+        })
+        .collect();
+    parts
+        .into_iter()
+        .flatten()
+        .reduce(|(a, n), (b, m)| (a.union(&b), n + m))
+}
+
+/// Fast base-2 logarithm of a positive finite value (absolute error below
+/// 1e-4), exactly reproducible: bit manipulation plus a fixed polynomial.
+#[inline]
+pub fn fast_log2(x: f32) -> f32 {
+    let bits = x.to_bits();
+    let e = ((bits >> 23) & 0xff) as i32 - 127;
+    let m = f32::from_bits((bits & 0x007f_ffff) | 0x3f80_0000); // [1, 2)
+                                                                // log2(m) on [1,2) via log2((1+t)/(1-t)) series with t = (m-1)/(m+1).
+    let t = (m - 1.0) / (m + 1.0);
+    let t2 = t * t;
+    let p = t * (2.885_39 + t2 * (0.961_797 + t2 * (0.577_078 + t2 * 0.412_198)));
+    e as f32 + p
+}
+
+/// Fast base-2 exponential (relative error below 1e-4), exactly
+/// reproducible; saturates to 0 below -126 and to a large value above 127.
+#[inline]
+pub fn fast_exp2(x: f32) -> f32 {
+    let x = x.clamp(-126.0, 127.0);
+    let fl = x.floor();
+    let f = x - fl; // [0, 1)
+                    // 2^f on [0,1): Taylor polynomial of degree 6 of exp(f ln 2).
+    let p = 1.0
+        + f * (0.693_147_2
+            + f * (0.240_226_5
+                + f * (0.055_504_1 + f * (0.009_618_1 + f * (0.001_333_6 + f * 0.000_154_0)))));
+    let bits = ((fl as i32 + 127) as u32) << 23;
+    f32::from_bits(bits) * p
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn fast_log_exp_match_std() {
+        let mut worst_log: f32 = 0.0;
+        let mut worst_exp: f32 = 0.0;
+        let mut x = 1e-6f32;
+        while x < 1e6 {
+            worst_log = worst_log.max((fast_log2(x) - x.log2()).abs());
+            x *= 1.013;
+        }
+        let mut y = -20.0f32;
+        while y < 20.0 {
+            worst_exp = worst_exp.max((fast_exp2(y) / y.exp2() - 1.0).abs());
+            y += 0.0137;
+        }
+        assert!(worst_log < 1e-4, "fast_log2 error {worst_log}");
+        assert!(worst_exp < 1e-4, "fast_exp2 relative error {worst_exp}");
+    }
+
+    #[test]
+    fn bbox_finds_the_marked_pixels() {
+        let (w, h) = (40, 37);
+        let mut p = vec![0.0; w * h];
+        p[5 * w + 7] = 1.0;
+        p[30 * w + 20] = 0.7;
+        let (r, n) = bbox_above(&p, w, h, 0.5).unwrap();
+        assert_eq!(
+            (r, n),
+            (
+                Rect {
+                    x0: 7,
+                    y0: 5,
+                    x1: 21,
+                    y1: 31
+                },
+                2
+            )
+        );
+        assert!(bbox_above(&p, w, h, 1.0).is_none());
+        let (r, n) = bbox_below(&p, w, h, 0.5).unwrap();
+        assert_eq!((r, n), (Rect::full(w, h), w * h - 2));
+    }
+
+    #[test]
+    fn bands_cover_the_rows() {
+        let mut img = Image::zeros(5, 40, 4);
+        let rows: Vec<(usize, usize)> = par_bands_mut(&mut img, 3, 38)
+            .map(|(y, p)| (y, p[0].len() / 5))
+            .collect();
+        assert_eq!(rows, vec![(3, 16), (19, 16), (35, 3)]);
+    }
+}

@@ -1,0 +1,544 @@
+//! Insert harmonization: match the color statistics of an inserted object
+//! to a ring of surrounding background with a few global filter parameters
+//! ([`Tone`]: exposure, white balance, contrast, saturation).
+//!
+//! Statistics are taken in log2 space on unpremultiplied color
+//! (`l_k = log2(c_k + 1e-3)`): per pixel a brightness `mu = mean_k l_k` and a
+//! log chroma `chi_k = l_k - mu`. Over a region: the mean of each `l_k`, the
+//! mean and standard deviation of `mu`, and the mean chroma magnitude
+//! `sqrt(mean_k chi_k^2)`. The ring is a band around the insert (its width a
+//! quarter of the insert's size, 8 to 128 pixels), built on a mask
+//! downsampled by [`RING_CELL`] and excluding the insert and one cell around
+//! its edge; empty-depth pixels (sky) do not count.
+//!
+//! The filter moves the insert part of the way toward the ring (the
+//! `*_STRENGTH` constants), because an object's own colors legitimately
+//! differ from its surroundings: only a share of the difference is taken to
+//! be a lighting or grading mismatch, and every parameter is clamped.
+
+use rayon::prelude::*;
+
+use super::{bbox_above, fast_exp2, fast_log2, par_bands_mut, Rect, EMPTY_DEPTH};
+use crate::frame::Image;
+
+/// Cell size (pixels) of the downsampled mask the ring is built on.
+pub const RING_CELL: usize = 4;
+/// Share of the log-brightness difference corrected by the exposure.
+pub const EXPOSURE_STRENGTH: f32 = 0.75;
+/// Share of the log-chroma difference corrected by the white balance.
+pub const WHITE_BALANCE_STRENGTH: f32 = 0.6;
+/// Exponent on the ratio of brightness spreads (contrast).
+pub const CONTRAST_STRENGTH: f32 = 0.5;
+/// Exponent on the ratio of chroma magnitudes (saturation).
+pub const SATURATION_STRENGTH: f32 = 0.5;
+/// Largest exposure change, stops.
+pub const MAX_EXPOSURE: f32 = 3.0;
+/// Largest white-balance shift per channel, stops.
+pub const MAX_WHITE_BALANCE: f32 = 1.0;
+/// Contrast and saturation factors stay within `[1/MAX_FACTOR, MAX_FACTOR]`.
+pub const MAX_FACTOR: f32 = 1.6;
+
+/// Offset inside the logarithm (scene-linear units).
+const EPS: f32 = 1e-3;
+/// Minimum summed weight (in sampled pixels) for a region to count.
+const MIN_WEIGHT: f64 = 12.0;
+
+/// A global color filter for the insert, in log2 space.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Tone {
+    /// Brightness change in stops.
+    pub exposure: f32,
+    /// Per-channel shift in stops; sums to 0 (brightness unchanged).
+    pub white_balance: [f32; 3],
+    /// Factor on the brightness deviation from `pivot`.
+    pub contrast: f32,
+    /// Factor on the log chroma.
+    pub saturation: f32,
+    /// Mean log2 brightness of the insert the contrast pivots about.
+    pub pivot: f32,
+}
+
+impl Tone {
+    /// The filter that changes nothing.
+    pub const IDENTITY: Tone = Tone {
+        exposure: 0.0,
+        white_balance: [0.0; 3],
+        contrast: 1.0,
+        saturation: 1.0,
+        pivot: 0.0,
+    };
+
+    /// Number of values in [`Tone::to_vec`].
+    pub const LEN: usize = 7;
+
+    /// The parameters as a flat vector (for the backend's carry).
+    pub fn to_vec(&self) -> Vec<f32> {
+        let wb = self.white_balance;
+        vec![
+            self.exposure,
+            wb[0],
+            wb[1],
+            wb[2],
+            self.contrast,
+            self.saturation,
+            self.pivot,
+        ]
+    }
+
+    /// Reads [`Tone::to_vec`]'s layout; `None` for a wrong length or non-finite values.
+    pub fn from_slice(v: &[f32]) -> Option<Tone> {
+        if v.len() != Self::LEN || v.iter().any(|x| !x.is_finite()) || v[4] <= 0.0 || v[5] <= 0.0 {
+            return None;
+        }
+        Some(Tone {
+            exposure: v[0],
+            white_balance: [v[1], v[2], v[3]],
+            contrast: v[4],
+            saturation: v[5],
+            pivot: v[6],
+        })
+    }
+
+    /// Moves a share `t` of the way to `target` (factors interpolate in log space).
+    pub fn toward(&self, target: &Tone, t: f32) -> Tone {
+        let lerp = |a: f32, b: f32| a + t * (b - a);
+        let glerp = |a: f32, b: f32| (a.ln() + t * (b.ln() - a.ln())).exp();
+        Tone {
+            exposure: lerp(self.exposure, target.exposure),
+            white_balance: [
+                lerp(self.white_balance[0], target.white_balance[0]),
+                lerp(self.white_balance[1], target.white_balance[1]),
+                lerp(self.white_balance[2], target.white_balance[2]),
+            ],
+            contrast: glerp(self.contrast, target.contrast),
+            saturation: glerp(self.saturation, target.saturation),
+            pivot: lerp(self.pivot, target.pivot),
+        }
+    }
+
+    /// True when the filter changes nothing.
+    pub fn is_identity(&self) -> bool {
+        self.exposure == 0.0
+            && self.white_balance == [0.0; 3]
+            && self.contrast == 1.0
+            && self.saturation == 1.0
+    }
+}
+
+/// Log2 color statistics of one region.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Stats {
+    /// Summed weight (sampled pixels).
+    pub weight: f64,
+    /// Mean of `log2(c_k + eps)` per channel.
+    pub log_mean: [f64; 3],
+    /// Mean brightness `mu`.
+    pub brightness: f64,
+    /// Standard deviation of `mu`.
+    pub brightness_std: f64,
+    /// Mean chroma magnitude.
+    pub chroma: f64,
+}
+
+/// Weighted sums: w, w*l_r, w*l_g, w*l_b, w*mu, w*mu^2, w*chroma.
+type Sums = [f64; 7];
+
+fn add(s: &mut Sums, wt: f32, l: [f32; 3], mu: f32, chroma: f32) {
+    let wt = wt as f64;
+    s[0] += wt;
+    s[1] += wt * l[0] as f64;
+    s[2] += wt * l[1] as f64;
+    s[3] += wt * l[2] as f64;
+    s[4] += wt * mu as f64;
+    s[5] += wt * (mu as f64) * (mu as f64);
+    s[6] += wt * chroma as f64;
+}
+
+fn finish(s: &Sums) -> Option<Stats> {
+    if s[0] < MIN_WEIGHT {
+        return None;
+    }
+    let w = s[0];
+    let mean = s[4] / w;
+    Some(Stats {
+        weight: w,
+        log_mean: [s[1] / w, s[2] / w, s[3] / w],
+        brightness: mean,
+        brightness_std: (s[5] / w - mean * mean).max(0.0).sqrt(),
+        chroma: s[6] / w,
+    })
+}
+
+#[inline]
+fn log_color(r: f32, g: f32, b: f32) -> ([f32; 3], f32, [f32; 3]) {
+    let l = [fast_log2(r + EPS), fast_log2(g + EPS), fast_log2(b + EPS)];
+    let mu = (l[0] + l[1] + l[2]) * (1.0 / 3.0);
+    (l, mu, [l[0] - mu, l[1] - mu, l[2] - mu])
+}
+
+/// Binary square dilation of a `gw x gh` grid by `r` cells (separable box counts).
+fn dilate(src: &[bool], gw: usize, gh: usize, r: usize) -> Vec<bool> {
+    let mut tmp = vec![false; gw * gh];
+    let mut prefix = vec![0u32; gw.max(gh) + 1];
+    for y in 0..gh {
+        for x in 0..gw {
+            prefix[x + 1] = prefix[x] + src[y * gw + x] as u32;
+        }
+        for x in 0..gw {
+            let lo = x.saturating_sub(r);
+            let hi = (x + r + 1).min(gw);
+            tmp[y * gw + x] = prefix[hi] > prefix[lo];
+        }
+    }
+    let mut out = vec![false; gw * gh];
+    for x in 0..gw {
+        for y in 0..gh {
+            prefix[y + 1] = prefix[y] + tmp[y * gw + x] as u32;
+        }
+        for y in 0..gh {
+            let lo = y.saturating_sub(r);
+            let hi = (y + r + 1).min(gh);
+            out[y * gw + x] = prefix[hi] > prefix[lo];
+        }
+    }
+    out
+}
+
+/// The background ring around an insert, on a grid of [`RING_CELL`] cells.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Ring {
+    /// The pixel area the grid covers (the insert plus the ring).
+    pub area: Rect,
+    /// Grid width in cells.
+    pub grid_width: usize,
+    /// Grid height in cells.
+    pub grid_height: usize,
+    /// Ring cells, row-major.
+    pub cells: Vec<bool>,
+    /// Bounding box of the insert (mask above 0.02).
+    pub insert: Rect,
+}
+
+impl Ring {
+    /// True when pixel `(x, y)` (inside `area`) lies in a ring cell.
+    #[inline]
+    pub fn at(&self, x: usize, y: usize) -> bool {
+        let cx = (x - self.area.x0) / RING_CELL;
+        let cy = (y - self.area.y0) / RING_CELL;
+        self.cells[cy * self.grid_width + cx]
+    }
+}
+
+/// Builds the ring around the insert mask; `None` when the mask is empty.
+pub fn ring(mask: &[f32], width: usize, height: usize) -> Option<Ring> {
+    let (insert, _) = bbox_above(mask, width, height, 0.02)?;
+    let size = insert.width().max(insert.height());
+    let ring_px = (size / 4).clamp(8, 128);
+    let r_cells = ring_px.div_ceil(RING_CELL);
+    let area = insert.expand((r_cells + 1) * RING_CELL, width, height);
+    let gw = area.width().div_ceil(RING_CELL);
+    let gh = area.height().div_ceil(RING_CELL);
+    let inside: Vec<bool> = (0..gh)
+        .into_par_iter()
+        .flat_map_iter(|cy| {
+            let y0 = area.y0 + cy * RING_CELL;
+            let y1 = (y0 + RING_CELL).min(area.y1);
+            (0..gw).map(move |cx| {
+                let x0 = area.x0 + cx * RING_CELL;
+                let x1 = (x0 + RING_CELL).min(area.x1);
+                (y0..y1).any(|y| {
+                    mask[y * width + x0..y * width + x1]
+                        .iter()
+                        .any(|&m| m > 0.02)
+                })
+            })
+        })
+        .collect();
+    let inner = dilate(&inside, gw, gh, 1);
+    let outer = dilate(&inside, gw, gh, r_cells);
+    let cells = outer.iter().zip(&inner).map(|(&o, &i)| o && !i).collect();
+    Some(Ring {
+        area,
+        grid_width: gw,
+        grid_height: gh,
+        cells,
+        insert,
+    })
+}
+
+/// Statistics of the insert and of its ring in a 4-plane image, sampling
+/// every other pixel in both directions. `coverage` (the renderer's, before
+/// hole filling) down-weights filled pixels; `depth` excludes empty pixels
+/// from the ring. `None` when either region has too few samples.
+pub fn measure(
+    img: &Image,
+    mask: &[f32],
+    ring: &Ring,
+    coverage: Option<&[f32]>,
+    depth: Option<&[f32]>,
+) -> Option<(Stats, Stats)> {
+    let w = img.width;
+    let area = ring.area;
+    let planes = [img.plane(0), img.plane(1), img.plane(2), img.plane(3)];
+    let rows: Vec<usize> = (area.y0..area.y1).step_by(2).collect();
+    let partial: Vec<(Sums, Sums)> = rows
+        .par_iter()
+        .map(|&y| {
+            let mut si = [0.0; 7];
+            let mut sb = [0.0; 7];
+            for x in (area.x0..area.x1).step_by(2) {
+                let p = y * w + x;
+                let a = planes[3][p];
+                if a <= 1e-3 {
+                    continue;
+                }
+                let cov = coverage.map_or(1.0, |c| c[p]);
+                let m = mask[p];
+                let wi = (2.0 * m - 1.0).clamp(0.0, 1.0) * cov;
+                let in_ring = ring.at(x, y) && depth.is_none_or(|d| d[p] < EMPTY_DEPTH);
+                let wb = if in_ring { (1.0 - m) * cov } else { 0.0 };
+                if wi <= 0.0 && wb <= 0.0 {
+                    continue;
+                }
+                let k = 1.0 / a;
+                let (l, mu, chi) = log_color(planes[0][p] * k, planes[1][p] * k, planes[2][p] * k);
+                let chroma =
+                    ((chi[0] * chi[0] + chi[1] * chi[1] + chi[2] * chi[2]) * (1.0 / 3.0)).sqrt();
+                if wi > 0.0 {
+                    add(&mut si, wi, l, mu, chroma);
+                }
+                if wb > 0.0 {
+                    add(&mut sb, wb, l, mu, chroma);
+                }
+            }
+            (si, sb)
+        })
+        .collect();
+    // Sequential sum in row order: independent of the thread count.
+    let mut si = [0.0; 7];
+    let mut sb = [0.0; 7];
+    for (a, b) in &partial {
+        for k in 0..7 {
+            si[k] += a[k];
+            sb[k] += b[k];
+        }
+    }
+    Some((finish(&si)?, finish(&sb)?))
+}
+
+/// The filter that moves the insert's statistics toward the ring's.
+pub fn tone_from_stats(insert: &Stats, ring: &Stats) -> Tone {
+    let exposure = (EXPOSURE_STRENGTH as f64 * (ring.brightness - insert.brightness)) as f32;
+    let mut wb = [0.0f32; 3];
+    for (k, v) in wb.iter_mut().enumerate() {
+        let d = (ring.log_mean[k] - ring.brightness) - (insert.log_mean[k] - insert.brightness);
+        *v = ((WHITE_BALANCE_STRENGTH as f64 * d) as f32)
+            .clamp(-MAX_WHITE_BALANCE, MAX_WHITE_BALANCE);
+    }
+    let mean = (wb[0] + wb[1] + wb[2]) / 3.0;
+    wb.iter_mut().for_each(|v| *v -= mean);
+    let ratio = |a: f64, b: f64, strength: f32| -> f32 {
+        if a > 1e-3 && b > 1e-3 {
+            ((b / a).powf(strength as f64) as f32).clamp(1.0 / MAX_FACTOR, MAX_FACTOR)
+        } else {
+            1.0
+        }
+    };
+    Tone {
+        exposure: exposure.clamp(-MAX_EXPOSURE, MAX_EXPOSURE),
+        white_balance: wb,
+        contrast: ratio(
+            insert.brightness_std,
+            ring.brightness_std,
+            CONTRAST_STRENGTH,
+        ),
+        saturation: ratio(insert.chroma, ring.chroma, SATURATION_STRENGTH),
+        pivot: insert.brightness as f32,
+    }
+}
+
+/// Ring, statistics and filter in one call; `None` when there is no insert
+/// or too little of it or of its surroundings is visible.
+pub fn estimate(
+    img: &Image,
+    mask: &[f32],
+    coverage: Option<&[f32]>,
+    depth: Option<&[f32]>,
+) -> Option<Tone> {
+    let ring = ring(mask, img.width, img.height)?;
+    let (si, sb) = measure(img, mask, &ring, coverage, depth)?;
+    Some(tone_from_stats(&si, &sb))
+}
+
+/// Applies `tone` to the insert in place, weighted by the mask: per pixel
+/// `mu' = pivot + exposure + contrast * (mu - pivot)` and
+/// `l'_k = mu' + saturation * chi_k + wb_k`, then `c'_k = c_k * 2^(l'_k - l_k)`
+/// (so black stays black). Only pixels inside the mask's bounding box are read.
+pub fn apply(img: &mut Image, mask: &[f32], tone: &Tone) {
+    let (w, h) = (img.width, img.height);
+    let Some((rect, _)) = bbox_above(mask, w, h, 0.0) else {
+        return;
+    };
+    if tone.is_identity() {
+        return;
+    }
+    let t = *tone;
+    par_bands_mut(img, rect.y0, rect.y1).for_each(|(y0, [r, g, b, a])| {
+        let rows = a.len() / w;
+        for dy in 0..rows {
+            for x in rect.x0..rect.x1 {
+                let p = (y0 + dy) * w + x;
+                let m = mask[p];
+                let i = dy * w + x;
+                let cov = a[i];
+                if m <= 0.0 || cov <= 1e-6 {
+                    continue;
+                }
+                let k = 1.0 / cov;
+                let c = [r[i] * k, g[i] * k, b[i] * k];
+                let (l, mu, chi) = log_color(c[0], c[1], c[2]);
+                let mu2 = t.pivot + t.exposure + t.contrast * (mu - t.pivot);
+                let mut out = [0.0f32; 3];
+                for ch in 0..3 {
+                    let l2 = mu2 + t.saturation * chi[ch] + t.white_balance[ch];
+                    let changed = c[ch] * fast_exp2(l2 - l[ch]);
+                    out[ch] = (c[ch] + m * (changed - c[ch])) * cov;
+                }
+                r[i] = out[0];
+                g[i] = out[1];
+                b[i] = out[2];
+            }
+        }
+    });
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A textured background and a square insert; `insert_color` maps the
+    /// background texture value at a pixel to the insert's color.
+    fn scene(w: usize, h: usize, insert_color: impl Fn(f32) -> [f32; 3]) -> (Image, Vec<f32>) {
+        let n = w * h;
+        let mut img = Image::filled(w, h, 4, 1.0);
+        let mut mask = vec![0.0; n];
+        for y in 0..h {
+            for x in 0..w {
+                let p = y * w + x;
+                let t = 0.5 + 0.4 * ((x as f32 * 0.21).sin() * (y as f32 * 0.17).cos());
+                let inside = (40..90).contains(&x) && (30..80).contains(&y);
+                let c = if inside {
+                    insert_color(t)
+                } else {
+                    [0.6 * t, 0.5 * t, 0.4 * t]
+                };
+                for k in 0..3 {
+                    img.data[k * n + p] = c[k];
+                }
+                mask[p] = if inside { 1.0 } else { 0.0 };
+            }
+        }
+        (img, mask)
+    }
+
+    #[test]
+    fn ring_surrounds_the_insert_without_touching_it() {
+        let (_, mask) = scene(160, 120, |t| [t; 3]);
+        let ring = ring(&mask, 160, 120).unwrap();
+        assert_eq!(
+            ring.insert,
+            Rect {
+                x0: 40,
+                y0: 30,
+                x1: 90,
+                y1: 80
+            }
+        );
+        for y in ring.area.y0..ring.area.y1 {
+            for x in ring.area.x0..ring.area.x1 {
+                if ring.at(x, y) {
+                    assert_eq!(mask[y * 160 + x], 0.0, "ring on the insert at ({x},{y})");
+                }
+            }
+        }
+        // Pixels 8..12 left of the insert are ring; the insert's direct
+        // neighbors (one cell) are not.
+        assert!(ring.at(30, 50) && !ring.at(39, 50));
+    }
+
+    #[test]
+    fn a_tone_shifted_insert_moves_toward_the_background_grade() {
+        // The insert's true colors follow the background's grade; the render
+        // made it 2x too bright and blue, and flatter.
+        let truth = |t: f32| [0.6 * t, 0.5 * t, 0.4 * t];
+        let shifted = |t: f32| {
+            let c = truth(0.5 + 0.6 * (t - 0.5));
+            [2.0 * c[0], 2.0 * c[1], 2.0 * 1.6 * c[2]]
+        };
+        let (mut img, mask) = scene(160, 120, shifted);
+        let (want, _) = scene(160, 120, truth);
+        let err = |img: &Image| -> f64 {
+            let mut e = 0.0;
+            for (i, &m) in mask.iter().enumerate() {
+                if m > 0.0 {
+                    for c in 0..3 {
+                        let n = 160 * 120;
+                        e += ((img.data[c * n + i] + 1e-3).log2()
+                            - (want.data[c * n + i] + 1e-3).log2())
+                        .abs() as f64;
+                    }
+                }
+            }
+            e
+        };
+        let before = err(&img);
+        let tone = estimate(&img, &mask, None, None).unwrap();
+        assert!(tone.exposure < -0.5, "{tone:?}");
+        assert!(tone.white_balance[2] < -0.2, "{tone:?}");
+        assert!(tone.contrast > 1.0, "{tone:?}");
+        apply(&mut img, &mask, &tone);
+        let after = err(&img);
+        assert!(after < 0.5 * before, "log error {before} -> {after}");
+        // The background is untouched.
+        assert_eq!(img.at(5, 5, 0), want.at(5, 5, 0));
+    }
+
+    #[test]
+    fn a_matching_insert_stays_nearly_unchanged() {
+        let (mut img, mask) = scene(160, 120, |t| [0.6 * t, 0.5 * t, 0.4 * t]);
+        let orig = img.clone();
+        let tone = estimate(&img, &mask, None, None).unwrap();
+        assert!(
+            tone.exposure.abs() < 0.1 && tone.white_balance.iter().all(|v| v.abs() < 0.05),
+            "{tone:?}"
+        );
+        apply(&mut img, &mask, &tone);
+        for (a, b) in img.data.iter().zip(&orig.data) {
+            assert!((a - b).abs() <= 0.1 * b.abs() + 1e-4);
+        }
+    }
+
+    #[test]
+    fn tone_round_trips_and_interpolates() {
+        let t = Tone {
+            exposure: 1.0,
+            white_balance: [0.1, 0.0, -0.1],
+            contrast: 2.0,
+            saturation: 0.5,
+            pivot: -2.0,
+        };
+        assert_eq!(Tone::from_slice(&t.to_vec()), Some(t));
+        assert_eq!(Tone::from_slice(&[1.0; 3]), None);
+        let half = Tone::IDENTITY.toward(&t, 0.5);
+        assert!((half.exposure - 0.5).abs() < 1e-6);
+        assert!((half.contrast - 2f32.sqrt()).abs() < 1e-5);
+        assert!((half.saturation - 0.5f32.sqrt()).abs() < 1e-5);
+        assert!(Tone::IDENTITY.is_identity() && !t.is_identity());
+    }
+
+    #[test]
+    fn empty_mask_means_no_estimate() {
+        let img = Image::filled(32, 32, 4, 0.5);
+        assert!(estimate(&img, &[0.0; 32 * 32], None, None).is_none());
+    }
+}
