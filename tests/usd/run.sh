@@ -9,7 +9,8 @@
 # creates .venv-bpy (bpy==5.0.1, numpy) for the fixture render when missing
 # (bpy and usd-core both ship `pxr`: never in one venv); builds libharmonizer
 # (release) when missing. Fixtures are rendered once into build/usd_fixtures/.
-# Environment: HARMONIZER_LIB (library to use), HZ_USD_VENV, HZ_BPY_VENV,
+# Environment: HARMONIZER_LIB (library to use), HARMONIZER_ORT_LIB (ONNX
+# Runtime; default: the project's .venv, else installed into .venv-usd), HZ_USD_VENV, HZ_BPY_VENV,
 # HZ_USD_CACHE (fixture cache), PYTHON311.
 set -euo pipefail
 cd "$(dirname "$0")/../.."
@@ -43,5 +44,17 @@ if [[ ! -f "$LIB" ]]; then
     cargo build --release -p harmonizer-ffi
 fi
 export HARMONIZER_LIB=$LIB
+
+# ONNX Runtime for the neural-backend test: the project's .venv, else .venv-usd.
+if [[ -z "${HARMONIZER_ORT_LIB:-}" ]]; then
+    ort=$(ls "$REPO"/.venv/lib/python3*/site-packages/onnxruntime/capi/libonnxruntime.so.* \
+        "$VENV"/lib/python3*/site-packages/onnxruntime/capi/libonnxruntime.so.* 2>/dev/null | sort | tail -n 1 || true)
+    if [[ -z "$ort" ]]; then
+        echo "installing onnxruntime into $VENV (neural-backend test)"
+        "$VENV/bin/python" -m pip install --quiet "onnxruntime==1.31.*"
+        ort=$(ls "$VENV"/lib/python3*/site-packages/onnxruntime/capi/libonnxruntime.so.* | sort | tail -n 1)
+    fi
+    export HARMONIZER_ORT_LIB=$ort
+fi
 
 exec nice -n 10 "$VENV/bin/python" -m pytest tests/usd -q -p no:cacheprovider "$@"

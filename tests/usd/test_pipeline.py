@@ -399,3 +399,46 @@ def test_missing_camera(shot: Path) -> None:
         "usd-harmonize: error: render product /Render/Products/beauty: "
         "camera /World/NoCam does not exist on the stage"
     ) in r.stderr
+
+
+MODELS = fixtures.REPO / "core/tests/fixtures/models"
+
+
+def test_neural_backend_with_a_model(shot: Path, tmp_path: Path) -> None:
+    """The neural backend through real ONNX Runtime with the committed 3x3 box
+    model: it runs on every frame, the model is recorded, the output differs."""
+    r = run_cli(
+        str(shot),
+        "--backend",
+        "neural",
+        "--model",
+        str(MODELS / "box3.onnx"),
+        "--product",
+        "beauty",
+        "--out-dir",
+        str(tmp_path / "nn"),
+    )
+    assert r.returncode == 0, r.stderr
+    assert "backend neural" in r.stdout
+    for f in fixtures.FRAMES:
+        a = read_exr(shot.parent / f"render/beauty.{f}.exr", "src")
+        b = read_exr(tmp_path / f"nn/beauty.{f}.exr", "out")
+        assert b.attributes()["harmonizer:model"] == "box3"
+        assert b.attributes()["harmonizer:backend"] == "neural"
+        rgb_a, rgb_b = a.stack(["R", "G", "B"]), b.stack(["R", "G", "B"])
+        assert np.isfinite(rgb_b).all()
+        assert np.abs(rgb_a - rgb_b).mean() > 1e-4
+
+
+def test_missing_onnx_runtime_is_named(shot: Path, tmp_path: Path) -> None:
+    r = run_cli(
+        str(shot),
+        "--backend",
+        "neural",
+        "--model",
+        str(MODELS / "box3.onnx"),
+        "--ort-library",
+        str(tmp_path / "libonnxruntime.so.0"),
+    )
+    assert r.returncode == 1
+    assert "libonnxruntime.so.0" in r.stderr and "Traceback" not in r.stderr

@@ -127,6 +127,11 @@ def add_cmdline_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--model", metavar="FILE", help="ONNX model (default: the embedded one)"
     )
+    parser.add_argument(
+        "--ort-library",
+        metavar="FILE",
+        help="libonnxruntime.so (default: $HARMONIZER_ORT_LIB, else the library's search)",
+    )
 
 
 def _options(args: argparse.Namespace) -> Options:
@@ -155,6 +160,7 @@ def _options(args: argparse.Namespace) -> Options:
         ocio_config=args.ocio,
         threads=args.threads,
         model=args.model,
+        ort_library=args.ort_library,
     )
 
 

@@ -50,6 +50,8 @@ class Options:
     threads: int = 0
     #: Model file (None = the library's embedded default).
     model: str | None = None
+    #: ONNX Runtime library (None = ``$HARMONIZER_ORT_LIB`` and the library's search).
+    ort_library: str | None = None
     #: Pass the per-frame camera matrices even when motion vectors exist.
     always_cameras: bool = True
 
@@ -75,7 +77,11 @@ def make_device(options: Options) -> Any:
     """A library device for ``options`` (threads, model)."""
     hz = binding.load()
     try:
-        return hz.Device(threads=options.threads, model=options.model)
+        return hz.Device(
+            threads=options.threads,
+            model=options.model,
+            ort_library=options.ort_library,
+        )
     except hz.HarmonizerError as e:
         raise UsdHarmonizerError(f"cannot create the harmonizer device: {e}") from e
 
