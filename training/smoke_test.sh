@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Smoke test of the data generator and the trainer on a tiny configuration:
-# renders one tiny scene (one sample of each of the five streams) with Blender,
+# renders one tiny scene (one sample of each stream) with Blender,
 # checks the samples and their conventions, trains 2 steps, exports to ONNX
 # and checks the export against PyTorch in ONNX Runtime.
 #
@@ -28,7 +28,7 @@ cd "$repo"
 echo "== assets"
 "$bpy_py" -m training.synth.assets --no-attribution
 
-echo "== render 1 tiny scene (5 streams)"
+echo "== render 1 tiny scene (6 streams)"
 start=$(date +%s)
 nice -n 10 "$bpy_py" -m training.synth.render_scene --scene-id 0 --out "$work/data/train/scene_000000" \
   --width 64 --height 48 --frames 3 --samples 4 --threads 2 > "$work/render.log" 2>&1 || {
@@ -42,10 +42,12 @@ echo "== check samples"
 "$train_py" - "$work/data/train/scene_000000" <<'PY'
 import sys
 import numpy as np
-from training.synth.dataset import STREAMS, load_sample
+from training.synth.dataset import STREAMS, load_sample, scene_streams
 
 d = sys.argv[1]
 fail = []
+if scene_streams(d) != list(STREAMS):
+    fail.append(f"streams {scene_streams(d)} != {list(STREAMS)}")
 for st in STREAMS:
     s = load_sample(d, st)
     T, H, W, C = s["input"].shape

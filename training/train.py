@@ -32,7 +32,7 @@ import torch
 import torch.nn.functional as F
 
 from training.model import Enhancer, ModelConfig, assemble_input, decode, encode, frame_scale, reproject_hop
-from training.synth.dataset import STREAMS, list_scenes, load_sample
+from training.synth.dataset import list_scenes, load_sample, scene_streams
 
 TRAINING_DIR = Path(__file__).resolve().parent
 
@@ -48,6 +48,7 @@ class SampleCache:
         self.scenes = scenes
         self.size = size
         self.cache: dict = {}
+        self.streams = {str(p): scene_streams(p) for p in scenes}
 
     def get(self, scene: Path, stream: str) -> dict:
         key = (str(scene), stream)
@@ -69,7 +70,8 @@ def make_batch(cache: SampleCache, rng: np.random.Generator, cfg: dict) -> dict:
     temporal = rng.random() >= cfg["p_no_history"]
     for _ in range(B):
         scene = cache.scenes[int(rng.integers(len(cache.scenes)))]
-        stream = STREAMS[int(rng.integers(len(STREAMS)))]
+        names = cache.streams[str(scene)]
+        stream = names[int(rng.integers(len(names)))]
         s = cache.get(scene, stream)
         T, H, W = s["input"].shape[:3]
         unroll = min(L, T) if temporal else 1

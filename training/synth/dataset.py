@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-STREAMS = ("s1_recon", "s2_tone", "s3_relight", "s4_shadow", "s5_noise")
+STREAMS = ("s1_recon", "s2_tone", "s3_relight", "s4_shadow", "s5_noise", "s6_insert")
 SCENE_KEYS = ("target", "depth", "motion", "normal", "mask_insert", "mask_shadow", "world_to_camera", "world_to_ndc")
 
 
@@ -30,6 +30,12 @@ def list_scenes(data_dir: Path, split: str) -> list[Path]:
     if not d.is_dir():
         return []
     return sorted(p for p in d.iterdir() if p.is_dir() and p.name.startswith("scene_") and (p / "meta.json").exists())
+
+
+def scene_streams(scene_dir: Path) -> list[str]:
+    """The streams a scene has (scenes rendered by older generators may lack some)."""
+    meta = json.loads((Path(scene_dir) / "meta.json").read_text())
+    return [s for s in STREAMS if s in meta.get("streams", {})]
 
 
 def load_sample(scene_dir: Path, stream: str) -> dict:

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from training.synth.dataset import STREAMS, load_sample
+from training.synth.dataset import load_sample, scene_streams
 
 
 def to_srgb8(rgb: np.ndarray) -> np.ndarray:
@@ -42,7 +42,7 @@ def write_png(path: Path, img: np.ndarray) -> None:
 
 def sheet(scene_dir: Path, frames: list[int] | None = None) -> np.ndarray:
     rows = []
-    for stream in STREAMS:
+    for stream in scene_streams(scene_dir):
         s = load_sample(scene_dir, stream)
         T = s["input"].shape[0]
         fr = frames or [0, T // 2, T - 1]

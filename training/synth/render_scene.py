@@ -36,7 +36,6 @@ except ImportError:  # pragma: no cover - run with the bpy venv
 from training.synth import degrade
 from training.synth.exr import read_blender_exr
 
-STREAMS = ("s1_recon", "s2_tone", "s3_relight", "s4_shadow", "s5_noise")
 FORMAT_VERSION = 1
 
 
@@ -549,6 +548,16 @@ def render_scene(scene_id: int, out_dir: Path, cfg: dict, catalog: dict) -> dict
         {"input": np.concatenate([rgb(noisy), ones], -1), "mask_insert": np.zeros_like(mask)},
         {"samples": noisy_samples, "denoised": noisy_denoised, "seed": "per frame"},
     )
+    # 6: an inserted object as hosts really composite it: mismatched (relit or
+    # tone-shifted) and without its contact shadow.
+    mix_rng = np.random.default_rng([cfg["seed"], scene_id, 6])
+    if mix_rng.random() < 0.5:
+        fg, p6 = rgb(relit), {"insert": "relit", "light": relight}
+    else:
+        tone6 = degrade.random_tone(mix_rng)
+        fg, p6 = degrade.apply_tone(gt, tone6), {"insert": "tone", "tone": tone6}
+    s6 = degrade.composite(ni, fg, mask)
+    streams["s6_insert"] = ({"input": np.concatenate([s6, ones], -1)}, p6)
     meta["streams"] = {}
     for name, (arrays, params) in streams.items():
         arrays = dict(arrays)
