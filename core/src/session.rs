@@ -180,7 +180,10 @@ impl Session {
 
     fn drop_state(&mut self, why: ResetReason) {
         let had = !self.state.history.is_empty() || self.state.last.is_some();
-        self.state = State { pending_reset: had.then_some(why), ..State::default() };
+        self.state = State {
+            pending_reset: had.then_some(why),
+            ..State::default()
+        };
     }
 
     /// History frames held.
@@ -209,11 +212,16 @@ impl Session {
         let t0 = std::time::Instant::now();
         let mut progress = Progress::new(progress);
         let mut stages = Stages::default();
-        let mut report = FrameReport { frame_index: input.frame_index, ..FrameReport::default() };
+        let mut report = FrameReport {
+            frame_index: input.frame_index,
+            ..FrameReport::default()
+        };
         progress.report(0.0)?;
 
         let pool = self.device.pool();
-        let frame = stages.time("prepare", || PreparedFrame::from_input_on(input, self.params.depth_kind, pool))?;
+        let frame = stages.time("prepare", || {
+            PreparedFrame::from_input_on(input, self.params.depth_kind, pool)
+        })?;
         if frame.sanitized > 0 {
             report.sanitized = frame.sanitized;
             report.warnings.push(format!(
@@ -278,7 +286,12 @@ impl Session {
         }
         let empty = History::default();
         let history = if reset.is_some() { &empty } else { &st.history };
-        let mut view = HistoryView::new(history, &frame, self.params.context_frames, self.device.pool());
+        let mut view = HistoryView::new(
+            history,
+            &frame,
+            self.params.context_frames,
+            self.device.pool(),
+        );
         if reset.is_none() && self.params.scene_cut_detection && !view.is_empty() {
             let cut = stages.time("scene_cut", || {
                 crate::temporal::is_scene_cut(&view, &frame, self.params.scene_cut_threshold)
@@ -291,7 +304,11 @@ impl Session {
         report.reset = reset;
         report.history_used = view.len();
 
-        let mut carry = if reset.is_some() { Carry::default() } else { st.carry.clone() };
+        let mut carry = if reset.is_some() {
+            Carry::default()
+        } else {
+            st.carry.clone()
+        };
         let backend_input = BackendInput {
             frame: &frame,
             history: &view,
@@ -299,17 +316,25 @@ impl Session {
             pool: self.device.pool(),
         };
         progress.set_span(0.05, 0.95);
-        let mut out = self.backend.process(&backend_input, &mut carry, &mut progress, &mut stages)?;
+        let mut out =
+            self.backend
+                .process(&backend_input, &mut carry, &mut progress, &mut stages)?;
         progress.set_span(0.0, 1.0);
         if self.params.strength < 1.0 {
-            stages.time("strength", || apply_strength(&mut out, &frame, self.params.strength));
+            stages.time("strength", || {
+                apply_strength(&mut out, &frame, self.params.strength)
+            });
         }
         progress.report(1.0)?;
         drop(view);
 
         // Commit: only now does the temporal state change.
         let capacity = self.params.context_frames;
-        let mut history = if reset.is_some() { History::default() } else { std::mem::take(&mut self.state.history) };
+        let mut history = if reset.is_some() {
+            History::default()
+        } else {
+            std::mem::take(&mut self.state.history)
+        };
         if capacity > 0 {
             history.push(
                 HistoryFrame {
@@ -358,7 +383,12 @@ fn count_huge_motion(m: &Image, pool: &rayon::ThreadPool) -> usize {
     pool.install(|| {
         mx.par_chunks(m.width.max(1))
             .zip(my.par_chunks(m.width.max(1)))
-            .map(|(rx, ry)| rx.iter().zip(ry).filter(|(x, y)| x.abs() > w || y.abs() > h).count())
+            .map(|(rx, ry)| {
+                rx.iter()
+                    .zip(ry)
+                    .filter(|(x, y)| x.abs() > w || y.abs() > h)
+                    .count()
+            })
             .sum()
     })
 }
@@ -409,7 +439,10 @@ fn apply_strength(out: &mut Image, frame: &PreparedFrame, s: f32) {
     }
     let a = &mut out.data[3 * n..];
     match &frame.coverage {
-        Some(cov) => a.iter_mut().zip(cov).for_each(|(o, i)| *o = i + s * (*o - i)),
+        Some(cov) => a
+            .iter_mut()
+            .zip(cov)
+            .for_each(|(o, i)| *o = i + s * (*o - i)),
         None => a.iter_mut().for_each(|o| *o = 1.0 + s * (*o - 1.0)),
     }
 }

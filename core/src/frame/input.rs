@@ -182,7 +182,9 @@ impl PreparedFrame {
         check("insert_mask", &input.insert_mask, 1)?;
         let s = input.motion_vector_scale;
         if !s[0].is_finite() || !s[1].is_finite() {
-            return Err(Error::invalid(format!("motion_vector_scale: {s:?} is not finite")));
+            return Err(Error::invalid(format!(
+                "motion_vector_scale: {s:?} is not finite"
+            )));
         }
         if depth_kind == DepthKind::Euclidean && input.depth.is_some() && input.camera.is_none() {
             return Err(Error::invalid(
@@ -194,14 +196,20 @@ impl PreparedFrame {
         let mut color = Image::zeros(w, h, 3);
         let mut sanitized = 0usize;
         for c in 0..3 {
-            sanitized += read_plane(pool, &input.color, c, &mut color.data[c * n..(c + 1) * n], |v| {
-                if v.is_finite() && *v >= 0.0 {
-                    false
-                } else {
-                    *v = 0.0;
-                    true
-                }
-            });
+            sanitized += read_plane(
+                pool,
+                &input.color,
+                c,
+                &mut color.data[c * n..(c + 1) * n],
+                |v| {
+                    if v.is_finite() && *v >= 0.0 {
+                        false
+                    } else {
+                        *v = 0.0;
+                        true
+                    }
+                },
+            );
         }
         let mut sanitized_aovs = 0usize;
         // NaN becomes `bad` (counted), everything else is clamped to [lo, hi].
@@ -209,15 +217,16 @@ impl PreparedFrame {
             v.as_ref().map(|v| {
                 let mut img = Image::zeros(w, h, ch);
                 for c in 0..ch {
-                    sanitized_aovs += read_plane(pool, v, c, &mut img.data[c * n..(c + 1) * n], |x| {
-                        if x.is_nan() {
-                            *x = bad;
-                            true
-                        } else {
-                            *x = x.clamp(lo, hi);
-                            false
-                        }
-                    });
+                    sanitized_aovs +=
+                        read_plane(pool, v, c, &mut img.data[c * n..(c + 1) * n], |x| {
+                            if x.is_nan() {
+                                *x = bad;
+                                true
+                            } else {
+                                *x = x.clamp(lo, hi);
+                                false
+                            }
+                        });
                 }
                 img
             })
@@ -248,13 +257,18 @@ impl PreparedFrame {
                 let convert = |(y, row): (usize, &mut [f32])| {
                     for (x, v) in row.iter_mut().enumerate() {
                         if *v < f32::MAX {
-                            let f = un.euclidean_to_planar(glam::DVec2::new(x as f64 + 0.5, y as f64 + 0.5));
+                            let f = un.euclidean_to_planar(glam::DVec2::new(
+                                x as f64 + 0.5,
+                                y as f64 + 0.5,
+                            ));
                             *v = (*v as f64 * f) as f32;
                         }
                     }
                 };
                 match pool {
-                    Some(pool) => pool.install(|| d.par_chunks_mut(w).enumerate().for_each(convert)),
+                    Some(pool) => {
+                        pool.install(|| d.par_chunks_mut(w).enumerate().for_each(convert))
+                    }
                     None => d.chunks_mut(w).enumerate().for_each(convert),
                 }
             }

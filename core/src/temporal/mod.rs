@@ -54,7 +54,9 @@ pub struct HistoryView<'a> {
 
 impl std::fmt::Debug for HistoryView<'_> {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("HistoryView").field("count", &self.count).finish_non_exhaustive()
+        f.debug_struct("HistoryView")
+            .field("count", &self.count)
+            .finish_non_exhaustive()
     }
 }
 
@@ -80,13 +82,22 @@ impl<'a> HistoryView<'a> {
             count,
             pool: Some(pool),
             cache: (0..count).map(|_| OnceLock::new()).collect(),
-            chains: (0..count.saturating_sub(1)).map(|_| OnceLock::new()).collect(),
+            chains: (0..count.saturating_sub(1))
+                .map(|_| OnceLock::new())
+                .collect(),
         }
     }
 
     /// An empty view (cold start).
     pub fn empty(history: &'a History, current: &'a PreparedFrame) -> Self {
-        HistoryView { history, current, count: 0, pool: None, cache: Vec::new(), chains: Vec::new() }
+        HistoryView {
+            history,
+            current,
+            count: 0,
+            pool: None,
+            cache: Vec::new(),
+            chains: Vec::new(),
+        }
     }
 
     /// Usable history frames.
@@ -109,7 +120,11 @@ impl<'a> HistoryView<'a> {
     /// # Panics
     /// When `k >= self.len()`.
     pub fn frame(&self, k: usize) -> &'a HistoryFrame {
-        assert!(k < self.count, "history frame {k} requested, {} usable", self.count);
+        assert!(
+            k < self.count,
+            "history frame {k} requested, {} usable",
+            self.count
+        );
         self.history.get(k).expect("history index in range")
     }
 
@@ -119,16 +134,28 @@ impl<'a> HistoryView<'a> {
     }
 
     /// How history frame `k` is aligned: motion vectors when the current frame
-    /// and history frames `0..k` all have them; else depth + cameras when the
-    /// current frame has depth and a camera and frame `k` a camera; else the
-    /// identity when the cameras are equal or unknown; else unavailable.
+    /// and history frames `0..k` all have them and the frame numbers (where
+    /// known) are consecutive, since motion vectors only reach one frame back;
+    /// else depth + cameras when the current frame has depth and a camera and
+    /// frame `k` a camera; else the identity when the cameras are equal or
+    /// unknown; else unavailable.
     ///
     /// # Panics
     /// When `k >= self.len()`.
     pub fn mode(&self, k: usize) -> ReprojectionMode {
         let hk = self.frame(k);
         let cur = self.current;
-        if cur.motion.is_some() && (0..k).all(|h| self.frame(h).motion.is_some()) {
+        let consecutive = |newer: Option<i64>, older: Option<i64>| match (newer, older) {
+            (Some(a), Some(b)) => a == b.wrapping_add(1),
+            _ => true,
+        };
+        let chain_ok = cur.motion.is_some()
+            && consecutive(cur.frame_index, self.frame(0).frame_index)
+            && (0..k).all(|h| {
+                let f = self.frame(h);
+                f.motion.is_some() && consecutive(f.frame_index, self.frame(h + 1).frame_index)
+            });
+        if chain_ok {
             return ReprojectionMode::MotionVectors;
         }
         match (cur.camera, hk.camera) {
@@ -144,15 +171,24 @@ impl<'a> HistoryView<'a> {
     /// # Panics
     /// When `k >= self.len()`.
     pub fn reproject(&self, k: usize) -> &ReprojectedFrame {
-        assert!(k < self.count, "history frame {k} requested, {} usable", self.count);
+        assert!(
+            k < self.count,
+            "history frame {k} requested, {} usable",
+            self.count
+        );
         self.cache[k].get_or_init(|| {
             let frame = self.frame(k);
             match self.mode(k) {
-                ReprojectionMode::MotionVectors => reproject::hop_color(self.source(k), frame, self.pool),
-                ReprojectionMode::DepthCamera => reproject::reproject_camera(self.current, frame, self.pool),
-                ReprojectionMode::Identity => {
-                    ReprojectedFrame { color: frame.color.clone(), valid: vec![1.0; frame.color.len()] }
+                ReprojectionMode::MotionVectors => {
+                    reproject::hop_color(self.source(k), frame, self.pool)
                 }
+                ReprojectionMode::DepthCamera => {
+                    reproject::reproject_camera(self.current, frame, self.pool)
+                }
+                ReprojectionMode::Identity => ReprojectedFrame {
+                    color: frame.color.clone(),
+                    valid: vec![1.0; frame.color.len()],
+                },
                 ReprojectionMode::Unavailable => ReprojectedFrame {
                     color: Image::zeros(frame.color.width, frame.color.height, 4),
                     valid: vec![0.0; frame.color.len()],
@@ -164,14 +200,22 @@ impl<'a> HistoryView<'a> {
     /// Where the motion-vector chain into history frame `k` starts its last hop.
     fn source(&self, k: usize) -> Source<'_> {
         if k == 0 {
-            let motion = self.current.motion.as_ref().expect("motion mode needs motion vectors");
-            return Source::Current { motion, depth: self.current.depth.as_deref() };
+            let motion = self
+                .current
+                .motion
+                .as_ref()
+                .expect("motion mode needs motion vectors");
+            return Source::Current {
+                motion,
+                depth: self.current.depth.as_deref(),
+            };
         }
         Source::Chain(self.chain(k))
     }
 
     /// Positions of the current pixels in history frame `k >= 1`.
     fn chain(&self, k: usize) -> &Chain {
-        self.chains[k - 1].get_or_init(|| reproject::hop_chain(self.source(k - 1), self.frame(k - 1), self.pool))
+        self.chains[k - 1]
+            .get_or_init(|| reproject::hop_chain(self.source(k - 1), self.frame(k - 1), self.pool))
     }
 }

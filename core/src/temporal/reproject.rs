@@ -56,7 +56,11 @@ struct Taps {
 }
 
 impl Taps {
-    const NONE: Taps = Taps { idx: [0; 4], w: [0.0; 4], sum: 0.0 };
+    const NONE: Taps = Taps {
+        idx: [0; 4],
+        w: [0.0; 4],
+        sum: 0.0,
+    };
 
     #[inline]
     fn sample(&self, plane: &[f32]) -> f32 {
@@ -136,7 +140,10 @@ pub(crate) fn par_rows<const N: usize, F>(
         .collect();
     match pool {
         Some(pool) => pool.install(|| {
-            rows.into_par_iter().enumerate().with_min_len(4).for_each(|(i, r)| f(i, r));
+            rows.into_par_iter()
+                .enumerate()
+                .with_min_len(4)
+                .for_each(|(i, r)| f(i, r));
         }),
         None => rows.into_iter().enumerate().for_each(|(i, r)| f(i, r)),
     }
@@ -209,23 +216,28 @@ pub(crate) fn hop_color(
     let [c0, c1, c2, c3] = planes4(&mut color);
     let hist = &frame.color;
     let hdepth = frame.depth.as_deref();
-    par_rows(pool, [c0, c1, c2, c3, &mut valid], w, |i, [r0, r1, r2, r3, rv]| {
-        for j in 0..w {
-            let (x, y, d, v) = src.at(i, j, w);
-            if v <= 0.0 {
-                continue;
+    par_rows(
+        pool,
+        [c0, c1, c2, c3, &mut valid],
+        w,
+        |i, [r0, r1, r2, r3, rv]| {
+            for j in 0..w {
+                let (x, y, d, v) = src.at(i, j, w);
+                if v <= 0.0 {
+                    continue;
+                }
+                let t = taps(x, y, w, h, if d.is_nan() { None } else { hdepth }, d);
+                if t.sum <= 0.0 {
+                    continue;
+                }
+                r0[j] = t.sample(hist.plane(0));
+                r1[j] = t.sample(hist.plane(1));
+                r2[j] = t.sample(hist.plane(2));
+                r3[j] = t.sample(hist.plane(3));
+                rv[j] = v * t.sum;
             }
-            let t = taps(x, y, w, h, if d.is_nan() { None } else { hdepth }, d);
-            if t.sum <= 0.0 {
-                continue;
-            }
-            r0[j] = t.sample(hist.plane(0));
-            r1[j] = t.sample(hist.plane(1));
-            r2[j] = t.sample(hist.plane(2));
-            r3[j] = t.sample(hist.plane(3));
-            rv[j] = v * t.sum;
-        }
-    });
+        },
+    );
     ReprojectedFrame { color, valid }
 }
 
@@ -238,9 +250,16 @@ pub(crate) fn hop_chain(
 ) -> Chain {
     let (w, h) = (frame.color.width, frame.color.height);
     let n = w * h;
-    let mut chain =
-        Chain { x: vec![0.0; n], y: vec![0.0; n], depth: vec![f32::NAN; n], valid: vec![0.0; n] };
-    let motion = frame.motion.as_ref().expect("hop_chain needs the frame's motion vectors");
+    let mut chain = Chain {
+        x: vec![0.0; n],
+        y: vec![0.0; n],
+        depth: vec![f32::NAN; n],
+        valid: vec![0.0; n],
+    };
+    let motion = frame
+        .motion
+        .as_ref()
+        .expect("hop_chain needs the frame's motion vectors");
     let (mx, my) = (motion.plane(0), motion.plane(1));
     let hdepth = frame.depth.as_deref();
     let Chain { x, y, depth, valid } = &mut chain;
@@ -274,9 +293,16 @@ pub(crate) fn reproject_camera(
     pool: Option<&rayon::ThreadPool>,
 ) -> ReprojectedFrame {
     let (w, h) = (current.width(), current.height());
-    let depth = current.depth.as_deref().expect("camera reprojection needs depth");
-    let cc = current.camera.expect("camera reprojection needs the current camera");
-    let hc = frame.camera.expect("camera reprojection needs the history camera");
+    let depth = current
+        .depth
+        .as_deref()
+        .expect("camera reprojection needs depth");
+    let cc = current
+        .camera
+        .expect("camera reprojection needs the current camera");
+    let hc = frame
+        .camera
+        .expect("camera reprojection needs the history camera");
     let cam_to_world = cc.world_to_camera.as_dmat4().inverse();
     let cam_to_ndc: DMat4 = cc.world_to_ndc.as_dmat4() * cam_to_world;
     // Current camera space to the history frame's clip space and planar depth.
@@ -291,45 +317,55 @@ pub(crate) fn reproject_camera(
     let [c0, c1, c2, c3] = planes4(&mut color);
     let hist = &frame.color;
     let hdepth = frame.depth.as_deref();
-    par_rows(pool, [c0, c1, c2, c3, &mut valid], w, |i, [o0, o1, o2, o3, ov]| {
-        let v = (i as f64 + 0.5) / hf;
-        let b: DVec4 = r1 - v * r3;
-        for j in 0..w {
-            let u = (j as f64 + 0.5) / wf;
-            let a: DVec4 = r0 - u * r3;
-            let det = a.x * b.y - a.y * b.x;
-            if det.abs() < 1e-18 {
-                continue;
+    par_rows(
+        pool,
+        [c0, c1, c2, c3, &mut valid],
+        w,
+        |i, [o0, o1, o2, o3, ov]| {
+            let v = (i as f64 + 0.5) / hf;
+            let b: DVec4 = r1 - v * r3;
+            for j in 0..w {
+                let u = (j as f64 + 0.5) / wf;
+                let a: DVec4 = r0 - u * r3;
+                let det = a.x * b.y - a.y * b.x;
+                if det.abs() < 1e-18 {
+                    continue;
+                }
+                let d = depth[i * w + j];
+                // (a . X = 0, b . X = 0) with X = (x, y, d, 1), or the direction (x, y, 1, 0).
+                let far = d >= FAR_DEPTH;
+                let (ac, bc, dz, dw) = if far {
+                    (-a.z, -b.z, 1.0, 0.0)
+                } else {
+                    let d = d as f64;
+                    (-(a.z * d + a.w), -(b.z * d + b.w), d, 1.0)
+                };
+                let p = DVec4::new(
+                    (ac * b.y - a.y * bc) / det,
+                    (a.x * bc - ac * b.x) / det,
+                    dz,
+                    dw,
+                );
+                let zk = zrow.dot(p);
+                let clip = to_clip * p;
+                if zk <= 1e-9 || clip.w <= 1e-12 {
+                    continue;
+                }
+                let px = (clip.x / clip.w * wf) as f32;
+                let py = (clip.y / clip.w * hf) as f32;
+                let expected = if far { f32::MAX } else { zk as f32 };
+                let t = taps(px, py, w, h, hdepth, expected);
+                if t.sum <= 0.0 {
+                    continue;
+                }
+                o0[j] = t.sample(hist.plane(0));
+                o1[j] = t.sample(hist.plane(1));
+                o2[j] = t.sample(hist.plane(2));
+                o3[j] = t.sample(hist.plane(3));
+                ov[j] = t.sum;
             }
-            let d = depth[i * w + j];
-            // (a . X = 0, b . X = 0) with X = (x, y, d, 1), or the direction (x, y, 1, 0).
-            let far = d >= FAR_DEPTH;
-            let (ac, bc, dz, dw) = if far {
-                (-a.z, -b.z, 1.0, 0.0)
-            } else {
-                let d = d as f64;
-                (-(a.z * d + a.w), -(b.z * d + b.w), d, 1.0)
-            };
-            let p = DVec4::new((ac * b.y - a.y * bc) / det, (a.x * bc - ac * b.x) / det, dz, dw);
-            let zk = zrow.dot(p);
-            let clip = to_clip * p;
-            if zk <= 1e-9 || clip.w <= 1e-12 {
-                continue;
-            }
-            let px = (clip.x / clip.w * wf) as f32;
-            let py = (clip.y / clip.w * hf) as f32;
-            let expected = if far { f32::MAX } else { zk as f32 };
-            let t = taps(px, py, w, h, hdepth, expected);
-            if t.sum <= 0.0 {
-                continue;
-            }
-            o0[j] = t.sample(hist.plane(0));
-            o1[j] = t.sample(hist.plane(1));
-            o2[j] = t.sample(hist.plane(2));
-            o3[j] = t.sample(hist.plane(3));
-            ov[j] = t.sum;
-        }
-    });
+        },
+    );
     ReprojectedFrame { color, valid }
 }
 

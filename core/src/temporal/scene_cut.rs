@@ -69,7 +69,10 @@ pub fn scene_cut_score(view: &HistoryView<'_>, current: &PreparedFrame) -> Optio
         return None;
     }
     let rep = view.reproject(0);
-    let geometric = matches!(view.mode(0), ReprojectionMode::MotionVectors | ReprojectionMode::DepthCamera);
+    let geometric = matches!(
+        view.mode(0),
+        ReprojectionMode::MotionVectors | ReprojectionMode::DepthCamera
+    );
     let (w, h) = (current.width(), current.height());
     let s = (w.max(h).div_ceil(64)).max(8);
     let (gw, gh) = (w.div_ceil(s), h.div_ceil(s));
@@ -104,7 +107,11 @@ pub fn scene_cut_score(view: &HistoryView<'_>, current: &PreparedFrame) -> Optio
         Some(pool) => pool.install(|| (0..gh).into_par_iter().map(row_cells).collect()),
         None => (0..gh).map(row_cells).collect(),
     };
-    let cells: Vec<Cell> = rows.into_iter().flatten().filter(|c| c.weight >= 0.5 * c.area).collect();
+    let cells: Vec<Cell> = rows
+        .into_iter()
+        .flatten()
+        .filter(|c| c.weight >= 0.5 * c.area)
+        .collect();
     let total = gw * gh;
     if cells.is_empty() {
         return Some(SceneCutScore {
@@ -129,7 +136,10 @@ pub fn scene_cut_score(view: &HistoryView<'_>, current: &PreparedFrame) -> Optio
             let lh = lum(&c.hist) / c.weight + eps;
             let cc = chroma(&c.cur, c.weight);
             let ch = chroma(&c.hist, c.weight);
-            ((lc / lh).ln(), (cc[0] - ch[0]).abs() + (cc[1] - ch[1]).abs())
+            (
+                (lc / lh).ln(),
+                (cc[0] - ch[0]).abs() + (cc[1] - ch[1]).abs(),
+            )
         })
         .collect();
     let mut logs: Vec<f32> = diffs.iter().map(|d| d.0).collect();

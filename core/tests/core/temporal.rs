@@ -42,9 +42,11 @@ pub struct Rendered {
 impl Rendered {
     /// The host view of this frame; `motion` and `depth` optional.
     pub fn input(&self, motion: bool, depth: bool, camera: bool, index: i64) -> FrameInput<'_> {
-        let mut f = FrameInput::new(ImageView::from_f32("color", &self.color, self.w, self.h, 3).unwrap());
+        let mut f =
+            FrameInput::new(ImageView::from_f32("color", &self.color, self.w, self.h, 3).unwrap());
         if motion {
-            f.motion = Some(ImageView::from_f32("motion", &self.motion, self.w, self.h, 2).unwrap());
+            f.motion =
+                Some(ImageView::from_f32("motion", &self.motion, self.w, self.h, 2).unwrap());
         }
         if depth {
             f.depth = Some(ImageView::from_f32("depth", &self.depth, self.w, self.h, 1).unwrap());
@@ -82,7 +84,11 @@ fn texture(look: Look, occluder: bool, p: DVec3) -> [f32; 3] {
             0.4 + 0.25 * (1.3 * x - 2.2 * y).sin(),
             0.3 + 0.2 * (2.7 * x + 0.9 * y).cos(),
         ],
-        (Look::Main, true) => [0.9, 0.2 + 0.1 * (5.0 * x).sin(), 0.1 + 0.08 * (5.0 * y).cos()],
+        (Look::Main, true) => [
+            0.9,
+            0.2 + 0.1 * (5.0 * x).sin(),
+            0.1 + 0.08 * (5.0 * y).cos(),
+        ],
         (Look::Other, false) => [
             0.1 + 0.08 * (3.3 * y).sin(),
             0.6 + 0.35 * (4.1 * x + 1.0).cos() * (2.9 * y).sin(),
@@ -147,7 +153,9 @@ pub fn render(look: Look, cam: Camera, prev: Camera, w: usize, h: usize) -> Rend
                     prev_eye + dir.normalize() * 1e7
                 }
             };
-            let (pp, _) = prev.project(seen, w, h).expect("in front of the previous camera");
+            let (pp, _) = prev
+                .project(seen, w, h)
+                .expect("in front of the previous camera");
             r.motion[2 * p] = (pp.x - px.x) as f32;
             r.motion[2 * p + 1] = (pp.y - px.y) as f32;
         }
@@ -158,21 +166,39 @@ pub fn render(look: Look, cam: Camera, prev: Camera, w: usize, h: usize) -> Rend
 /// Frames `t0..=t1` of the main scene at `w` x `h`.
 pub fn sequence(t0: i64, t1: i64, w: usize, h: usize) -> Vec<Rendered> {
     (t0..=t1)
-        .map(|t| render(Look::Main, camera_at(t as f32, w, h), camera_at(t as f32 - 1.0, w, h), w, h))
+        .map(|t| {
+            render(
+                Look::Main,
+                camera_at(t as f32, w, h),
+                camera_at(t as f32 - 1.0, w, h),
+                w,
+                h,
+            )
+        })
         .collect()
 }
 
 /// The frame as a history entry (alpha 1), all AOVs kept.
 pub fn history_frame(r: &Rendered, index: i64) -> HistoryFrame {
-    let f = PreparedFrame::from_input(&r.input(true, true, true, index), DepthKind::Planar).unwrap();
+    let f =
+        PreparedFrame::from_input(&r.input(true, true, true, index), DepthKind::Planar).unwrap();
     let n = r.w * r.h;
     let mut color = Image::filled(r.w, r.h, 4, 1.0);
     color.data[..3 * n].copy_from_slice(&f.color.data);
-    HistoryFrame { color, depth: f.depth, motion: f.motion, camera: f.camera, frame_index: Some(index) }
+    HistoryFrame {
+        color,
+        depth: f.depth,
+        motion: f.motion,
+        camera: f.camera,
+        frame_index: Some(index),
+    }
 }
 
 fn pool(threads: usize) -> rayon::ThreadPool {
-    rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap()
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .unwrap()
 }
 
 /// True when the surface seen by `cur` pixel `p` is visible in frame `past`
@@ -187,7 +213,11 @@ fn truly_visible(cur: &Rendered, p: usize, past: &Rendered) -> Option<(bool, boo
     let (pp, d) = past.camera.project(target, w, h)?;
     let margin = 2.0;
     if pp.x < margin || pp.y < margin || pp.x > w as f64 - margin || pp.y > h as f64 - margin {
-        return if pp.x < -margin || pp.y < -margin || pp.x > w as f64 + margin || pp.y > h as f64 + margin {
+        return if pp.x < -margin
+            || pp.y < -margin
+            || pp.x > w as f64 + margin
+            || pp.y > h as f64 + margin
+        {
             Some((false, false))
         } else {
             None
@@ -234,7 +264,15 @@ struct Check {
 fn check(view: &HistoryView<'_>, k: usize, cur: &Rendered, past: &Rendered) -> Check {
     let rep = view.reproject(k);
     let n = cur.w * cur.h;
-    let mut c = Check { visible: 0, visible_valid: 0, hidden: 0, hidden_valid: 0, occluded: 0, mean_err: 0.0, max_err: 0.0 };
+    let mut c = Check {
+        visible: 0,
+        visible_valid: 0,
+        hidden: 0,
+        hidden_valid: 0,
+        occluded: 0,
+        mean_err: 0.0,
+        max_err: 0.0,
+    };
     for p in 0..n {
         match truly_visible(cur, p, past) {
             Some((true, _)) => {
@@ -273,9 +311,19 @@ fn assert_check(c: &Check, what: &str) {
         "{what}: visible {} (valid {}), hidden {} (valid {}, disoccluded in frame {}), mean err {:.5}, max err {:.4}",
         c.visible, c.visible_valid, c.hidden, c.hidden_valid, c.occluded, c.mean_err, c.max_err
     );
-    assert!(c.occluded >= 50, "{what}: the scene must disocclude something ({} px)", c.occluded);
-    assert!(c.visible_valid as f64 >= 0.97 * c.visible as f64, "{what}: visible pixels marked invalid");
-    assert!(c.hidden_valid as f64 <= 0.02 * c.hidden as f64, "{what}: disoccluded pixels marked valid");
+    assert!(
+        c.occluded >= 50,
+        "{what}: the scene must disocclude something ({} px)",
+        c.occluded
+    );
+    assert!(
+        c.visible_valid as f64 >= 0.97 * c.visible as f64,
+        "{what}: visible pixels marked invalid"
+    );
+    assert!(
+        c.hidden_valid as f64 <= 0.02 * c.hidden as f64,
+        "{what}: disoccluded pixels marked valid"
+    );
     assert!(c.mean_err <= 0.001, "{what}: mean error {}", c.mean_err);
     assert!(c.max_err <= 0.005, "{what}: max error {}", c.max_err);
 }
@@ -293,7 +341,8 @@ fn motion_vectors_reproject_previous_frame_within_tolerance() {
     let seq = sequence(0, 4, W, H);
     let cur = &seq[4];
     let hist = history_of(&seq[..4], 0);
-    let frame = PreparedFrame::from_input(&cur.input(true, true, true, 4), DepthKind::Planar).unwrap();
+    let frame =
+        PreparedFrame::from_input(&cur.input(true, true, true, 4), DepthKind::Planar).unwrap();
     let pool = pool(2);
     let view = HistoryView::new(&hist, &frame, 4, &pool);
     assert_eq!(view.len(), 4);
@@ -310,7 +359,8 @@ fn depth_and_cameras_reproject_a_static_scene_within_tolerance() {
     let seq = sequence(0, 4, W, H);
     let cur = &seq[4];
     let hist = history_of(&seq[..4], 0);
-    let frame = PreparedFrame::from_input(&cur.input(false, true, true, 4), DepthKind::Planar).unwrap();
+    let frame =
+        PreparedFrame::from_input(&cur.input(false, true, true, 4), DepthKind::Planar).unwrap();
     let pool = pool(2);
     let view = HistoryView::new(&hist, &frame, 4, &pool);
     for k in [0, 3] {
@@ -327,11 +377,15 @@ fn disocclusions_need_the_depth_test() {
     let mut hf = history_frame(&seq[0], 0);
     hf.depth = None;
     hist.push(hf, 4);
-    let frame = PreparedFrame::from_input(&seq[1].input(true, true, true, 1), DepthKind::Planar).unwrap();
+    let frame =
+        PreparedFrame::from_input(&seq[1].input(true, true, true, 1), DepthKind::Planar).unwrap();
     let pool = pool(1);
     let view = HistoryView::new(&hist, &frame, 4, &pool);
     let c = check(&view, 0, &seq[1], &seq[0]);
-    assert!(c.occluded >= 50 && c.hidden_valid >= c.occluded / 2, "without depth the occluded pixels look valid");
+    assert!(
+        c.occluded >= 50 && c.hidden_valid >= c.occluded / 2,
+        "without depth the occluded pixels look valid"
+    );
 }
 
 #[test]
@@ -341,7 +395,8 @@ fn without_depth_validity_is_the_frame_test_only() {
     let mut hf = history_frame(&seq[0], 0);
     hf.depth = None;
     hist.push(hf, 4);
-    let frame = PreparedFrame::from_input(&seq[1].input(true, false, true, 1), DepthKind::Planar).unwrap();
+    let frame =
+        PreparedFrame::from_input(&seq[1].input(true, false, true, 1), DepthKind::Planar).unwrap();
     let pool = pool(1);
     let view = HistoryView::new(&hist, &frame, 4, &pool);
     let rep = view.reproject(0);
@@ -355,7 +410,11 @@ fn without_depth_validity_is_the_frame_test_only() {
         let outside = x < -0.5 || y < -0.5 || x > W as f32 + 0.5 || y > H as f32 + 0.5;
         if inside {
             in_frame += 1;
-            assert!(rep.valid[p] > 0.999, "pixel {p} maps inside ({x}, {y}): valid {}", rep.valid[p]);
+            assert!(
+                rep.valid[p] > 0.999,
+                "pixel {p} maps inside ({x}, {y}): valid {}",
+                rep.valid[p]
+            );
         }
         if outside {
             assert_eq!(rep.valid[p], 0.0, "pixel {p} maps outside ({x}, {y})");
@@ -370,14 +429,25 @@ fn reprojection_is_bit_identical_for_1_and_2_threads() {
     let seq = sequence(0, 3, W, H);
     let hist = history_of(&seq[..3], 0);
     for motion in [true, false] {
-        let frame = PreparedFrame::from_input(&seq[3].input(motion, true, true, 3), DepthKind::Planar).unwrap();
+        let frame =
+            PreparedFrame::from_input(&seq[3].input(motion, true, true, 3), DepthKind::Planar)
+                .unwrap();
         let (p1, p2) = (pool(1), pool(2));
         let v1 = HistoryView::new(&hist, &frame, 3, &p1);
         let v2 = HistoryView::new(&hist, &frame, 3, &p2);
         for k in [2, 0, 1] {
             let (a, b) = (v1.reproject(k), v2.reproject(k));
-            assert!(a.color.data.iter().zip(&b.color.data).all(|(x, y)| x.to_bits() == y.to_bits()));
-            assert!(a.valid.iter().zip(&b.valid).all(|(x, y)| x.to_bits() == y.to_bits()));
+            assert!(a
+                .color
+                .data
+                .iter()
+                .zip(&b.color.data)
+                .all(|(x, y)| x.to_bits() == y.to_bits()));
+            assert!(a
+                .valid
+                .iter()
+                .zip(&b.valid)
+                .all(|(x, y)| x.to_bits() == y.to_bits()));
         }
     }
 }
@@ -387,7 +457,8 @@ fn history_of_another_size_is_not_used() {
     let small = sequence(0, 0, 96, 54);
     let big = sequence(1, 1, W, H);
     let hist = history_of(&small, 0);
-    let frame = PreparedFrame::from_input(&big[0].input(true, true, true, 1), DepthKind::Planar).unwrap();
+    let frame =
+        PreparedFrame::from_input(&big[0].input(true, true, true, 1), DepthKind::Planar).unwrap();
     let pool = pool(1);
     assert!(HistoryView::new(&hist, &frame, 4, &pool).is_empty());
 }
@@ -401,7 +472,8 @@ fn identity_and_unavailable_modes() {
     let mut hf = history_frame(&seq[0], 0);
     (hf.depth, hf.motion, hf.camera) = (None, None, None);
     hist.push(hf.clone(), 4);
-    let frame = PreparedFrame::from_input(&seq[1].input(false, false, false, 1), DepthKind::Planar).unwrap();
+    let frame = PreparedFrame::from_input(&seq[1].input(false, false, false, 1), DepthKind::Planar)
+        .unwrap();
     let view = HistoryView::new(&hist, &frame, 4, &pool);
     assert_eq!(view.mode(0), ReprojectionMode::Identity);
     assert_eq!(view.reproject(0).color, hf.color);
@@ -409,13 +481,20 @@ fn identity_and_unavailable_modes() {
     let mut hist = History::default();
     hf.camera = Some(seq[0].camera);
     hist.push(hf, 4);
-    let frame = PreparedFrame::from_input(&seq[1].input(false, false, true, 1), DepthKind::Planar).unwrap();
+    let frame =
+        PreparedFrame::from_input(&seq[1].input(false, false, true, 1), DepthKind::Planar).unwrap();
     let view = HistoryView::new(&hist, &frame, 4, &pool);
     assert_eq!(view.mode(0), ReprojectionMode::Unavailable);
     assert!(view.reproject(0).valid.iter().all(|&v| v == 0.0));
 }
 
-fn cut_check(cur: Rendered, prev: &Rendered, motion: bool, depth: bool, camera: bool) -> (bool, String) {
+fn cut_check(
+    cur: Rendered,
+    prev: &Rendered,
+    motion: bool,
+    depth: bool,
+    camera: bool,
+) -> (bool, String) {
     let mut hist = History::default();
     let mut hf = history_frame(prev, 0);
     if !depth {
@@ -428,7 +507,8 @@ fn cut_check(cur: Rendered, prev: &Rendered, motion: bool, depth: bool, camera: 
         hf.camera = None;
     }
     hist.push(hf, 4);
-    let frame = PreparedFrame::from_input(&cur.input(motion, depth, camera, 1), DepthKind::Planar).unwrap();
+    let frame =
+        PreparedFrame::from_input(&cur.input(motion, depth, camera, 1), DepthKind::Planar).unwrap();
     let pool = pool(2);
     let view = HistoryView::new(&hist, &frame, 4, &pool);
     let score = scene_cut_score(&view, &frame).unwrap();
@@ -440,7 +520,12 @@ fn scene_cut_fires_on_a_cut_and_not_on_exposure_flicker_or_camera_motion() {
     let prev = sequence(0, 0, W, H).remove(0);
     let cam = camera_at(1.0, W, H);
     let prev_cam = camera_at(0.0, W, H);
-    for (motion, depth, camera) in [(true, true, true), (false, true, true), (true, false, false), (false, false, false)] {
+    for (motion, depth, camera) in [
+        (true, true, true),
+        (false, true, true),
+        (true, false, false),
+        (false, false, false),
+    ] {
         let what = format!("motion {motion}, depth {depth}, camera {camera}");
         for gain in [1.0, 1.25, 0.75] {
             let cur = render(Look::Main, cam, prev_cam, W, H).exposed(gain);
@@ -448,7 +533,12 @@ fn scene_cut_fires_on_a_cut_and_not_on_exposure_flicker_or_camera_motion() {
             assert!(!cut, "{what}: gain {gain} is not a cut: {score}");
         }
         // Unrelated content from another viewpoint.
-        let other_cam = Camera::look_at(Vec3::new(3.0, 1.0, -6.0), Vec3::new(1.0, 0.5, 0.0), 0.9, W as f32 / H as f32);
+        let other_cam = Camera::look_at(
+            Vec3::new(3.0, 1.0, -6.0),
+            Vec3::new(1.0, 0.5, 0.0),
+            0.9,
+            W as f32 / H as f32,
+        );
         let cur = render(Look::Other, other_cam, other_cam, W, H);
         let (cut, score) = cut_check(cur, &prev, motion, depth, camera);
         assert!(cut, "{what}: a cut must fire: {score}");
@@ -457,4 +547,19 @@ fn scene_cut_fires_on_a_cut_and_not_on_exposure_flicker_or_camera_motion() {
         let (cut, score) = cut_check(cur, &prev, motion, depth, camera);
         assert!(cut, "{what}: a cut (same geometry) must fire: {score}");
     }
+}
+
+#[test]
+fn motion_vectors_are_not_chained_across_a_frame_gap() {
+    let seq = sequence(0, 3, W, H);
+    let mut hist = History::default();
+    hist.push(history_frame(&seq[0], 0), 4);
+    // Frame 3's motion vectors reach frame 2, not frame 0: depth + cameras align instead.
+    let frame =
+        PreparedFrame::from_input(&seq[3].input(true, true, true, 3), DepthKind::Planar).unwrap();
+    let pool = pool(2);
+    let view = HistoryView::new(&hist, &frame, 4, &pool);
+    assert_eq!(view.mode(0), ReprojectionMode::DepthCamera);
+    let c = check(&view, 0, &seq[3], &seq[0]);
+    assert_check(&c, "gap, depth+camera");
 }
