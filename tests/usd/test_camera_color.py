@@ -146,3 +146,23 @@ def test_color_space_precedence_and_errors() -> None:
         ColorSpaceError, match=r"OCIO config /nonexistent.ocio: cannot load"
     ):
         load_config("/nonexistent.ocio")
+
+
+def test_data_window_matrix(rendered: Path) -> None:
+    """With a data window inside (or around) the display window, pixel
+    positions shift by the window offset: the library sees data-window pixels."""
+    import OpenImageIO as oiio
+    from usd_harmonizer.process import data_window_matrix
+
+    stage = Usd.Stage.Open(str(rendered / "shot.usda"))
+    _, w2n = exr_matrices(stage.GetPrimAtPath("/World/Cam"), 1003, (128, 72))
+    pts = np.array([[0.5, 1.0, 0.0], [-1.2, 2.0, 0.3], [1.0, 0.0, 0.5]])
+    full = project(w2n, pts, 128, 72)
+    for x, y, w, h in ((10, 6, 100, 50), (-8, -4, 144, 80)):
+        spec = oiio.ImageSpec(w, h, 3, "float")
+        spec.x, spec.y = x, y
+        spec.full_x, spec.full_y, spec.full_width, spec.full_height = 0, 0, 128, 72
+        got = project(w2n @ data_window_matrix(spec), pts, w, h)
+        assert np.allclose(got, full - [x, y], atol=1e-9)
+    spec = oiio.ImageSpec(128, 72, 3, "float")
+    assert np.array_equal(data_window_matrix(spec), np.eye(4))

@@ -97,6 +97,17 @@ def _header_matrix(attrs: dict[str, Any], name: str) -> np.ndarray | None:
     return m if np.isfinite(m).all() else None
 
 
+def data_window_matrix(spec: Any) -> np.ndarray:
+    """Maps NDC of the display window to NDC of the data window (the pixels
+    the library sees), for overscan or cropped renders; identity otherwise."""
+    x, y, w, h = spec.x, spec.y, spec.width, spec.height
+    fx, fy, fw, fh = spec.full_x, spec.full_y, spec.full_width, spec.full_height
+    m = np.eye(4)
+    m[0, 0], m[1, 1] = fw / w, fh / h
+    m[3, 0], m[3, 1] = (fx - x) / w, (fy - y) / h
+    return m
+
+
 class ProductRunner:
     """Runs one product's frames through one session, keeping temporal state."""
 
@@ -178,11 +189,13 @@ class ProductRunner:
                 f"{where}: the output would overwrite the input; choose another --out-dir"
             )
         img = read_exr(src, where)
-        w, h = img.size
+        spec = img.parts[0].spec
+        fw, fh = spec.full_width, spec.full_height
         rw, rh = prod.resolution
-        if abs(w / h - rw / rh) > 2.0 / min(w, h):
+        if abs(fw / fh - rw / rh) > 2.0 / min(fw, fh):
             raise ProductFileError(
-                f"{where}: the file is {w}x{h} but the product's resolution is {rw}x{rh} (a different aspect ratio)"
+                f"{where}: the file is {fw}x{fh} but the product's resolution is "
+                f"{rw}x{rh} (a different aspect ratio)"
             )
         names = img.channel_names
         b: dict[str, Binding] = {
@@ -244,6 +257,7 @@ class ProductRunner:
                     _header_matrix(attrs, "worldToNDC"),
                 )
             if w2c is not None and w2n is not None:
+                w2n = w2n @ data_window_matrix(spec)
                 kw["world_to_camera"] = w2c.astype(np.float32)
                 kw["world_to_ndc"] = w2n.astype(np.float32)
                 inputs.append("camera")
