@@ -1,0 +1,187 @@
+"""Evaluates backends on held-out scenes through the real runtime (`harmonize run`).
+
+    .venv-train/bin/python -m training.evaluate --data training/data --split test \
+        --model training/runs/main/model.onnx --out training/runs/main/eval
+
+For every (scene, stream) of the split it writes the input as `generic`-layout
+EXR frames, runs ``harmonize run`` with each method and compares the outputs
+with the clean render:
+
+- ``input``: the degraded input itself;
+- ``classical``: ``--backend classical``;
+- ``neural``: ``--backend neural --model M`` (K from the manifest);
+- ``neural_k0``: the same network with ``--context 0`` (no temporal context).
+
+Metrics (on sRGB-encoded color clipped to [0,1]): PSNR and SSIM over the
+frame, PSNR in holes (input coverage < 0.5), on the insert (mask > 0.5) and
+in its shadow region (shadow mask > 0.5); temporal warping error: mean
+absolute difference between a frame and the previous output aligned with the
+renderer's motion vectors, over pixels whose depth agrees within 10%.
+Writes ``metrics.json``, ``metrics.md`` and ``per_frame.json`` to ``--out``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import OpenEXR
+
+from training.synth.dataset import list_scenes, load_sample, scene_streams
+from training.synth.degrade import warp_bilinear
+from training.synth.to_exr import sample_to_exr
+
+REPO = Path(__file__).resolve().parent.parent
+DEFAULT_ORT = REPO / ".venv/lib/python3.11/site-packages/onnxruntime/capi/libonnxruntime.so.1.31.1"
+
+
+def srgb(x: np.ndarray) -> np.ndarray:
+    c = np.clip(x, 0.0, 1.0)
+    return np.where(c <= 0.0031308, 12.92 * c, 1.055 * np.power(c, 1 / 2.4) - 0.055)
+
+
+def psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None) -> float | None:
+    d = (a - b) ** 2
+    if mask is not None:
+        if mask.sum() < 16:
+            return None
+        mse = float(d[mask].mean())
+    else:
+        mse = float(d.mean())
+    return float(10 * np.log10(1.0 / max(mse, 1e-12)))
+
+
+def ssim(a: np.ndarray, b: np.ndarray, win: int = 7) -> float:
+    from training.synth.degrade import box_blur
+
+    r = win // 2
+    c1, c2 = 0.01**2, 0.03**2
+    mu_a, mu_b = box_blur(a, r), box_blur(b, r)
+    saa = box_blur(a * a, r) - mu_a**2
+    sbb = box_blur(b * b, r) - mu_b**2
+    sab = box_blur(a * b, r) - mu_a * mu_b
+    s = ((2 * mu_a * mu_b + c1) * (2 * sab + c2)) / ((mu_a**2 + mu_b**2 + c1) * (saa + sbb + c2))
+    return float(s.mean())
+
+
+def read_rgb(path: Path) -> np.ndarray:
+    with OpenEXR.File(str(path), separate_channels=True) as f:
+        ch = f.channels()
+        return np.stack([np.asarray(ch[c].pixels, np.float32) for c in "RGB"], -1)
+
+
+def run_harmonize(exe: Path, in_dir: Path, out_dir: Path, extra: list[str], threads: int) -> None:
+    out_dir.mkdir(parents=True, exist_ok=True)
+    env = dict(os.environ)
+    env.setdefault("ORT_DYLIB_PATH", str(DEFAULT_ORT))
+    cmd = [str(exe), "run", str(in_dir / "input.####.exr"), "-o", str(out_dir / "out.####.exr"),
+           "--layout", "generic", "--threads", str(threads), *extra]
+    p = subprocess.run(cmd, capture_output=True, text=True, env=env)
+    if p.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd)} failed (exit {p.returncode}): {p.stderr[-2000:]}")
+
+
+def sequence_metrics(outs: list[np.ndarray], s: dict) -> dict:
+    T = len(outs)
+    tgt = srgb(s["target"])
+    cov = s["input"][..., 3]
+    per = []
+    for t in range(T):
+        o = srgb(outs[t])
+        m = {
+            "psnr": psnr(o, tgt[t]),
+            "ssim": ssim(o, tgt[t]),
+            "psnr_hole": psnr(o, tgt[t], cov[t] < 0.5),
+            "psnr_insert": psnr(o, tgt[t], s["mask_insert"][t] > 0.5),
+            "psnr_shadow": psnr(o, tgt[t], s["mask_shadow"][t] > 0.5),
+        }
+        if t > 0:
+            aligned, valid = warp_bilinear(srgb(outs[t - 1]), s["motion"][t])
+            dprev, _ = warp_bilinear(s["depth"][t - 1][..., None], s["motion"][t])
+            d = s["depth"][t]
+            ok = (valid > 0) & (np.abs(dprev[..., 0] - d) <= 0.1 * np.minimum(dprev[..., 0], d))
+            m["warp_err"] = float(np.abs(o - aligned)[ok].mean()) if ok.any() else None
+        per.append(m)
+    return per
+
+
+def mean_of(rows: list[dict], key: str) -> float | None:
+    v = [r[key] for r in rows if r.get(key) is not None]
+    return float(np.mean(v)) if v else None
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", type=Path, default=REPO / "training" / "data")
+    ap.add_argument("--split", default="test")
+    ap.add_argument("--model", type=Path, help="ONNX model (manifest beside it); omit to skip the neural rows")
+    ap.add_argument("--harmonize", type=Path, default=Path(os.environ.get("HZ_HARMONIZE", REPO / "target/release/harmonize")))
+    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--max-scenes", type=int, default=0)
+    args = ap.parse_args(argv)
+    if not args.harmonize.exists():
+        print(f"evaluate: {args.harmonize} not found (cargo build --release -p harmonize-cli, or --harmonize)", file=sys.stderr)
+        return 2
+    scenes = list_scenes(args.data, args.split)
+    if args.max_scenes:
+        scenes = scenes[: args.max_scenes]
+    if not scenes:
+        print(f"evaluate: no scene in {args.data / args.split}", file=sys.stderr)
+        return 2
+    methods: dict[str, list[str] | None] = {"input": None, "classical": ["--backend", "classical"]}
+    if args.model:
+        methods["neural"] = ["--backend", "neural", "--model", str(args.model)]
+        methods["neural_k0"] = ["--backend", "neural", "--model", str(args.model), "--context", "0"]
+    rows: list[dict] = []
+    work = Path(tempfile.mkdtemp(prefix="hz-eval."))
+    try:
+        for scene in scenes:
+            for stream in scene_streams(scene):
+                s = load_sample(scene, stream)
+                in_dir = work / "in"
+                shutil.rmtree(in_dir, ignore_errors=True)
+                T = sample_to_exr(scene, stream, in_dir)
+                for name, extra in methods.items():
+                    if extra is None:
+                        outs = list(s["input"][..., :3])
+                    else:
+                        out_dir = work / name
+                        shutil.rmtree(out_dir, ignore_errors=True)
+                        run_harmonize(args.harmonize, in_dir, out_dir, extra, args.threads)
+                        outs = [read_rgb(out_dir / f"out.{t + 1:04d}.exr") for t in range(T)]
+                    for t, m in enumerate(sequence_metrics(outs, s)):
+                        rows.append({"scene": scene.name, "stream": stream, "method": name, "frame": t, **m})
+                print(f"evaluate: {scene.name} {stream} done", flush=True)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    keys = ["psnr", "ssim", "psnr_hole", "psnr_insert", "psnr_shadow", "warp_err"]
+    summary: dict = {}
+    for method in methods:
+        mrows = [r for r in rows if r["method"] == method]
+        summary[method] = {"all": {k: mean_of(mrows, k) for k in keys}}
+        for stream in sorted({r["stream"] for r in mrows}):
+            sr = [r for r in mrows if r["stream"] == stream]
+            summary[method][stream] = {k: mean_of(sr, k) for k in keys}
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "per_frame.json").write_text(json.dumps(rows, indent=0))
+    (args.out / "metrics.json").write_text(json.dumps({"scenes": [p.name for p in scenes], "summary": summary}, indent=1))
+    lines = ["| method | subset | " + " | ".join(keys) + " |", "|---" * (len(keys) + 2) + "|"]
+    for method, subs in summary.items():
+        for sub, vals in subs.items():
+            cells = [("-" if vals[k] is None else f"{vals[k]:.4f}" if k in ("ssim", "warp_err") else f"{vals[k]:.2f}") for k in keys]
+            lines.append(f"| {method} | {sub} | " + " | ".join(cells) + " |")
+    (args.out / "metrics.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
