@@ -220,11 +220,13 @@ def main(argv: list[str] | None = None) -> int:
                 ", ".join(f"{r.frame} ({r.reset})" for r in res if r.reset) or "none"
             )
             ms = sum(r.total_ms for r in res) / len(res)
+            wall = sum(r.timings.get("total", 0.0) for r in res) / len(res)
             warns = sum(len(r.warnings) for r in res)
             print(
                 f"{path}: {len(res)} frames {res[0].frame}-{res[-1].frame}, backend {res[-1].backend}, "
                 f"color space {res[-1].color_space}, inputs {'+'.join(res[-1].inputs)}, "
-                f"{ms:.1f} ms/frame, resets: {resets}, warnings: {warns}\n  -> {res[0].output.parent}"
+                f"{ms:.1f} ms/frame in the library, {wall:.1f} ms/frame in all, "
+                f"resets: {resets}, warnings: {warns}\n  -> {res[0].output.parent}"
             )
         if summary.layer:
             print(f"layer: {summary.layer}")

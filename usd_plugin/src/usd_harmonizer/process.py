@@ -14,6 +14,7 @@ product, frame and file, and leaves the session's temporal state unchanged.
 from __future__ import annotations
 
 import os
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -71,6 +72,8 @@ class FrameResult:
     color_space: str
     inputs: list[str]
     warnings: list[str]
+    #: Host-side times in ms: read, color (both conversions), library, write.
+    timings: dict[str, float] = field(default_factory=dict)
 
 
 def make_device(options: Options) -> Any:
@@ -188,7 +191,9 @@ class ProductRunner:
             raise FrameError(
                 f"{where}: the output would overwrite the input; choose another --out-dir"
             )
+        t0 = time.perf_counter()
         img = read_exr(src, where)
+        t_read = time.perf_counter()
         spec = img.parts[0].spec
         fw, fh = spec.full_width, spec.full_height
         rw, rh = prod.resolution
@@ -216,7 +221,9 @@ class ProductRunner:
         )
         attrs = img.attributes()
         conv = self._converter(attrs, str(src))
+        t_c0 = time.perf_counter()
         lin = conv.to_linear(rgb, coverage)
+        t_c1 = time.perf_counter()
         kw: dict[str, Any] = {}
         inputs = ["color"]
         if "depth" in b:
@@ -263,12 +270,14 @@ class ProductRunner:
                 inputs.append("camera")
         hz = self.hz
         try:
+            t_l0 = time.perf_counter()
             out = self.session.process(
                 lin, frame_index=frame, reset=reset, progress=progress, **kw
             )
         except hz.HarmonizerError as e:
             raise FrameError(f"{where}: {e}") from e
         report = self.session.last_report or {}
+        t_l1 = time.perf_counter()
         back = conv.from_linear(
             out[..., :3], out[..., 3] if coverage is not None else None
         )
@@ -288,7 +297,9 @@ class ProductRunner:
             "harmonizer:product": prod.path,
             "harmonizer:source": os.fspath(src),
         }
+        t_w0 = time.perf_counter()
         write_exr_atomic(img, out_path, extra, where)
+        t_w1 = time.perf_counter()
         self.last_frame = frame
         result = FrameResult(
             product=prod.path,
@@ -302,6 +313,13 @@ class ProductRunner:
             color_space=conv.source_name,
             inputs=inputs,
             warnings=list(report.get("warnings") or []),
+            timings={
+                "read": (t_read - t0) * 1e3,
+                "color": (t_c1 - t_c0 + t_w0 - t_l1) * 1e3,
+                "library": (t_l1 - t_l0) * 1e3,
+                "write": (t_w1 - t_w0) * 1e3,
+                "total": (t_w1 - t0) * 1e3,
+            },
         )
         self.results.append(result)
         return result
