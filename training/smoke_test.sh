@@ -9,12 +9,16 @@
 #
 # Needs: bpy 5.0.1 + OpenEXR (training/requirements-synth.txt), torch + onnx +
 # onnxruntime (training/requirements.txt), the sweethome3d-furniture package
-# (installed by the script with apt-get when run as root).
+# (installed by the script with apt-get when run as root). training/setup_env.sh
+# creates the two venvs when they are missing.
 set -euo pipefail
 here="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
 repo="$(dirname "$here")"
 bpy_py="${HZ_BPY_PYTHON:-$repo/.venv-bpy/bin/python}"
 train_py="${HZ_TRAIN_PYTHON:-$repo/.venv-train/bin/python}"
+if [ -z "${HZ_BPY_PYTHON:-}${HZ_TRAIN_PYTHON:-}" ]; then
+  "$here/setup_env.sh"
+fi
 for p in "$bpy_py" "$train_py"; do
   if [ ! -x "$p" ]; then
     echo "smoke_test: interpreter $p not found; see training/README.md (Setup)" >&2
@@ -24,6 +28,9 @@ done
 work="$(mktemp -d "${TMPDIR:-/tmp}/hz-smoke.XXXXXX")"
 trap 'rm -rf "$work"' EXIT
 cd "$repo"
+
+echo "== unit tests (numpy, torch, ONNX Runtime)"
+"$train_py" -m pytest -q -p no:cacheprovider -W ignore::DeprecationWarning training/tests
 
 echo "== assets"
 "$bpy_py" -m training.synth.assets --no-attribution
