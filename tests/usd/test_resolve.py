@@ -253,6 +253,11 @@ def test_find_channels(tmp_path: Path) -> None:
     assert find_channels("depth", v["z"], names, "here").channels == ["z"]
     assert find_channels("motion", v["mv"], names, "here").channels == ["mv.x", "mv.y"]
     assert find_channels("coverage", v["a"], names, "here").channels == ["A"]
+    # color3f var whose file also has the alpha beside it.
+    b = find_channels("color", v["Ci"], ["Ci.b", "Ci.a", "Ci.g", "Ci.r"], "here")
+    assert b.channels == ["Ci.r", "Ci.g", "Ci.b"] and b.alpha == "Ci.a"
+    b = find_channels("color", v["Ci"], ["Ci.R", "Ci.G", "Ci.B"], "here")
+    assert b.alpha is None
     with pytest.raises(
         VarError,
         match=r"here: RenderVar /Render/Vars/mv \(motion, dataType float2\): no matching channels.*channels present: \['A', 'B'",

@@ -191,8 +191,10 @@ def find_channels(role: str, var: VarInfo, names: list[str], where: str) -> Bind
                 tried.append(",".join(chans))
                 if all(c in have for c in chans[:need]):
                     alpha = None
-                    if role == "color" and n == 4 and chans[3] in have:
-                        alpha = chans[3]
+                    if role == "color":
+                        # The alpha beside the color, whatever the dataType says.
+                        a = {"R": "A", "r": "a", "X": "W", "x": "w"}[suf[0]]
+                        alpha = f"{base}.{a}" if f"{base}.{a}" in have else None
                     return Binding(role, var, chans[:need], alpha)
     bare = {"color": ("R", "G", "B"), "depth": ("Z",), "coverage": ("A",)}.get(role)
     if bare is not None:
