@@ -442,3 +442,37 @@ def test_missing_onnx_runtime_is_named(shot: Path, tmp_path: Path) -> None:
     )
     assert r.returncode == 1
     assert "libonnxruntime.so.0" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_user_map_and_params(shot: Path, tmp_path: Path) -> None:
+    r = run_cli(
+        str(shot),
+        "--backend",
+        "bypass",
+        "--product",
+        "beauty",
+        "--frames",
+        "1001-1002",
+        "--map",
+        "insert=ignore",
+        "--map",
+        "N=ignore",
+        "--param",
+        "context_frames=2",
+        "--no-layer",
+        "--out-dir",
+        str(tmp_path / "m"),
+    )
+    assert r.returncode == 0, r.stderr
+    assert "inputs color+depth+motion+coverage+camera," in r.stdout
+    assert sorted(p.name for p in (tmp_path / "m").iterdir()) == [
+        "beauty.1001.exr",
+        "beauty.1002.exr",
+    ]
+    assert not shot.with_name("shot.harmonized.usda").exists()
+    r = run_cli(str(shot), "--backend", "bypass", "--param", "bogus=1")
+    assert r.returncode == 1
+    assert 'unknown parameter "bogus"' in r.stderr
+    r = run_cli(str(shot), "--backend", "bypass", "--map", "insert=albedo")
+    assert r.returncode == 1
+    assert "--map insert: unknown role 'albedo'" in r.stderr
