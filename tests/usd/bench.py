@@ -29,7 +29,9 @@ from usd_harmonizer import PostFrameHook
 
 
 def scale_shot(src: Path, dst: Path, k: int) -> None:
-    shutil.copytree(src, dst, ignore=shutil.ignore_patterns("blender", "harmonized"))
+    shutil.copytree(
+        src, dst, ignore=shutil.ignore_patterns("blender", "reference", "harmonized")
+    )
     stage = Usd.Stage.Open(str(dst / "shot.usda"))
     settings = UsdRender.Settings(stage.GetPrimAtPath("/Render/Settings"))
     settings.GetResolutionAttr().Set(Gf.Vec2i(fixtures.W * k, fixtures.H * k))

@@ -28,6 +28,8 @@ def shot(rendered: Path, tmp_path: Path) -> Path:
     shutil.copytree(
         rendered,
         dst,
-        ignore=shutil.ignore_patterns("blender", "harmonized", "*.harmonized.usda"),
+        ignore=shutil.ignore_patterns(
+            "blender", "reference", "harmonized", "*.harmonized.usda"
+        ),
     )
     return dst / "shot.usda"

@@ -18,7 +18,8 @@ products written the way the stage's RenderSettings declare them.
      per-frame cameras); ``productName`` time-sampled per frame, no token;
      ACEScg declared with UsdColorSpaceAPI on the product; half float.
 
-Everything is generated into a cache directory keyed by the hash of these
+A 64-sample render of the same frames (``reference/``) is the converged
+reference for the temporal tests. Everything is generated into a cache directory keyed by the hash of these
 scripts, so a test run renders once.
 """
 
@@ -43,6 +44,9 @@ sys.path.insert(0, str(HERE))
 import author_scene
 
 FRAMES = list(range(author_scene.FIRST_FRAME, author_scene.LAST_FRAME + 1))
+#: Cycles samples of the product renders and of the converged reference.
+SAMPLES = 4
+REFERENCE_SAMPLES = 64
 W, H = author_scene.WIDTH, author_scene.HEIGHT
 
 
@@ -80,6 +84,12 @@ def _read_parts(path: Path) -> dict[str, np.ndarray]:
         i += 1
     inp.close()
     return out
+
+
+def reference_rgb(root: Path, frame: int) -> np.ndarray:
+    """The 64-sample render of ``frame`` (Linear Rec.709, premultiplied)."""
+    parts = _read_parts(root / f"reference/blender.{frame:04d}.exr")
+    return np.stack([parts[f"ViewLayer.Combined.{c}"] for c in "RGB"], axis=-1)
 
 
 def write_exr(
@@ -231,29 +241,30 @@ def build() -> Path:
         shutil.rmtree(root)
     root.mkdir(parents=True)
     author_scene.author_scene(str(root / "scene.usda"))
-    cmd = [
-        str(py),
-        str(HERE / "blender_render.py"),
-        str(root / "scene.usda"),
-        str(root / "blender"),
-        str(W),
-        str(H),
-        "4",
-        str(FRAMES[0]),
-        str(FRAMES[-1]),
-        author_scene.INSERT_PRIM.rsplit("/", 1)[1],
-    ]
-    r = subprocess.run(
-        ["nice", "-n", "10", *cmd],
-        capture_output=True,
-        text=True,
-        timeout=900,
-        check=False,
-    )
-    if r.returncode != 0:
-        raise RuntimeError(
-            f"Blender render failed ({r.returncode}):\n{r.stdout[-3000:]}\n{r.stderr[-3000:]}"
+    for out, samples in (("blender", SAMPLES), ("reference", REFERENCE_SAMPLES)):
+        cmd = [
+            str(py),
+            str(HERE / "blender_render.py"),
+            str(root / "scene.usda"),
+            str(root / out),
+            str(W),
+            str(H),
+            str(samples),
+            str(FRAMES[0]),
+            str(FRAMES[-1]),
+            author_scene.INSERT_PRIM.rsplit("/", 1)[1],
+        ]
+        r = subprocess.run(
+            ["nice", "-n", "10", *cmd],
+            capture_output=True,
+            text=True,
+            timeout=900,
+            check=False,
         )
+        if r.returncode != 0:
+            raise RuntimeError(
+                f"Blender render failed ({r.returncode}):\n{r.stdout[-3000:]}\n{r.stderr[-3000:]}"
+            )
     write_products(root, root / "blender")
     done.write_text("ok\n")
     return root
