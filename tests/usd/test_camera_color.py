@@ -166,3 +166,13 @@ def test_data_window_matrix(rendered: Path) -> None:
         assert np.allclose(got, full - [x, y], atol=1e-9)
     spec = oiio.ImageSpec(128, 72, 3, "float")
     assert np.array_equal(data_window_matrix(spec), np.eye(4))
+
+
+def test_empty_depth_becomes_far() -> None:
+    from usd_harmonizer.process import FAR_DEPTH, empty_depth_to_far
+
+    d = np.array([[1.5, 0.0, -1.0], [np.inf, np.nan, 1e10]], np.float32)
+    out = empty_depth_to_far(d)
+    assert out.dtype == np.float32 and out.flags.c_contiguous
+    assert out.tolist() == [[1.5, FAR_DEPTH, FAR_DEPTH], [FAR_DEPTH, FAR_DEPTH, 1e10]]
+    assert d[0, 1] == 0.0  # the file's pixels are not touched

@@ -100,6 +100,19 @@ def _header_matrix(attrs: dict[str, Any], name: str) -> np.ndarray | None:
     return m if np.isfinite(m).all() else None
 
 
+#: Depth the library expects where nothing was hit.
+FAR_DEPTH = 1e10
+
+
+def empty_depth_to_far(depth: np.ndarray) -> np.ndarray:
+    """A float32 copy with empty pixels as the library expects them: renderers
+    write 0, a negative value, infinity or NaN where nothing was hit; all of
+    them become a very large depth (1e10)."""
+    d = np.array(depth, dtype=np.float32)
+    d[~(np.isfinite(d) & (d > 0))] = FAR_DEPTH
+    return d
+
+
 def data_window_matrix(spec: Any) -> np.ndarray:
     """Maps NDC of the display window to NDC of the data window (the pixels
     the library sees), for overscan or cropped renders; identity otherwise."""
@@ -227,7 +240,7 @@ class ProductRunner:
         kw: dict[str, Any] = {}
         inputs = ["color"]
         if "depth" in b:
-            kw["depth"] = np.ascontiguousarray(img.channel(b["depth"].channels[0]))
+            kw["depth"] = empty_depth_to_far(img.channel(b["depth"].channels[0]))
             inputs.append("depth")
         if "motion" in b:
             kw["motion"] = img.stack(b["motion"].channels)
