@@ -123,6 +123,12 @@ def test_settings_selection(tmp_path: Path) -> None:
     other.CreateProductsRel().SetTargets([Sdf.Path("/Render/Beauty")])
     assert find_settings_prim(stage).GetPath() == "/Render/Settings"
     assert resolve(stage, settings="/Render/Other").path == "/Render/Other"
+    stage.SetMetadata("renderSettingsPrimPath", "/Render/Gone")
+    with pytest.raises(
+        SettingsError,
+        match=r"renderSettingsPrimPath '/Render/Gone' is not a RenderSettings prim",
+    ):
+        resolve(stage)
     stage.SetMetadata("renderSettingsPrimPath", "")
     with pytest.raises(
         SettingsError, match=r"2 RenderSettings prims.*/Render/Settings, /Render/Other"

@@ -220,6 +220,11 @@ def find_settings_prim(stage: Usd.Stage, settings: str | None = None) -> Usd.Pri
     s = UsdRender.Settings.GetStageRenderSettings(stage)
     if s:
         return s.GetPrim()
+    meta = stage.GetMetadata("renderSettingsPrimPath")
+    if meta:
+        raise SettingsError(
+            f"stage {where}: renderSettingsPrimPath {meta!r} is not a RenderSettings prim"
+        )
     found = [p for p in stage.Traverse() if p.IsA(UsdRender.Settings)]
     if len(found) == 1:
         return found[0]
