@@ -5,3 +5,9 @@
 mod session;
 #[path = "core/temporal.rs"]
 mod temporal;
+#[path = "core/io.rs"]
+mod io;
+#[path = "core/classical.rs"]
+mod classical;
+#[path = "core/neural.rs"]
+mod neural;
