@@ -1,0 +1,630 @@
+//! The neural backend on the real ONNX Runtime (from the project's `.venv`)
+//! with the fixture models of `tests/fixtures/models` (made by
+//! `make_fixtures.py`): encoding, channel layout, tiling, memory limit,
+//! cancellation, runtime discovery and manifest errors.
+
+use std::path::PathBuf;
+use std::sync::{Arc, OnceLock};
+
+use harmonizer_core::backend::neural::encoding::ColorCodec;
+use harmonizer_core::backend::neural::{runtime, Neural, NeuralModel};
+use harmonizer_core::backend::{Backend, BackendInput, Carry, Progress, Stages};
+use harmonizer_core::frame::PreparedFrame;
+use harmonizer_core::model::{Encoding, Exposure};
+use harmonizer_core::temporal::{History, HistoryFrame, HistoryView};
+use harmonizer_core::{
+    Device, DeviceOptions, Error, FrameInput, Image, ImageView, ModelSource, ParamValue, Params,
+    Session,
+};
+
+/// The ONNX Runtime library; a missing runtime fails the test (never skips).
+fn ort_lib() -> PathBuf {
+    static LIB: OnceLock<std::result::Result<PathBuf, String>> = OnceLock::new();
+    LIB.get_or_init(|| runtime::locate(None).map_err(|e| e.to_string()))
+        .clone()
+        .unwrap_or_else(|e| {
+            panic!("the neural tests need ONNX Runtime: run scripts/setup-venv.sh in the repository root ({e})")
+        })
+}
+
+fn fixture(name: &str) -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/fixtures/models")
+        .join(format!("{name}.onnx"))
+}
+
+fn fixture_manifest(name: &str) -> serde_json::Value {
+    let text = std::fs::read_to_string(fixture(name).with_extension("json")).unwrap();
+    serde_json::from_str(&text).unwrap()
+}
+
+fn options(model: ModelSource, memory_limit: usize) -> DeviceOptions {
+    DeviceOptions {
+        threads: 2,
+        ort_library: Some(ort_lib()),
+        memory_limit,
+        model,
+    }
+}
+
+fn device_file(name: &str) -> Arc<Device> {
+    Device::new(options(ModelSource::File(fixture(name)), 0)).unwrap()
+}
+
+/// A device running fixture `name` with its manifest changed by `edit`.
+fn device_edited(
+    name: &str,
+    memory_limit: usize,
+    edit: impl FnOnce(&mut serde_json::Value),
+) -> Arc<Device> {
+    let mut m = fixture_manifest(name);
+    edit(&mut m);
+    let onnx = std::fs::read(fixture(name)).unwrap();
+    Device::new(options(
+        ModelSource::Bytes {
+            onnx,
+            manifest: m.to_string(),
+        },
+        memory_limit,
+    ))
+    .unwrap()
+}
+
+fn session(device: Arc<Device>, set: &[(&str, ParamValue)]) -> Session {
+    let mut params = Params::default();
+    params
+        .set("backend", &ParamValue::Str("neural".into()))
+        .unwrap();
+    for (k, v) in set {
+        params.set(k, v).unwrap();
+    }
+    let s = Session::new(device, params).unwrap();
+    assert_eq!(s.backend_name(), "neural");
+    s
+}
+
+/// Deterministic pseudo-random numbers in [0,1).
+struct Rng(u64);
+impl Rng {
+    fn next(&mut self) -> f32 {
+        self.0 = self
+            .0
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        ((self.0 >> 40) as f32) / (1u64 << 24) as f32
+    }
+}
+
+/// Interleaved HDR RGB (log-uniform over 2^-8..2^6 with some exact zeros).
+fn hdr_rgb(w: usize, h: usize, seed: u64) -> Vec<f32> {
+    let mut r = Rng(seed);
+    (0..w * h * 3)
+        .map(|_| {
+            let u = r.next();
+            if u < 0.03 {
+                0.0
+            } else {
+                (2.0f32).powf(-8.0 + 14.0 * r.next())
+            }
+        })
+        .collect()
+}
+
+fn plane_of(img: &Image, c: usize) -> Vec<f32> {
+    img.plane(c).to_vec()
+}
+
+/// Planar channel `c` of interleaved data.
+fn deinterleave(data: &[f32], channels: usize, c: usize) -> Vec<f32> {
+    data.iter().skip(c).step_by(channels).copied().collect()
+}
+
+fn assert_close(got: &[f32], want: &[f32], rel: f32, what: &str) {
+    assert_eq!(got.len(), want.len(), "{what}: length");
+    let mut worst = (0.0f32, 0usize);
+    for (i, (g, w)) in got.iter().zip(want).enumerate() {
+        let err = (g - w).abs() / w.abs().max(1e-3);
+        if !(err <= worst.0) {
+            worst = (err, i);
+        }
+    }
+    assert!(
+        worst.0 <= rel,
+        "{what}: worst relative error {} at {} (got {}, want {}), allowed {rel}",
+        worst.0,
+        worst.1,
+        got[worst.1],
+        want[worst.1]
+    );
+}
+
+#[test]
+fn encoding_round_trip_is_exact() {
+    let (w, h) = (97, 61);
+    let data = hdr_rgb(w, h, 7);
+    let mut img = Image::zeros(w, h, 3);
+    for c in 0..3 {
+        img.plane_mut(c).copy_from_slice(&deinterleave(&data, 3, c));
+    }
+    for enc in [
+        Encoding::Log {
+            key: 0.18,
+            exposure: Exposure::Frame,
+            log_range: 8.0,
+        },
+        Encoding::Log {
+            key: 0.5,
+            exposure: Exposure::None,
+            log_range: 16.0,
+        },
+        Encoding::Linear {
+            key: 0.18,
+            exposure: Exposure::Frame,
+        },
+    ] {
+        let codec = ColorCodec::for_frame(&enc, &img, None);
+        assert!(codec.scale.is_finite() && codec.scale > 0.0);
+        for &x in img
+            .data
+            .iter()
+            .chain([0.0, 1e-6, 1.0, 1000.0, 60000.0].iter())
+        {
+            let y = codec.encode(x);
+            let back = codec.decode(y);
+            assert!(
+                (back - x).abs() <= 1e-5 * x,
+                "{enc:?}: {x} -> {y} -> {back}"
+            );
+        }
+    }
+    // The exposure is a whole-frame statistic: key 0.18 maps the log-average to 0.18.
+    let flat = Image::filled(8, 8, 3, 2.0);
+    let codec = ColorCodec::for_frame(
+        &Encoding::Linear {
+            key: 0.18,
+            exposure: Exposure::Frame,
+        },
+        &flat,
+        None,
+    );
+    assert!(
+        (codec.encode(2.0) - 0.18).abs() < 1e-4,
+        "{}",
+        codec.encode(2.0)
+    );
+}
+
+#[test]
+fn identity_model_returns_its_input_through_tiles() {
+    let (w, h) = (333, 187);
+    let rgb = hdr_rgb(w, h, 1);
+    let device = device_file("identity");
+    let model = device.neural_model().unwrap().unwrap();
+    assert_eq!(
+        (model.name.as_str(), model.version.as_str()),
+        ("identity", "1.0.0")
+    );
+    let mut s = session(device.clone(), &[]);
+    let plan = model.tile_plan(w, h, s.params()).unwrap();
+    assert!(
+        plan.len() >= 12,
+        "expected many 64 px tiles, got {}",
+        plan.len()
+    );
+    let input = FrameInput::new(ImageView::from_f32("color", &rgb, w, h, 3).unwrap());
+    let (out, report) = s.process(&input, None).unwrap();
+    assert_eq!(report.backend, "neural");
+    for c in 0..3 {
+        assert_close(
+            &plane_of(&out, c),
+            &deinterleave(&rgb, 3, c),
+            1e-5,
+            &format!("identity channel {c}"),
+        );
+    }
+    assert!(out.plane(3).iter().all(|&a| a == 1.0));
+
+    // Straight-color model, holes kept: RGB = prediction * coverage, A = coverage.
+    let cov: Vec<f32> = (0..w * h)
+        .map(|i| [0.0, 0.25, 0.5, 1.0, 1.0][i % 5])
+        .collect();
+    let premult: Vec<f32> = rgb
+        .iter()
+        .enumerate()
+        .map(|(i, v)| v * cov[i / 3])
+        .collect();
+    let device = device_edited("identity", 0, |m| m["premultiplied"] = false.into());
+    let mut s = session(device, &[("fill_holes", ParamValue::Bool(false))]);
+    let mut input = FrameInput::new(ImageView::from_f32("color", &premult, w, h, 3).unwrap());
+    input.coverage = Some(ImageView::from_f32("coverage", &cov, w, h, 1).unwrap());
+    let (out, _) = s.process(&input, None).unwrap();
+    for c in 0..3 {
+        assert_close(
+            &plane_of(&out, c),
+            &deinterleave(&premult, 3, c),
+            1e-5,
+            &format!("straight channel {c}"),
+        );
+    }
+    assert_eq!(out.plane(3), &cov[..]);
+}
+
+#[test]
+fn residual_model_adds_to_the_encoded_input() {
+    let (w, h) = (70, 45);
+    let rgb = hdr_rgb(w, h, 2);
+    let mut s = session(device_file("residual_zero"), &[]);
+    let input = FrameInput::new(ImageView::from_f32("color", &rgb, w, h, 3).unwrap());
+    let (out, _) = s.process(&input, None).unwrap();
+    for c in 0..3 {
+        assert_close(
+            &plane_of(&out, c),
+            &deinterleave(&rgb, 3, c),
+            1e-5,
+            &format!("residual channel {c}"),
+        );
+    }
+}
+
+/// Runs the backend directly with a hand-made history (`prev` frames, newest first).
+fn run_backend(
+    model: &Arc<NeuralModel>,
+    device: &Device,
+    frame: &PreparedFrame,
+    prev: &[Image],
+    params: &Params,
+) -> Image {
+    let mut history = History::default();
+    for img in prev.iter().rev() {
+        history.push(
+            HistoryFrame {
+                color: img.clone(),
+                depth: None,
+                motion: None,
+                camera: None,
+                frame_index: None,
+            },
+            8,
+        );
+    }
+    let view = HistoryView::new(&history, frame, params.context_frames, device.pool());
+    let input = BackendInput {
+        frame,
+        history: &view,
+        params,
+        pool: device.pool(),
+    };
+    let backend = Neural {
+        model: model.clone(),
+    };
+    backend
+        .process(
+            &input,
+            &mut Carry::default(),
+            &mut Progress::new(None),
+            &mut Stages::default(),
+        )
+        .unwrap()
+}
+
+#[test]
+fn channel_probe_proves_the_tensor_layout() {
+    let (w, h) = (53, 41);
+    let rgb = hdr_rgb(w, h, 3);
+    let mut r = Rng(9);
+    let insert: Vec<f32> = (0..w * h).map(|_| r.next()).collect();
+    let depth: Vec<f32> = (0..w * h).map(|_| 0.5 + 20.0 * r.next()).collect();
+    let mut input = FrameInput::new(ImageView::from_f32("color", &rgb, w, h, 3).unwrap());
+    input.insert_mask = Some(ImageView::from_f32("insert", &insert, w, h, 1).unwrap());
+    input.depth = Some(ImageView::from_f32("depth", &depth, w, h, 1).unwrap());
+    let frame = PreparedFrame::from_input(&input, Default::default()).unwrap();
+    let hist = |seed: u64| {
+        let mut r = Rng(seed);
+        let mut img = Image::zeros(w, h, 4);
+        img.data.iter_mut().for_each(|v| *v = r.next() * 4.0);
+        img
+    };
+    let (h0, h1) = (hist(11), hist(12));
+
+    // The probe outputs input channels 5, 8, 4: with its manifest hist0.r, valid0, insert.
+    let device = device_file("channel_probe");
+    let model = device.neural_model().unwrap().unwrap();
+    assert_eq!(model.manifest.context_frames, 2);
+    let out = run_backend(
+        &model,
+        &device,
+        &frame,
+        &[h0.clone(), h1.clone()],
+        &Params::default(),
+    );
+    assert_close(&plane_of(&out, 0), h0.plane(0), 1e-6, "output.r = hist0.r");
+    assert!(
+        out.plane(1).iter().all(|&v| v == 1.0),
+        "output.g = valid0 (identity reprojection)"
+    );
+    assert_close(&plane_of(&out, 2), &insert, 1e-6, "output.b = insert");
+
+    // Cold start: no history -> zeros and validity 0.
+    let out = run_backend(&model, &device, &frame, &[], &Params::default());
+    assert!(out.plane(0).iter().chain(out.plane(1)).all(|&v| v == 0.0));
+
+    // The same graph under another manifest reads other channels at those positions:
+    // 5 = hist1.g, 8 = valid1, 4 = disparity; output channels reversed (b, g, r).
+    let device = device_edited("channel_probe", 0, |m| {
+        let ch = m["input"]["channels"].as_array_mut().unwrap();
+        ch.swap(5, 10); // hist0.r <-> hist1.g
+        ch.swap(8, 12); // valid0 <-> valid1
+        ch.swap(4, 14); // insert <-> disparity
+        m["output"]["channels"] = serde_json::json!(["color.b", "color.g", "color.r"]);
+    });
+    let model = device.neural_model().unwrap().unwrap();
+    let out = run_backend(
+        &model,
+        &device,
+        &frame,
+        &[h0.clone(), h1.clone()],
+        &Params::default(),
+    );
+    let disparity: Vec<f32> = depth.iter().map(|d| 1.0 / (1.0 + d)).collect();
+    assert_close(&plane_of(&out, 2), h1.plane(1), 1e-6, "output.b = hist1.g");
+    assert!(out.plane(1).iter().all(|&v| v == 1.0), "output.g = valid1");
+    assert_close(&plane_of(&out, 0), &disparity, 1e-6, "output.r = disparity");
+
+    // Session context 1 < K = 2: the second history frame is zeros with validity 0.
+    let params = Params {
+        context_frames: 1,
+        ..Params::default()
+    };
+    let out = run_backend(&model, &device, &frame, &[h0, h1], &params);
+    assert!(out.plane(2).iter().chain(out.plane(1)).all(|&v| v == 0.0));
+}
+
+/// The box filter in the encoded domain with reflected borders (the reference).
+fn box3_reference(rgb: &[f32], w: usize, h: usize, codec: &ColorCodec) -> Vec<Vec<f32>> {
+    let refl = |i: isize, n: usize| harmonizer_core::backend::neural::tiling::reflect(i, n);
+    (0..3)
+        .map(|c| {
+            let enc: Vec<f32> = deinterleave(rgb, 3, c)
+                .iter()
+                .map(|&v| codec.encode(v))
+                .collect();
+            let mut out = vec![0.0; w * h];
+            for y in 0..h {
+                for x in 0..w {
+                    let mut s = 0.0f32;
+                    for dy in -1..=1isize {
+                        for dx in -1..=1isize {
+                            s += enc[refl(y as isize + dy, h) * w + refl(x as isize + dx, w)];
+                        }
+                    }
+                    out[y * w + x] = codec.decode(s / 9.0);
+                }
+            }
+            out
+        })
+        .collect()
+}
+
+#[test]
+fn tiled_box3_equals_untiled_and_the_reference() {
+    let (w, h) = (333, 187);
+    let rgb = hdr_rgb(w, h, 4);
+    let input = FrameInput::new(ImageView::from_f32("color", &rgb, w, h, 3).unwrap());
+    let device = device_file("box3");
+    let model = device.neural_model().unwrap().unwrap();
+    let run = |tile: i64, overlap: i64| {
+        let mut s = session(
+            device.clone(),
+            &[
+                ("tile_size", ParamValue::Int(tile)),
+                ("tile_overlap", ParamValue::Int(overlap)),
+            ],
+        );
+        let n = model.tile_plan(w, h, s.params()).unwrap().len();
+        (s.process(&input, None).unwrap().0, n)
+    };
+    let (untiled, n) = run(1024, 2);
+    assert_eq!(n, 1);
+    let frame = PreparedFrame::from_input(&input, Default::default()).unwrap();
+    let codec = ColorCodec::for_frame(&model.manifest.encoding, &frame.color, None);
+    let reference = box3_reference(&rgb, w, h, &codec);
+    for c in 0..3 {
+        assert_close(
+            untiled.plane(c),
+            &reference[c],
+            1e-5,
+            &format!("untiled vs reference, channel {c}"),
+        );
+    }
+    for (tile, overlap) in [(34, 8), (48, 2), (64, 4), (100, 6), (128, 8), (200, 3)] {
+        let (tiled, n) = run(tile, overlap);
+        assert!(n > 1, "tile {tile}: one tile");
+        for c in 0..4 {
+            assert_close(
+                tiled.plane(c),
+                untiled.plane(c),
+                1e-5,
+                &format!("tile {tile} overlap {overlap} channel {c}"),
+            );
+        }
+    }
+    // Deterministic: the same frame twice gives the same bits.
+    assert_eq!(run(64, 4).0, run(64, 4).0);
+}
+
+#[test]
+fn memory_limit_forces_smaller_tiles() {
+    let (w, h) = (333, 187);
+    let rgb = hdr_rgb(w, h, 5);
+    let input = FrameInput::new(ImageView::from_f32("color", &rgb, w, h, 3).unwrap());
+    let free = device_file("box3");
+    let model = free.neural_model().unwrap().unwrap();
+    let params = Params::default();
+    let unlimited = model.tile_plan(w, h, &params).unwrap();
+    let limit = model.working_bytes(&unlimited) - 1;
+    let tight = device_edited("box3", limit, |_| {});
+    let tight_model = tight.neural_model().unwrap().unwrap();
+    let plan = tight_model.tile_plan(w, h, &params).unwrap();
+    assert!(
+        plan.x.window < unlimited.x.window,
+        "{plan:?} vs {unlimited:?}"
+    );
+    assert!(tight_model.working_bytes(&plan) <= limit);
+    assert!(plan.len() > unlimited.len());
+    let a = session(free, &[]).process(&input, None).unwrap().0;
+    let b = session(tight.clone(), &[]).process(&input, None).unwrap().0;
+    for c in 0..4 {
+        assert_close(
+            b.plane(c),
+            a.plane(c),
+            1e-5,
+            &format!("memory-limited channel {c}"),
+        );
+    }
+    // Below the smallest tile: a clear error naming memory_limit.
+    let tiny = device_edited("box3", 1000, |_| {});
+    let e = tiny
+        .neural_model()
+        .unwrap()
+        .unwrap()
+        .tile_plan(w, h, &params)
+        .unwrap_err();
+    assert!(
+        matches!(e, Error::OutOfMemory(_)) && e.to_string().contains("memory_limit 1000"),
+        "{e}"
+    );
+}
+
+#[test]
+fn cancel_between_tiles_leaves_the_session_unchanged() {
+    let (w, h) = (333, 187);
+    let frames: Vec<Vec<f32>> = (0..3).map(|i| hdr_rgb(w, h, 20 + i)).collect();
+    let device = device_file("box3");
+    let run_all = |cancel_at: Option<usize>| {
+        let mut s = session(
+            device.clone(),
+            &[
+                ("tile_size", ParamValue::Int(64)),
+                ("tile_overlap", ParamValue::Int(4)),
+            ],
+        );
+        let mut outs = Vec::new();
+        for (i, rgb) in frames.iter().enumerate() {
+            let mut input = FrameInput::new(ImageView::from_f32("color", rgb, w, h, 3).unwrap());
+            input.frame_index = Some(i as i64);
+            if cancel_at == Some(i) {
+                let mut calls = 0;
+                let mut cb = |_: f64| {
+                    calls += 1;
+                    calls < 4
+                };
+                let e = s.process(&input, Some(&mut cb)).unwrap_err();
+                assert!(matches!(e, Error::Cancelled(_)), "{e}");
+                assert_eq!(s.history_len(), i.min(4));
+            }
+            let mut reports = 0;
+            let mut cb = |_: f64| {
+                reports += 1;
+                true
+            };
+            outs.push(s.process(&input, Some(&mut cb)).unwrap().0);
+            assert!(reports >= 20, "progress per tile: {reports} reports");
+        }
+        outs
+    };
+    assert_eq!(run_all(Some(1)), run_all(None));
+}
+
+#[test]
+fn missing_runtime_says_what_to_install() {
+    let opts = DeviceOptions {
+        ort_library: Some("/nonexistent/libonnxruntime.so.1.31.1".into()),
+        model: ModelSource::File(fixture("identity")),
+        ..DeviceOptions::default()
+    };
+    let e = Device::new(opts).unwrap().neural_model().unwrap_err();
+    let msg = e.to_string();
+    assert!(matches!(e, Error::RuntimeMissing(_)), "{msg}");
+    for needle in [
+        "/nonexistent/libonnxruntime.so.1.31.1",
+        "pip install onnxruntime==1.31.*",
+        "HARMONIZER_ORT_LIB",
+    ] {
+        assert!(msg.contains(needle), "{needle:?} missing from: {msg}");
+    }
+    // A second, different runtime in the same process is refused clearly.
+    device_file("identity").neural_model().unwrap();
+    let other = ort_lib().with_file_name("libonnxruntime_providers_shared.so");
+    assert!(other.is_file(), "{}", other.display());
+    let opts = DeviceOptions {
+        ort_library: Some(other.clone()),
+        model: ModelSource::File(fixture("identity")),
+        ..DeviceOptions::default()
+    };
+    let e = Device::new(opts).unwrap().neural_model().unwrap_err();
+    assert!(
+        matches!(e, Error::InvalidOperation(_)) && e.to_string().contains("already loaded"),
+        "{e}"
+    );
+}
+
+fn model_error(name: &str, edit: impl FnOnce(&mut serde_json::Value)) -> String {
+    let e = device_edited(name, 0, edit).neural_model().unwrap_err();
+    assert!(matches!(e, Error::Model(_)), "{e}");
+    e.to_string()
+}
+
+#[test]
+fn bad_manifests_and_models_name_the_field() {
+    let e = model_error("identity", |m| m["input"]["channels"][1] = "color.q".into());
+    assert!(
+        e.contains("input.channels[1]") && e.contains("color.q"),
+        "{e}"
+    );
+    let e = model_error("identity", |m| m["context_frames"] = 9.into());
+    assert!(e.contains("context_frames") && e.contains('9'), "{e}");
+    let e = model_error("identity", |m| m["tile_overlap"] = 40.into());
+    assert!(e.contains("tile_size") && e.contains("40"), "{e}");
+    let e = model_error("identity", |m| m["encoding"]["log_range"] = (-2.0).into());
+    assert!(e.contains("encoding.log_range") && e.contains("-2"), "{e}");
+    let e = model_error("identity", |m| m["format_version"] = 7.into());
+    assert!(e.contains("format_version") && e.contains('7'), "{e}");
+    let e = model_error("identity", |m| {
+        m["input"]["channels"]
+            .as_array_mut()
+            .unwrap()
+            .push("coverage".into());
+    });
+    assert!(
+        e.contains("4") && e.contains("3 channels") && e.contains("input.channels"),
+        "{e}"
+    );
+    // The fixture whose graph input is "x" while its manifest says "input".
+    let e = device_file("wrong_name")
+        .neural_model()
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("\"input\"") && e.contains("\"x\"") && e.contains("wrong_name.onnx"),
+        "{e}"
+    );
+    // A file without its manifest.
+    let dir = tempfile::tempdir().unwrap();
+    let lone = dir.path().join("lone.onnx");
+    std::fs::copy(fixture("identity"), &lone).unwrap();
+    let e = Device::new(options(ModelSource::File(lone), 0))
+        .unwrap()
+        .neural_model()
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("lone.json"), "{e}");
+}
+
+#[test]
+fn embedded_slot_is_empty_without_a_default_model() {
+    let opts = options(ModelSource::Embedded, 0);
+    match harmonizer_core::model::embedded() {
+        None => assert!(NeuralModel::load(&opts).unwrap().is_none()),
+        Some(_) => assert!(NeuralModel::load(&opts).unwrap().is_some()),
+    }
+}
