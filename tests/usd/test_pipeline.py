@@ -13,6 +13,7 @@ from pathlib import Path
 import fixtures
 import numpy as np
 import OpenImageIO as oiio
+import pytest
 from pxr import Gf, Sdf, Usd, UsdRender
 from usd_harmonizer import resolve
 from usd_harmonizer.cli import main
@@ -476,3 +477,18 @@ def test_user_map_and_params(shot: Path, tmp_path: Path) -> None:
     r = run_cli(str(shot), "--backend", "bypass", "--map", "insert=albedo")
     assert r.returncode == 1
     assert "--map insert: unknown role 'albedo'" in r.stderr
+
+
+def test_progress_bar(capsys: pytest.CaptureFixture[str], rendered: Path) -> None:
+    from usd_harmonizer.cli import _Progress
+
+    prod = resolve(Usd.Stage.Open(str(rendered / "shot.usda"))).products[0]
+    bar = _Progress(True)
+    bar(3, 12, prod, 1004)
+    bar(12, 12, prod, 1006)
+    err = capsys.readouterr().err
+    assert "\r[#######.......................] 3/12 beauty frame 1004" in err
+    assert "\r[##############################] 12/12 beauty frame 1006" in err
+    assert err.endswith("\n")
+    _Progress(False)(1, 2, prod, 1001)
+    assert capsys.readouterr().err == ""
