@@ -318,7 +318,8 @@ def main(argv: list[str] | None = None) -> int:
         torch.manual_seed(cfg["seed"] * 1_000_003 + step)
         batch = make_batch(cache, rng, cfg)
         # Cosine learning rate with a short warm-up.
-        lr = cfg["lr"] * min(1.0, (step + 1) / 200) * 0.5 * (1 + math.cos(math.pi * min(step / max(args.steps, 1), 1.0)))
+        warmup = max(1, min(200, args.steps // 10))
+        lr = cfg["lr"] * min(1.0, (step + 1) / warmup) * 0.5 * (1 + math.cos(math.pi * min(step / max(args.steps, 1), 1.0)))
         for gparam in opt.param_groups:
             gparam["lr"] = lr
         loss, parts, _ = run_window(model, batch, cfg, rng)

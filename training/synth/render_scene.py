@@ -345,6 +345,26 @@ def build_scene(rng: np.random.Generator, catalog: dict, cfg: dict) -> dict:
         eye = Vector((target.x + r * math.cos(th), target.y + r * math.sin(th), max(0.25, hh)))
         aim = target + Vector(tuple(rng.normal(0, 0.15, 3)))
         ctx_poses.append((eye, aim))
+    # Keep every view of the insert free: drop background models that stand on
+    # the line between a camera (trajectory or context) and the target.
+    kept = []
+    for o, e in bg_objs:
+        rad = 0.5 * math.hypot(e["size_m"][0], e["size_m"][1])
+        c = np.array([o.location.x, o.location.y])
+        blocked = False
+        for eye, _ in traj + ctx_poses:
+            a = np.array([eye.x, eye.y])
+            b = np.array([target.x, target.y])
+            ab = b - a
+            u = float(np.clip(np.dot(c - a, ab) / max(float(np.dot(ab, ab)), 1e-9), 0.0, 1.0))
+            if np.linalg.norm(a + u * ab - c) < rad + 0.15:
+                blocked = True
+                break
+        if blocked:
+            bpy.data.objects.remove(o, do_unlink=True)
+        else:
+            kept.append((o, e))
+    bg_objs = kept
     return {
         "camera": cam,
         "ctx_camera": ctx,
