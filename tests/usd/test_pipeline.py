@@ -492,3 +492,25 @@ def test_progress_bar(capsys: pytest.CaptureFixture[str], rendered: Path) -> Non
     assert err.endswith("\n")
     _Progress(False)(1, 2, prod, 1001)
     assert capsys.readouterr().err == ""
+
+
+def test_color_space_precedence_end_to_end(shot: Path) -> None:
+    """An ancestor's UsdColorSpaceAPI applies to products without their own
+    declaration (over the file's colorInteropID); a product's own wins."""
+    stage = Usd.Stage.Open(str(shot))
+    Usd.ColorSpaceAPI.Apply(stage.GetPrimAtPath("/Render")).CreateColorSpaceNameAttr(
+        "lin_rec2020_scene"
+    )
+    stage.Save()
+    r = run_cli(str(shot), "--backend", "bypass", "--no-layer")
+    assert r.returncode == 0, r.stderr
+    assert (
+        "/Render/Products/beauty: 6 frames 1001-1006, backend bypass, color space Linear Rec.2020,"
+        in r.stdout
+    )
+    assert (
+        "/Render/Products/nomv: 6 frames 1001-1006, backend bypass, color space ACEScg,"
+        in r.stdout
+    )
+    b = read_exr(shot.parent / "render/harmonized/beauty.1001.exr", "out")
+    assert b.attributes()["harmonizer:colorSpace"] == "Linear Rec.2020"

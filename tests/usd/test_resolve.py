@@ -282,3 +282,34 @@ def test_find_channels(tmp_path: Path) -> None:
         match=r"harmonizer:channels \['vel.u', 'vel.v'\] not in the file \(missing \['vel.v'\]",
     ):
         find_channels("motion", mv, ["vel.u"], "here")
+
+
+def test_declared_color_spaces(tmp_path: Path) -> None:
+    stage = make_stage(tmp_path)
+    assert resolve(stage).products[0].color_space is None
+    # UsdColorSpaceAPI on an ancestor is inherited by the product and its vars.
+    Usd.ColorSpaceAPI.Apply(stage.GetPrimAtPath("/Render")).CreateColorSpaceNameAttr(
+        "lin_ap1_scene"
+    )
+    prod = resolve(stage).products[0]
+    inherited = ("lin_ap1_scene", "/Render.colorSpace:name")
+    assert prod.color_space is None and prod.inherited_color_space == inherited
+    assert prod.vars[0].inherited_color_space == inherited
+    # The prim's own declaration wins; harmonizer:colorSpace first.
+    ci = stage.GetPrimAtPath("/Render/Vars/Ci")
+    ci.CreateAttribute("colorSpace", Sdf.ValueTypeNames.String, custom=True).Set(
+        "ACEScg"
+    )
+    assert resolve(stage).products[0].vars[0].color_space == (
+        "ACEScg",
+        "/Render/Vars/Ci.colorSpace",
+    )
+    ci.CreateAttribute(
+        "harmonizer:colorSpace", Sdf.ValueTypeNames.String, custom=True
+    ).Set("lin_rec2020_scene")
+    assert resolve(stage).products[0].vars[0].color_space[0] == "lin_rec2020_scene"
+    # renderingColorSpace on the settings is read too.
+    UsdRender.Settings(
+        stage.GetPrimAtPath("/Render/Settings")
+    ).CreateRenderingColorSpaceAttr("lin_rec709_scene")
+    assert resolve(stage).rendering_color_space == "lin_rec709_scene"

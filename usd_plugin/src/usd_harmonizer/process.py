@@ -172,7 +172,14 @@ class ProductRunner:
 
     # -- one frame -------------------------------------------------------------
     def _converter(self, attrs: dict[str, Any], file_name: str) -> ColorConverter:
-        declared = self.roles["color"].color_space or self.product.color_space
+        var = self.roles["color"]
+        # Own declarations first (var, product), then inherited ones.
+        declared = (
+            var.color_space
+            or self.product.color_space
+            or var.inherited_color_space
+            or self.product.inherited_color_space
+        )
         key = (
             declared,
             attrs.get("colorInteropID"),

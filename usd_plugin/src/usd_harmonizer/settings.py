@@ -53,6 +53,19 @@ def _color_space_of(prim: Usd.Prim) -> tuple[str, str] | None:
     return None
 
 
+def _inherited_color_space(prim: Usd.Prim) -> tuple[str, str] | None:
+    """``colorSpace:name`` (UsdColorSpaceAPI) on the nearest ancestor of
+    ``prim`` that authors it: the API's color space is inherited down the
+    namespace."""
+    p = prim.GetParent()
+    while p and not p.IsPseudoRoot():
+        v = _authored(p.GetAttribute("colorSpace:name"))
+        if v:
+            return str(v), f"{p.GetPath()}.colorSpace:name"
+        p = p.GetParent()
+    return None
+
+
 @dataclass
 class VarInfo:
     """One RenderVar as the product declares it."""
@@ -65,7 +78,10 @@ class VarInfo:
     aov_name: str | None
     role: str | None
     channels: list[str] | None
+    #: Declared on the var itself (value, attribute path).
     color_space: tuple[str, str] | None
+    #: ``colorSpace:name`` inherited from an ancestor.
+    inherited_color_space: tuple[str, str] | None
     motion_scale: tuple[float, float] | None
     depth_kind: str | None
 
@@ -88,6 +104,7 @@ class VarInfo:
             role=str(role) if role else None,
             channels=[str(c) for c in ch] if ch else None,
             color_space=_color_space_of(prim),
+            inherited_color_space=_inherited_color_space(prim),
             motion_scale=(float(ms[0]), float(ms[1])) if ms is not None else None,
             depth_kind=str(dk) if dk else None,
         )
@@ -118,7 +135,10 @@ class ProductInfo:
     resolution: tuple[int, int]
     pixel_aspect: float
     conform_policy: str
+    #: Declared on the product itself (value, attribute path).
     color_space: tuple[str, str] | None
+    #: Inherited from an ancestor's ``colorSpace:name``, else the settings'.
+    inherited_color_space: tuple[str, str] | None
     base_dir: Path
     stage: Usd.Stage = field(repr=False)
 
@@ -323,7 +343,8 @@ def resolve(
                 else (2048, 1080),
                 pixel_aspect=float(par) if par else 1.0,
                 conform_policy=str(conform or "expandAperture"),
-                color_space=_color_space_of(pprim) or s_cs,
+                color_space=_color_space_of(pprim),
+                inherited_color_space=_inherited_color_space(pprim) or s_cs,
                 base_dir=base,
                 stage=stage,
             )
