@@ -1,0 +1,348 @@
+//! The `harmonize` binary, run as a user would (issue 2, part 5).
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+use harmonizer_core::io::exr::LoadedFrame;
+use harmonizer_core::io::layout::LayoutOptions;
+use harmonizer_core::io::pattern::FramePattern;
+use harmonizer_core::synth::{Sequence, SynthConfig};
+
+fn harmonize(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_harmonize"))
+        .args(args)
+        .output()
+        .expect("harmonize runs")
+}
+
+fn text(o: &Output) -> (String, String) {
+    (
+        String::from_utf8_lossy(&o.stdout).into(),
+        String::from_utf8_lossy(&o.stderr).into(),
+    )
+}
+
+fn sequence(dir: &Path, config: SynthConfig) -> (Sequence, String) {
+    let seq = Sequence::generate(config).unwrap();
+    let (input, _truth) = seq.write_generic(dir, "shot.####.exr").unwrap();
+    (seq, input)
+}
+
+mod run {
+    use super::*;
+
+    /// The issue's acceptance run: 24 frames of 320x180 with holes, an
+    /// inserted object and flicker, classical backend. Thresholds: the
+    /// output's PSNR in holes is at least 6 dB above the input's, and its
+    /// warping error is below 0.8x the input's.
+    #[test]
+    fn classical_fills_holes_and_reduces_flicker() {
+        let dir = tempfile::tempdir().unwrap();
+        let (seq, input) = sequence(dir.path(), SynthConfig::default());
+        let out = dir
+            .path()
+            .join("out")
+            .join("shot.####.exr")
+            .to_string_lossy()
+            .to_string();
+        let report = dir.path().join("report.json");
+        let o = harmonize(&[
+            "run",
+            &input,
+            "-o",
+            &out,
+            "--backend",
+            "classical",
+            "--threads",
+            "2",
+            "--report",
+            report.to_str().unwrap(),
+        ]);
+        let (stdout, stderr) = text(&o);
+        assert!(o.status.success(), "stdout: {stdout}\nstderr: {stderr}");
+        assert!(stdout.contains("24 frame(s)"), "{stdout}");
+        assert!(stdout.contains("sanitized color samples"), "{stdout}");
+
+        let op = FramePattern::parse(&out).unwrap();
+        let outs: Vec<Vec<f32>> = (1..=24)
+            .map(|n| {
+                let f = LoadedFrame::read(&op.path(n), Some(n), &LayoutOptions::default()).unwrap();
+                let cov = f.coverage.as_ref().expect("output keeps A");
+                f.color
+                    .chunks(3)
+                    .zip(cov)
+                    .flat_map(|(c, a)| [c[0], c[1], c[2], *a])
+                    .collect()
+            })
+            .collect();
+        let ins: Vec<Vec<f32>> = seq.frames.iter().map(|f| f.input.color.clone()).collect();
+        let (hole_in, hole_out) = (seq.psnr(&ins, 4, "holes"), seq.psnr(&outs, 4, "holes"));
+        let (we_in, we_out) = (seq.warping_error(&ins, 4), seq.warping_error(&outs, 4));
+        eprintln!(
+            "holes PSNR {hole_in:.2} -> {hole_out:.2} dB; warping error {we_in:.5} -> {we_out:.5}"
+        );
+        assert!(
+            hole_out > hole_in + 6.0,
+            "holes PSNR {hole_in:.2} -> {hole_out:.2}"
+        );
+        assert!(
+            we_out < 0.8 * we_in,
+            "warping error {we_in:.5} -> {we_out:.5}"
+        );
+
+        let r: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+        let frames = r["frames"].as_array().unwrap();
+        assert_eq!(frames.len(), 24);
+        assert_eq!(frames[0]["reset"], "first_frame");
+        assert!(frames[1]["reset"].is_null());
+        assert_eq!(frames[0]["backend"], "classical");
+        assert!(frames[5]["process_ms"].as_f64().unwrap() > 0.0);
+        assert!(frames[5]["stages"]
+            .as_object()
+            .is_some_and(|m| !m.is_empty()));
+        assert_eq!(r["summary"]["frames"], 24);
+        assert_eq!(r["summary"]["sanitized"], 0);
+        // The header records the run.
+        let f = harmonizer_core::io::exr::ExrFile::open(&op.path(3), Some(3)).unwrap();
+        assert!(f.find("mask.insert").is_some(), "input channels kept");
+    }
+
+    #[test]
+    fn frame_range_gap_and_set() {
+        let dir = tempfile::tempdir().unwrap();
+        let (_, input) = sequence(
+            dir.path(),
+            SynthConfig {
+                width: 48,
+                height: 27,
+                frames: 6,
+                ..Default::default()
+            },
+        );
+        std::fs::remove_file(FramePattern::parse(&input).unwrap().path(4)).unwrap();
+        let out = dir.path().join("o.%04d.exr").to_string_lossy().to_string();
+        let report = dir.path().join("r.json");
+        let o = harmonize(&[
+            "run",
+            &input,
+            "-o",
+            &out,
+            "--backend",
+            "bypass",
+            "--frames",
+            "2-6",
+            "--set",
+            "strength=0.5",
+        ]);
+        let (_, stderr) = text(&o);
+        assert!(!o.status.success());
+        assert!(
+            stderr.contains("missing frame(s) 4") && stderr.contains("shot.0004.exr"),
+            "{stderr}"
+        );
+        // Without a range the gap resets the temporal state (the default policy).
+        let o = harmonize(&[
+            "run",
+            &input,
+            "-o",
+            &out,
+            "--backend",
+            "bypass",
+            "--report",
+            report.to_str().unwrap(),
+        ]);
+        assert!(o.status.success(), "{:?}", text(&o));
+        let r: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+        let f5 = r["frames"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|f| f["frame"] == 5)
+            .unwrap()
+            .clone();
+        assert_eq!(f5["reset"], "frame_gap");
+        let o = harmonize(&["run", &input, "-o", &out, "--set", "strength=7"]);
+        let (_, stderr) = text(&o);
+        assert!(
+            !o.status.success() && stderr.contains("strength") && stderr.contains('7'),
+            "{stderr}"
+        );
+    }
+}
+
+mod errors {
+    use super::*;
+
+    #[test]
+    fn bad_inputs_exit_non_zero_naming_file_and_frame() {
+        let dir = tempfile::tempdir().unwrap();
+        let (_, input) = sequence(
+            dir.path(),
+            SynthConfig {
+                width: 32,
+                height: 18,
+                frames: 4,
+                ..Default::default()
+            },
+        );
+        let out = dir.path().join("o.####.exr").to_string_lossy().to_string();
+
+        // No frame token.
+        let o = harmonize(&["run", "beauty.exr", "-o", &out]);
+        assert!(
+            !o.status.success()
+                && text(&o).1.contains("beauty.exr")
+                && text(&o).1.contains("frame token"),
+            "{:?}",
+            text(&o)
+        );
+        // Output over input.
+        let o = harmonize(&["run", &input, "-o", &input]);
+        assert!(
+            !o.status.success() && text(&o).1.contains("input file"),
+            "{:?}",
+            text(&o)
+        );
+        // Bad range.
+        let o = harmonize(&["run", &input, "-o", &out, "--frames", "5-1"]);
+        assert!(
+            !o.status.success() && text(&o).1.contains("5-1"),
+            "{:?}",
+            text(&o)
+        );
+        // Missing channel under an explicit mapping.
+        let o = harmonize(&["run", &input, "-o", &out, "--channel", "depth=depth.Z"]);
+        let (_, e) = text(&o);
+        assert!(
+            !o.status.success()
+                && e.contains("frame 1")
+                && e.contains("depth.Z")
+                && e.contains("shot.0001.exr"),
+            "{e}"
+        );
+        // A truncated frame stops the run at that frame; earlier outputs stay.
+        let p3 = FramePattern::parse(&input).unwrap().path(3);
+        let bytes = std::fs::read(&p3).unwrap();
+        std::fs::write(&p3, &bytes[..bytes.len() / 3]).unwrap();
+        let o = harmonize(&["run", &input, "-o", &out, "--backend", "classical"]);
+        let (_, e) = text(&o);
+        assert!(
+            !o.status.success()
+                && e.contains("frame 3")
+                && e.contains("shot.0003.exr")
+                && e.contains("truncated"),
+            "{e}"
+        );
+        let op = FramePattern::parse(&out).unwrap();
+        assert!(op.path(2).is_file() && !op.path(3).exists());
+        // Unknown layout and backend.
+        let o = harmonize(&["run", &input, "-o", &out, "--layout", "nuke"]);
+        assert!(!o.status.success() && text(&o).1.contains("nuke"));
+        let o = harmonize(&["run", &input, "-o", &out, "--backend", "gpu"]);
+        assert!(!o.status.success() && text(&o).1.contains("gpu"));
+    }
+}
+
+mod tools {
+    use super::*;
+
+    #[test]
+    fn info_describes_a_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let (_, input) = sequence(
+            dir.path(),
+            SynthConfig {
+                width: 32,
+                height: 18,
+                frames: 1,
+                ..Default::default()
+            },
+        );
+        let p = FramePattern::parse(&input).unwrap().path(1);
+        let o = harmonize(&["info", p.to_str().unwrap()]);
+        let (out, err) = text(&o);
+        assert!(o.status.success(), "{err}");
+        for want in [
+            "32x18",
+            "layout: generic",
+            "motion.X (float)",
+            "camera: present",
+            "roles found: color, coverage, depth, motion, normal, insert",
+        ] {
+            assert!(out.contains(want), "{want:?} in {out}");
+        }
+        let o = harmonize(&["info", dir.path().join("missing.exr").to_str().unwrap()]);
+        assert!(!o.status.success() && text(&o).1.contains("missing.exr"));
+    }
+
+    #[test]
+    fn demo_writes_frames_sheet_and_metrics() {
+        let dir = tempfile::tempdir().unwrap();
+        let o = harmonize(&[
+            "demo",
+            "--out",
+            dir.path().to_str().unwrap(),
+            "--threads",
+            "2",
+        ]);
+        let (out, err) = text(&o);
+        assert!(o.status.success(), "{out}\n{err}");
+        assert!(
+            out.contains("contact_sheet.png") && out.contains("warping error"),
+            "{out}"
+        );
+        let sheet = image::open(dir.path().join("contact_sheet.png")).unwrap();
+        assert_eq!((sheet.width(), sheet.height()), (3 * 320 + 8, 4 * 180 + 12));
+        for n in [1, 24] {
+            for sub in ["input", "output", "truth"] {
+                assert!(
+                    dir.path()
+                        .join(sub)
+                        .join(format!("frame.{n:04}.exr"))
+                        .is_file(),
+                    "{sub} {n}"
+                );
+            }
+        }
+        let m: serde_json::Value = serde_json::from_str(
+            &std::fs::read_to_string(dir.path().join("metrics.json")).unwrap(),
+        )
+        .unwrap();
+        assert!(m["psnr_holes_output"].as_f64().unwrap() > m["psnr_holes_input"].as_f64().unwrap());
+    }
+
+    #[test]
+    fn bench_json_parses() {
+        let o = harmonize(&[
+            "bench",
+            "--json",
+            "--sizes",
+            "160x90",
+            "--frames",
+            "2",
+            "--threads",
+            "2",
+        ]);
+        let (out, err) = text(&o);
+        assert!(o.status.success(), "{err}");
+        let v: serde_json::Value = serde_json::from_str(out.trim()).unwrap();
+        let runs = v["runs"].as_array().unwrap();
+        let c = runs
+            .iter()
+            .find(|r| r["backend"] == "classical")
+            .expect("classical always runs");
+        assert_eq!(
+            (c["width"].as_u64(), c["height"].as_u64()),
+            (Some(160), Some(90))
+        );
+        assert_eq!(c["context"], 4);
+        assert_eq!(c["threads"], 2);
+        assert!(c["ms_per_frame"].as_f64().unwrap() > 0.0);
+        assert!(c["copy_floor_ms"].as_f64().unwrap() > 0.0);
+        assert!(c["stages"].as_object().is_some_and(|m| !m.is_empty()));
+        let o = harmonize(&["bench", "--sizes", "160by90"]);
+        assert!(!o.status.success() && text(&o).1.contains("160by90"));
+    }
+}
