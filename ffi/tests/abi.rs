@@ -2,5 +2,6 @@
 //! cdylib, loaded with `libloading`, works through the C ABI.
 
 mod abi {
+    pub mod driver;
     pub mod header;
 }

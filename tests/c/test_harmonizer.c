@@ -1,0 +1,589 @@
+/*
+ * C/C++ host test of libharmonizer, built against the committed header with
+ * gcc (C99) and g++ (C++17), against the shared and the static library, with
+ * AddressSanitizer and UndefinedBehaviorSanitizer (see Makefile).
+ *
+ * Covers: version; a full sequence (color, depth, motion, coverage); in place;
+ * RGBA with a 16-byte pixel stride where only RGB is color; NaN/Inf input;
+ * zero size; NULL pointers; wrong struct_size; resize in the middle of a
+ * sequence (implicit reset); cancel at the start, middle and end (state
+ * unchanged); two sessions on two threads.
+ */
+#include "harmonizer.h"
+
+#include <math.h>
+#include <pthread.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+
+static int checks = 0;
+static int failures = 0;
+
+#define CHECK(cond, ...)                                                                  \
+    do {                                                                                  \
+        checks++;                                                                         \
+        if (!(cond)) {                                                                    \
+            failures++;                                                                   \
+            fprintf(stderr, "FAIL %s:%d: %s: ", __FILE__, __LINE__, #cond);               \
+            fprintf(stderr, __VA_ARGS__);                                                 \
+            fprintf(stderr, " [last error: %s]\n", hz_last_error_message());              \
+        }                                                                                 \
+    } while (0)
+
+#define CHECK_OK(call) CHECK((call) == HZ_OK, "%s", #call)
+
+/* ---- synthetic frames: a texture moving 1 px right per frame, with a hole ---- */
+
+typedef struct frame_data {
+    size_t w, h;
+    float *rgba;     /* RGBA, premultiplied, alpha = coverage */
+    float *depth;    /* planar depth */
+    float *motion;   /* current -> previous, x right, y down */
+    float *coverage; /* 1 = data, 0 = hole */
+} frame_data;
+
+static float *alloc_floats(size_t n) {
+    float *p = (float *)calloc(n, sizeof(float));
+    if (!p) {
+        fprintf(stderr, "out of memory\n");
+        exit(2);
+    }
+    return p;
+}
+
+static float texture(double x, double y) {
+    return (float)(0.5 + 0.25 * sin(x * 0.37) * cos(y * 0.23) + 0.2 * (((int)floor(x / 6.0) + (int)floor(y / 6.0)) & 1));
+}
+
+static frame_data make_frame(size_t w, size_t h, int t) {
+    frame_data f;
+    size_t x, y;
+    f.w = w;
+    f.h = h;
+    f.rgba = alloc_floats(w * h * 4);
+    f.depth = alloc_floats(w * h);
+    f.motion = alloc_floats(w * h * 2);
+    f.coverage = alloc_floats(w * h);
+    for (y = 0; y < h; y++) {
+        for (x = 0; x < w; x++) {
+            size_t i = y * w + x;
+            int hole = x >= w / 3 && x < w / 3 + w / 6 && y >= h / 3 && y < h / 3 + h / 6;
+            float c = hole ? 0.0f : 1.0f;
+            float flicker = 1.0f + 0.08f * (float)((t * 37) % 5) / 5.0f;
+            double sx = (double)x - t; /* the texture moves right by one pixel per frame */
+            f.rgba[i * 4 + 0] = c * flicker * texture(sx, (double)y);
+            f.rgba[i * 4 + 1] = c * flicker * texture(sx + 11.0, (double)y + 3.0);
+            f.rgba[i * 4 + 2] = c * flicker * 0.5f;
+            f.rgba[i * 4 + 3] = c;
+            f.coverage[i] = c;
+            f.depth[i] = 5.0f;
+            f.motion[i * 2 + 0] = -1.0f; /* the surface was one pixel to the left */
+            f.motion[i * 2 + 1] = 0.0f;
+        }
+    }
+    return f;
+}
+
+static void free_frame(frame_data *f) {
+    free(f->rgba);
+    free(f->depth);
+    free(f->motion);
+    free(f->coverage);
+}
+
+static hz_image image(float *data, size_t w, size_t h, uint32_t channels, size_t pixel_stride) {
+    hz_image img;
+    memset(&img, 0, sizeof img);
+    img.struct_size = sizeof(hz_image);
+    img.format = HZ_FORMAT_F32;
+    img.channels = channels;
+    img.width = w;
+    img.height = h;
+    img.pixel_stride = pixel_stride;
+    img.data = data;
+    return img;
+}
+
+/* Images of one frame; the hz_frame points into it. */
+typedef struct frame_desc {
+    hz_image color, depth, motion, coverage;
+    hz_frame frame;
+} frame_desc;
+
+static void describe(frame_desc *d, frame_data *f, int index, int with_aovs) {
+    d->color = image(f->rgba, f->w, f->h, 4, 0);
+    d->depth = image(f->depth, f->w, f->h, 1, 0);
+    d->motion = image(f->motion, f->w, f->h, 2, 0);
+    d->coverage = image(f->coverage, f->w, f->h, 1, 0);
+    memset(&d->frame, 0, sizeof d->frame);
+    d->frame.struct_size = sizeof(hz_frame);
+    d->frame.color = &d->color;
+    if (with_aovs) {
+        d->frame.depth = &d->depth;
+        d->frame.motion = &d->motion;
+        d->frame.coverage = &d->coverage;
+    }
+    d->frame.frame_index = index;
+    d->frame.flags = HZ_FRAME_HAS_INDEX;
+    d->frame.motion_vector_scale[0] = 1.0f;
+    d->frame.motion_vector_scale[1] = 1.0f;
+}
+
+static hz_session *new_session(hz_device *device, const char *backend) {
+    hz_session *s = NULL;
+    CHECK_OK(hz_session_new(device, &s));
+    CHECK_OK(hz_session_set_string(s, "backend", backend));
+    CHECK_OK(hz_session_commit(s));
+    return s;
+}
+
+static int same_bits(const float *a, const float *b, size_t n) {
+    return memcmp(a, b, n * sizeof(float)) == 0;
+}
+
+static hz_report report_of(hz_session *s) {
+    hz_report r;
+    memset(&r, 0, sizeof r);
+    r.struct_size = sizeof r;
+    CHECK_OK(hz_session_get_report(s, &r));
+    return r;
+}
+
+/* ---- tests ---- */
+
+static void test_version(void) {
+    CHECK(strcmp(hz_version(), HZ_VERSION_STRING) == 0, "library %s, header %s", hz_version(), HZ_VERSION_STRING);
+    CHECK_OK(hz_check_version(HZ_VERSION_MAJOR, HZ_VERSION_MINOR));
+    CHECK(hz_check_version(HZ_VERSION_MAJOR + 1, 0) == HZ_ERROR_NOT_SUPPORTED, "another major is refused");
+    CHECK(strstr(hz_last_error_message(), "major") != NULL, "message names the major version");
+    {
+        hz_device *d = (hz_device *)&checks; /* must be overwritten with NULL */
+        CHECK(hz_device_new(HZ_VERSION_MAJOR + 1, NULL, &d) == HZ_ERROR_NOT_SUPPORTED, "device of another major");
+        CHECK(d == NULL, "failed create sets NULL");
+        CHECK(strncmp(hz_last_error_message(), "hz_device_new:", 14) == 0, "message names the function");
+    }
+    CHECK(strcmp(hz_status_name(HZ_ERROR_CANCELLED), "HZ_ERROR_CANCELLED") == 0, "status name");
+}
+
+static void test_sequence(hz_device *device) {
+    size_t w = 64, h = 48, i;
+    int t;
+    hz_session *s = new_session(device, "classical");
+    float *out = alloc_floats(w * h * 4);
+    for (t = 0; t < 8; t++) {
+        frame_data f = make_frame(w, h, t);
+        frame_desc d;
+        hz_image o = image(out, w, h, 4, 0);
+        hz_report r;
+        size_t history = 0, bytes = 0;
+        int finite = 1;
+        describe(&d, &f, 100 + t, 1);
+        CHECK_OK(hz_session_process(s, &d.frame, &o));
+        for (i = 0; i < w * h * 4; i++) finite &= isfinite(out[i]) && out[i] >= 0.0f;
+        CHECK(finite, "frame %d output finite and non-negative", t);
+        /* The hole's centre is filled: alpha (coverage after filling) is 1. */
+        i = (h / 3 + h / 12) * w + (w / 3 + w / 12);
+        CHECK(f.coverage[i] == 0.0f && out[i * 4 + 3] > 0.99f, "frame %d hole alpha %f", t, out[i * 4 + 3]);
+        r = report_of(s);
+        CHECK(r.has_frame_index && r.frame_index == 100 + t, "report index %lld", (long long)r.frame_index);
+        CHECK(r.reset_reason == (t == 0 ? HZ_RESET_FIRST_FRAME : HZ_RESET_NONE), "frame %d reset %u", t,
+              (unsigned)r.reset_reason);
+        CHECK(r.history_used == (size_t)(t < 4 ? t : 4), "frame %d history used %zu", t, r.history_used);
+        CHECK_OK(hz_session_get_history_length(s, &history));
+        CHECK(history == (size_t)(t + 1 < 4 ? t + 1 : 4), "history %zu", history);
+        CHECK_OK(hz_session_get_memory_bytes(s, &bytes));
+        CHECK(bytes >= history * w * h * 4 * sizeof(float), "memory %zu", bytes);
+        free_frame(&f);
+    }
+    {
+        char name[32];
+        size_t len = 0;
+        CHECK_OK(hz_session_get_backend_name(s, name, sizeof name, &len));
+        CHECK(strcmp(name, "classical") == 0 && len == 9, "backend %s", name);
+        CHECK_OK(hz_session_get_model_name(s, NULL, 0, &len));
+        CHECK(len == 0, "no model name for the classical backend");
+    }
+    CHECK_OK(hz_session_reset(s));
+    {
+        size_t history = 7;
+        CHECK_OK(hz_session_get_history_length(s, &history));
+        CHECK(history == 0, "history after reset %zu", history);
+    }
+    free(out);
+    CHECK_OK(hz_session_free(s));
+}
+
+/* In place on an RGBA buffer where only RGB is color (16-byte stride),
+ * compared with a separate output. */
+static void test_in_place_strided(hz_device *device) {
+    size_t w = 40, h = 30, i;
+    int t;
+    hz_session *a = new_session(device, "classical");
+    hz_session *b = new_session(device, "classical");
+    float *out = alloc_floats(w * h * 3);
+    for (t = 0; t < 4; t++) {
+        frame_data f = make_frame(w, h, t);
+        frame_desc d;
+        hz_image o = image(out, w, h, 3, 0);
+        hz_image rgb_in_rgba = image(f.rgba, w, h, 3, 16);
+        float *alpha_before = alloc_floats(w * h);
+        int same = 1, alpha_kept = 1;
+        describe(&d, &f, t, 1);
+        d.color = rgb_in_rgba;
+        for (i = 0; i < w * h; i++) alpha_before[i] = f.rgba[i * 4 + 3];
+        CHECK_OK(hz_session_process(a, &d.frame, &o));
+        CHECK_OK(hz_session_process(b, &d.frame, &rgb_in_rgba)); /* output aliases the color input */
+        for (i = 0; i < w * h; i++) {
+            same &= memcmp(&out[i * 3], &f.rgba[i * 4], 3 * sizeof(float)) == 0;
+            alpha_kept &= f.rgba[i * 4 + 3] == alpha_before[i];
+        }
+        CHECK(same, "frame %d: in place equals a separate output", t);
+        CHECK(alpha_kept, "frame %d: the 4th channel is left alone", t);
+        free(alpha_before);
+        free_frame(&f);
+    }
+    free(out);
+    CHECK_OK(hz_session_free(a));
+    CHECK_OK(hz_session_free(b));
+}
+
+typedef struct messages {
+    int warnings;
+    char last[512];
+} messages;
+
+static void on_message(void *user, uint32_t level, const char *text) {
+    messages *m = (messages *)user;
+    if (level == HZ_MESSAGE_WARNING) m->warnings++;
+    strncpy(m->last, text, sizeof m->last - 1);
+    m->last[sizeof m->last - 1] = 0;
+}
+
+static void test_nan_inf(hz_device *device) {
+    size_t w = 16, h = 8, i;
+    hz_session *s = new_session(device, "bypass");
+    frame_data f = make_frame(w, h, 0);
+    frame_desc d;
+    float *out = alloc_floats(w * h * 4);
+    hz_image o = image(out, w, h, 4, 0);
+    messages m;
+    int finite = 1;
+    memset(&m, 0, sizeof m);
+    f.rgba[0] = NAN;
+    f.rgba[5] = INFINITY;
+    f.rgba[10] = -INFINITY;
+    f.rgba[17] = -1.0f;
+    f.depth[3] = NAN;
+    describe(&d, &f, 0, 1);
+    CHECK_OK(hz_session_set_message_callback(s, on_message, &m));
+    CHECK_OK(hz_session_process(s, &d.frame, &o));
+    for (i = 0; i < w * h * 4; i++) finite &= isfinite(out[i]);
+    CHECK(finite, "NaN/Inf never reach the output");
+    CHECK(out[0] == 0.0f && out[5] == 0.0f && out[10] == 0.0f && out[17] == 0.0f, "bad samples become 0");
+    CHECK(out[4] == f.rgba[4], "good samples pass through the bypass backend unchanged");
+    {
+        hz_report r = report_of(s);
+        char text[512];
+        CHECK(r.sanitized == 4, "sanitized %zu", r.sanitized);
+        CHECK(r.warning_count >= 1, "warnings %zu", r.warning_count);
+        CHECK_OK(hz_session_get_report_warning(s, 0, text, sizeof text, NULL));
+        CHECK(strstr(text, "NaN") != NULL, "warning text: %s", text);
+        CHECK(hz_session_get_report_warning(s, 99, text, sizeof text, NULL) == HZ_ERROR_INVALID_ARGUMENT,
+              "warning index out of range");
+    }
+    CHECK(m.warnings >= 1 && strstr(m.last, "NaN") != NULL, "message callback: %d, %s", m.warnings, m.last);
+    free(out);
+    free_frame(&f);
+    CHECK_OK(hz_session_free(s));
+}
+
+static void test_bad_arguments(hz_device *device) {
+    size_t w = 8, h = 4;
+    hz_session *s = new_session(device, "bypass");
+    frame_data f = make_frame(w, h, 0);
+    frame_desc d;
+    float *out = alloc_floats(w * h * 4);
+    hz_image o = image(out, w, h, 4, 0);
+    hz_image bad;
+    hz_frame fr;
+    describe(&d, &f, 0, 1);
+
+    /* NULL pointers */
+    CHECK(hz_session_process(NULL, &d.frame, &o) == HZ_ERROR_INVALID_ARGUMENT, "NULL session");
+    CHECK(strstr(hz_last_error_message(), "session is NULL") != NULL, "message");
+    CHECK(hz_session_process(s, NULL, &o) == HZ_ERROR_INVALID_ARGUMENT, "NULL frame");
+    CHECK(hz_session_process(s, &d.frame, NULL) == HZ_ERROR_INVALID_ARGUMENT, "NULL output");
+    fr = d.frame;
+    fr.color = NULL;
+    CHECK(hz_session_process(s, &fr, &o) == HZ_ERROR_INVALID_ARGUMENT, "NULL color");
+    bad = d.color;
+    bad.data = NULL;
+    fr.color = &bad;
+    CHECK(hz_session_process(s, &fr, &o) == HZ_ERROR_INVALID_ARGUMENT, "NULL data");
+    CHECK(strstr(hz_last_error_message(), "color: data is NULL") != NULL, "%s", hz_last_error_message());
+    CHECK(hz_session_new(device, NULL) == HZ_ERROR_INVALID_ARGUMENT, "NULL out_session");
+    {
+        hz_session *none = (hz_session *)&checks;
+        CHECK(hz_session_new(NULL, &none) == HZ_ERROR_INVALID_ARGUMENT && none == NULL, "NULL device");
+    }
+    CHECK(hz_session_set_int(s, NULL, 1) == HZ_ERROR_INVALID_ARGUMENT, "NULL name");
+    CHECK(hz_session_set_string(s, "backend", NULL) == HZ_ERROR_INVALID_ARGUMENT, "NULL value");
+    CHECK_OK(hz_session_free(NULL));
+    CHECK_OK(hz_device_free(NULL));
+
+    /* zero size */
+    bad = d.color;
+    bad.width = 0;
+    fr = d.frame;
+    fr.color = &bad;
+    CHECK(hz_session_process(s, &fr, &o) == HZ_ERROR_INVALID_ARGUMENT, "zero width");
+    CHECK(strstr(hz_last_error_message(), "0x4 is empty") != NULL, "%s", hz_last_error_message());
+    bad.width = w;
+    bad.height = 0;
+    CHECK(hz_session_process(s, &fr, &o) == HZ_ERROR_INVALID_ARGUMENT, "zero height");
+
+    /* sizes that overflow or exceed what the strides allow */
+    bad = d.color;
+    bad.width = (size_t)-1 / 8;
+    bad.height = 16;
+    CHECK(hz_session_process(s, &fr, &o) == HZ_ERROR_INVALID_ARGUMENT, "overflowing size");
+    CHECK(strstr(hz_last_error_message(), "overflows") != NULL, "%s", hz_last_error_message());
+    bad = d.color;
+    bad.pixel_stride = 8; /* smaller than 4 channels of 4 bytes */
+    CHECK(hz_session_process(s, &fr, &o) == HZ_ERROR_INVALID_ARGUMENT, "stride too small");
+    bad = d.color;
+    bad.offset = 2;
+    CHECK(hz_session_process(s, &fr, &o) == HZ_ERROR_INVALID_ARGUMENT, "misaligned offset");
+    bad = d.color;
+    bad.format = 0;
+    CHECK(hz_session_process(s, &fr, &o) == HZ_ERROR_INVALID_ARGUMENT, "format 0");
+
+    /* wrong struct_size */
+    fr = d.frame;
+    fr.struct_size = sizeof(hz_frame) - 4;
+    CHECK(hz_session_process(s, &fr, &o) == HZ_ERROR_INVALID_ARGUMENT, "hz_frame.struct_size");
+    CHECK(strstr(hz_last_error_message(), "hz_frame.struct_size") != NULL, "%s", hz_last_error_message());
+    bad = d.color;
+    bad.struct_size = 0;
+    fr = d.frame;
+    fr.color = &bad;
+    CHECK(hz_session_process(s, &fr, &o) == HZ_ERROR_INVALID_ARGUMENT, "hz_image.struct_size");
+    {
+        hz_device_options opts;
+        hz_device *dev = NULL;
+        hz_report r;
+        memset(&opts, 0, sizeof opts);
+        opts.struct_size = 1;
+        CHECK(hz_device_new(HZ_VERSION_MAJOR, &opts, &dev) == HZ_ERROR_INVALID_ARGUMENT && dev == NULL,
+              "hz_device_options.struct_size");
+        memset(&r, 0, sizeof r);
+        r.struct_size = sizeof r + 8;
+        CHECK(hz_session_get_report(s, &r) == HZ_ERROR_INVALID_ARGUMENT, "hz_report.struct_size");
+    }
+
+    /* parameters */
+    CHECK(hz_session_set_int(s, "context_frames", 9) == HZ_ERROR_INVALID_ARGUMENT, "out of range");
+    CHECK(strstr(hz_last_error_message(), "context_frames") != NULL, "%s", hz_last_error_message());
+    CHECK(hz_session_set_float(s, "no_such_parameter", 1.0) == HZ_ERROR_INVALID_ARGUMENT, "unknown");
+    CHECK(hz_session_set_string(s, "backend", "gpu") == HZ_ERROR_INVALID_ARGUMENT, "bad backend");
+    {
+        int64_t k = 0;
+        double strength = 0.0;
+        bool fill = false;
+        hz_param_type type = HZ_PARAM_STRING;
+        CHECK_OK(hz_session_set_int(s, "context_frames", 2));
+        CHECK_OK(hz_session_get_int(s, "context_frames", &k));
+        CHECK(k == 2, "staged value %lld", (long long)k);
+        CHECK(hz_session_process(s, &d.frame, &o) == HZ_ERROR_INVALID_OPERATION, "uncommitted parameters");
+        CHECK_OK(hz_session_commit(s));
+        CHECK_OK(hz_session_process(s, &d.frame, &o));
+        CHECK_OK(hz_session_get_float(s, "strength", &strength));
+        CHECK(strength == 1.0, "strength %f", strength);
+        CHECK_OK(hz_session_get_bool(s, "fill_holes", &fill));
+        CHECK(fill, "fill_holes");
+        CHECK_OK(hz_session_get_type(s, "strength", &type));
+        CHECK(type == HZ_PARAM_FLOAT, "type %u", (unsigned)type);
+        CHECK(hz_session_get_int(s, "backend", &k) == HZ_ERROR_INVALID_ARGUMENT, "wrong type");
+    }
+    /* output of another size is refused and untouched */
+    {
+        hz_image small = image(out, w - 1, h, 4, 0);
+        CHECK(hz_session_process(s, &d.frame, &small) == HZ_ERROR_INVALID_ARGUMENT, "output size");
+    }
+    free(out);
+    free_frame(&f);
+    CHECK_OK(hz_session_free(s));
+}
+
+static void test_resize(hz_device *device) {
+    hz_session *s = new_session(device, "classical");
+    int t;
+    for (t = 0; t < 5; t++) {
+        size_t w = t < 3 ? 48 : 24, h = t < 3 ? 32 : 16;
+        frame_data f = make_frame(w, h, t);
+        frame_desc d;
+        float *out = alloc_floats(w * h * 4);
+        hz_image o = image(out, w, h, 4, 0);
+        hz_report r;
+        describe(&d, &f, t, 1);
+        CHECK_OK(hz_session_process(s, &d.frame, &o));
+        r = report_of(s);
+        if (t == 3) CHECK(r.reset_reason == HZ_RESET_SIZE_CHANGED, "reset %u", (unsigned)r.reset_reason);
+        if (t == 4) CHECK(r.reset_reason == HZ_RESET_NONE && r.history_used == 1, "after resize");
+        free(out);
+        free_frame(&f);
+    }
+    CHECK_OK(hz_session_free(s));
+}
+
+typedef struct cancel_state {
+    int calls;
+    int cancel_at; /* return false on this call (1-based); 0 = never */
+} cancel_state;
+
+static bool on_progress(void *user, double p) {
+    cancel_state *c = (cancel_state *)user;
+    c->calls++;
+    if (p < 0.0 || p > 1.0) return false;
+    return c->cancel_at == 0 || c->calls < c->cancel_at;
+}
+
+static void test_cancel(hz_device *device) {
+    size_t w = 40, h = 24, n = w * h * 4;
+    int total, which, t;
+    cancel_state probe = {0, 0};
+    {
+        hz_session *s = new_session(device, "classical");
+        frame_data f = make_frame(w, h, 0);
+        frame_desc d;
+        float *out = alloc_floats(n);
+        hz_image o = image(out, w, h, 4, 0);
+        describe(&d, &f, 0, 1);
+        CHECK_OK(hz_session_set_progress_callback(s, on_progress, &probe));
+        CHECK_OK(hz_session_process(s, &d.frame, &o));
+        free(out);
+        free_frame(&f);
+        CHECK_OK(hz_session_free(s));
+    }
+    total = probe.calls;
+    CHECK(total >= 2, "progress calls per frame: %d", total);
+    for (which = 0; which < 3; which++) {
+        int cancel_at = which == 0 ? 1 : which == 1 ? (total + 1) / 2 : total;
+        hz_session *ref = new_session(device, "classical");
+        hz_session *s = new_session(device, "classical");
+        float *out_ref = alloc_floats(n), *out = alloc_floats(n);
+        for (t = 0; t < 5; t++) {
+            frame_data f = make_frame(w, h, t);
+            frame_desc d;
+            hz_image o_ref = image(out_ref, w, h, 4, 0), o = image(out, w, h, 4, 0);
+            describe(&d, &f, t, 1);
+            if (t == 2) {
+                cancel_state c = {0, cancel_at};
+                float *sentinel = alloc_floats(n);
+                hz_image os = image(sentinel, w, h, 4, 0);
+                size_t i, history_before = 0, history_after = 1;
+                int untouched = 1;
+                for (i = 0; i < n; i++) sentinel[i] = 7.0f;
+                CHECK_OK(hz_session_get_history_length(s, &history_before));
+                CHECK_OK(hz_session_set_progress_callback(s, on_progress, &c));
+                CHECK(hz_session_process(s, &d.frame, &os) == HZ_ERROR_CANCELLED, "cancel at %d of %d", cancel_at,
+                      total);
+                CHECK(strstr(hz_last_error_message(), "cancelled") != NULL, "%s", hz_last_error_message());
+                CHECK_OK(hz_session_set_progress_callback(s, NULL, NULL));
+                for (i = 0; i < n; i++) untouched &= sentinel[i] == 7.0f;
+                CHECK(untouched, "a cancelled call leaves the output untouched");
+                CHECK_OK(hz_session_get_history_length(s, &history_after));
+                CHECK(history_before == history_after, "history %zu -> %zu", history_before, history_after);
+                free(sentinel);
+            }
+            CHECK_OK(hz_session_process(ref, &d.frame, &o_ref));
+            CHECK_OK(hz_session_process(s, &d.frame, &o));
+            CHECK(same_bits(out_ref, out, n), "cancel at %d: frame %d equals the session that never saw it",
+                  cancel_at, t);
+            free_frame(&f);
+        }
+        free(out_ref);
+        free(out);
+        CHECK_OK(hz_session_free(ref));
+        CHECK_OK(hz_session_free(s));
+    }
+}
+
+/* ---- two sessions on two threads: same results as one after the other ---- */
+
+typedef struct worker {
+    hz_device *device;
+    int seed;
+    size_t w, h;
+    float *out; /* last output */
+    int ok;
+} worker;
+
+static void *run_worker(void *arg) {
+    worker *wk = (worker *)arg;
+    hz_session *s = NULL;
+    int t;
+    wk->ok = hz_session_new(wk->device, &s) == HZ_OK && hz_session_set_string(s, "backend", "classical") == HZ_OK &&
+             hz_session_commit(s) == HZ_OK;
+    for (t = 0; wk->ok && t < 6; t++) {
+        frame_data f = make_frame(wk->w, wk->h, t + wk->seed);
+        frame_desc d;
+        hz_image o = image(wk->out, wk->w, wk->h, 4, 0);
+        describe(&d, &f, t, 1);
+        wk->ok = hz_session_process(s, &d.frame, &o) == HZ_OK;
+        free_frame(&f);
+    }
+    hz_session_free(s);
+    return NULL;
+}
+
+static void test_threads(hz_device *device) {
+    worker seq[2], par[2];
+    pthread_t th[2];
+    int k;
+    for (k = 0; k < 2; k++) {
+        seq[k].device = par[k].device = device;
+        seq[k].seed = par[k].seed = 10 * k;
+        seq[k].w = par[k].w = 56 + 8 * (size_t)k;
+        seq[k].h = par[k].h = 40;
+        seq[k].out = alloc_floats(seq[k].w * seq[k].h * 4);
+        par[k].out = alloc_floats(par[k].w * par[k].h * 4);
+        run_worker(&seq[k]);
+        CHECK(seq[k].ok, "sequential run %d", k);
+    }
+    for (k = 0; k < 2; k++) CHECK(pthread_create(&th[k], NULL, run_worker, &par[k]) == 0, "thread %d", k);
+    for (k = 0; k < 2; k++) pthread_join(th[k], NULL);
+    for (k = 0; k < 2; k++) {
+        CHECK(par[k].ok, "threaded run %d", k);
+        CHECK(same_bits(seq[k].out, par[k].out, par[k].w * par[k].h * 4), "thread %d equals the sequential run", k);
+        free(seq[k].out);
+        free(par[k].out);
+    }
+}
+
+int main(void) {
+    hz_device *device = NULL;
+    hz_device_options opts;
+    memset(&opts, 0, sizeof opts);
+    opts.struct_size = sizeof opts;
+    opts.threads = 2;
+    test_version();
+    CHECK_OK(hz_device_new(HZ_VERSION_MAJOR, &opts, &device));
+    if (!device) return 1;
+    {
+        uint32_t threads = 0;
+        CHECK_OK(hz_device_get_threads(device, &threads));
+        CHECK(threads == 2, "threads %u", threads);
+    }
+    test_sequence(device);
+    test_in_place_strided(device);
+    test_nan_inf(device);
+    test_bad_arguments(device);
+    test_resize(device);
+    test_cancel(device);
+    test_threads(device);
+    CHECK_OK(hz_device_free(device));
+    printf("%s: %d checks, %d failures\n", failures ? "FAILED" : "ok", checks, failures);
+    return failures ? 1 : 0;
+}
