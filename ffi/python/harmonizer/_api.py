@@ -148,6 +148,8 @@ def _array_image(arr: np.ndarray, what: str, writable: bool = False) -> tuple[N.
     row = rs if h > 1 else w * pixel
     if ok and h > 1 and row < w * pixel:
         ok = False
+    if arr.size == 0:
+        ok = True  # nothing to read; the library reports the empty size
     if not ok:
         if writable:
             return _array_image(np.empty(arr.shape, arr.dtype), what, True)

@@ -2,7 +2,7 @@
 
 Search order: ``$HARMONIZER_LIB`` (a file), the library next to this package
 (``harmonizer/libharmonizer.so``), then the repository's ``target/release`` and
-``target/debug`` (``$CARGO_TARGET_DIR`` first when set).
+``target/debug`` (and ``$CARGO_TARGET_DIR``'s), the most recently built first.
 """
 
 from __future__ import annotations
@@ -146,15 +146,16 @@ def candidates() -> list[Path]:
         return [Path(env)]
     name = _lib_name()
     here = Path(__file__).resolve().parent
-    out = [here / name]
     targets = []
     if os.environ.get("CARGO_TARGET_DIR"):
         targets.append(Path(os.environ["CARGO_TARGET_DIR"]))
     if len(here.parents) >= 3:
         targets.append(here.parents[2] / "target")  # <repo>/ffi/python/harmonizer -> <repo>/target
-    for t in targets:
-        out += [t / "release" / name, t / "debug" / name]
-    return out
+    built = [t / profile / name for t in targets for profile in ("release", "debug")]
+    # In a checkout, the most recently built library wins (a stale release build
+    # must not shadow a fresh debug one).
+    built.sort(key=lambda p: p.stat().st_mtime if p.is_file() else float("-inf"), reverse=True)
+    return [here / name, *built]
 
 
 _lock = threading.Lock()

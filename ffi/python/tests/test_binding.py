@@ -1,0 +1,292 @@
+"""Tests of the Python binding against the real libharmonizer."""
+
+from __future__ import annotations
+
+import logging
+import os
+import re
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import harmonizer as hz
+from harmonizer import _api
+
+REPO = Path(__file__).resolve().parents[3]
+
+
+def frame(h: int = 24, w: int = 32, t: int = 0, channels: int = 4, hole: bool = True):
+    """A deterministic frame moving one pixel right per step, with a hole."""
+    y, x = np.mgrid[0:h, 0:w].astype(np.float32)
+    sx = x - t
+    rgb = np.stack([0.5 + 0.3 * np.sin(sx * 0.4), 0.4 + 0.2 * np.cos(y * 0.3), 0.3 + 0.1 * ((sx // 5) % 2)], -1)
+    cov = np.ones((h, w), np.float32)
+    if hole:
+        cov[h // 3 : h // 2, w // 3 : w // 2] = 0.0
+    color = np.zeros((h, w, channels), np.float32)
+    color[..., :3] = rgb * cov[..., None]
+    if channels == 4:
+        color[..., 3] = cov
+    motion = np.zeros((h, w, 2), np.float32)
+    motion[..., 0] = -1.0
+    depth = np.full((h, w), 5.0, np.float32)
+    return color, cov, motion, depth
+
+
+def test_versions_agree_with_cargo_toml():
+    toml = (REPO / "Cargo.toml").read_text()
+    section = toml.split("[workspace.package]", 1)[1]
+    cargo = re.search(r'^version = "([^"]+)"', section, re.M).group(1)
+    assert hz.version() == cargo
+    assert hz.__version__ == cargo
+
+
+def test_bypass_round_trip_is_exact(device):
+    color, cov, _, _ = frame()
+    with hz.Session(device, backend="bypass") as s:
+        out = s.process(color, coverage=cov, frame_index=1)
+    assert out.shape == (*color.shape[:2], 4) and out.dtype == np.float32
+    np.testing.assert_array_equal(out[..., :3], color[..., :3])
+    np.testing.assert_array_equal(out[..., 3], cov)
+
+
+def test_strided_rgb_view_in_place_without_copy(device):
+    color, cov, _, _ = frame()
+    rgba = color.copy()
+    rgb = rgba[..., :3]  # pixel stride 16 bytes, only RGB is color
+    img, used = _api._array_image(rgb, "color")
+    assert used is rgb and img.pixel_stride == 16 and img.channels == 3, "float32 views are passed without a copy"
+    with hz.Session(device, backend="classical") as a, hz.Session(device, backend="classical") as b:
+        for t in range(3):
+            c, cov, m, d = frame(t=t)
+            rgba[...] = c
+            expected = a.process(c, coverage=cov, motion=m, depth=d, frame_index=t)
+            result = b.process(rgb, coverage=cov, motion=m, depth=d, frame_index=t, out=rgb)
+            assert result is rgb
+            np.testing.assert_array_equal(rgba[..., :3], expected[..., :3])
+            np.testing.assert_array_equal(rgba[..., 3], c[..., 3])  # the 4th channel is left alone
+
+
+def test_float16_and_odd_layouts(device):
+    color, cov, _, _ = frame()
+    with hz.Session(device, backend="bypass") as s:
+        half = color.astype(np.float16)
+        out16 = np.zeros((*color.shape[:2], 4), np.float16)
+        s.process(half, out=out16, coverage=cov.astype(np.float16))
+        np.testing.assert_array_equal(out16[..., :3], half[..., :3])
+        flipped = color[::-1, ::-1]  # negative strides: copied, still correct
+        out = s.process(flipped)
+        np.testing.assert_array_equal(out[..., :3], flipped[..., :3])
+        planar = np.ascontiguousarray(color.transpose(2, 0, 1)).transpose(1, 2, 0)  # channel stride != 4
+        np.testing.assert_array_equal(s.process(planar)[..., :3], color[..., :3])
+        out_f = np.zeros((*color.shape[:2], 4), np.float32, order="F")  # not describable: written through a copy
+        s.process(color, out=out_f)
+        np.testing.assert_array_equal(out_f[..., :3], color[..., :3])
+
+
+def test_classical_sequence_with_every_input(device):
+    h, w = 24, 32
+    w2c = np.eye(4, dtype=np.float32)
+    w2n = np.array([[1, 0, 0, 0], [0, -1, 0, 0], [0.5, 0.5, 1, 1], [0, 0, 0, 0]], np.float32)
+    with hz.Session(device, backend="classical", context_frames=3) as s:
+        for t in range(5):
+            c, cov, m, d = frame(h, w, t)
+            out = s.process(
+                c,
+                depth=d[..., None],
+                motion=m,
+                normal=np.zeros((h, w, 3), np.float32),
+                coverage=cov,
+                insert_mask=np.zeros((h, w), np.float32),
+                world_to_camera=w2c,
+                world_to_ndc=w2n,
+                frame_index=t,
+            )
+            assert np.isfinite(out).all()
+            assert out[h // 3 + 1, w // 3 + 1, 3] > 0.99, "the hole is filled"
+        r = s.last_report
+        assert r["frame_index"] == 4 and r["reset"] is None and r["backend"] == "classical"
+        assert r["history_used"] == 3 and s.history_length == 3
+        assert s.memory_bytes >= 3 * h * w * 4 * 4
+        assert isinstance(r["stages"], dict) and r["total_ms"] > 0
+        assert s.backend_name == "classical" and s.model_name is None and s.model_version is None
+
+
+def test_reset_reasons(device):
+    with hz.Session(device, backend="classical") as s:
+        assert s.last_report is None
+        c, *_ = frame()
+        s.process(c, frame_index=0)
+        assert s.last_report["reset"] == "first_frame"
+        s.process(c, frame_index=1)
+        assert s.last_report["reset"] is None
+        s.process(c, frame_index=5)
+        assert s.last_report["reset"] == "frame_gap"
+        s.process(c, frame_index=6, reset=True)
+        assert s.last_report["reset"] == "requested"
+        s.process(frame(h=12, w=16)[0], frame_index=7)
+        assert s.last_report["reset"] == "size_changed"
+        s.reset()
+        assert s.history_length == 0
+
+
+def test_parameters(device):
+    with hz.Session(device, backend="bypass", context_frames=2, strength=0.5, fill_holes=False, gap_policy="keep") as s:
+        assert s.get("backend") == "bypass"
+        assert s.get("context_frames") == 2 and isinstance(s.get("context_frames"), int)
+        assert s.get("strength") == 0.5
+        assert s.get("fill_holes") is False
+        assert s.get("gap_policy") == "keep"
+        s.set("strength", 1)  # an int for a float parameter is accepted
+        with pytest.raises(hz.InvalidOperationError, match="hz_session_commit"):
+            s.process(frame()[0])
+        s.commit()
+        s.process(frame()[0])
+        with pytest.raises(hz.InvalidArgumentError) as e:
+            s.set("context_frames", 9)
+        assert e.value.status == hz.Status.INVALID_ARGUMENT
+        assert "context_frames" in e.value.message and "9" in str(e.value)
+        assert isinstance(e.value, ValueError)
+        with pytest.raises(hz.InvalidArgumentError, match="no_such"):
+            s.set("no_such", 1)
+        with pytest.raises(hz.InvalidArgumentError, match="gpu"):
+            s.set("backend", "gpu")
+        with pytest.raises(hz.InvalidArgumentError):
+            s.set("strength", [1.0])
+    with pytest.raises(hz.InvalidArgumentError, match="context_frames"):
+        hz.Session(device, context_frames=-1)
+
+
+def test_bad_arrays(device):
+    with hz.Session(device, backend="bypass") as s:
+        c, cov, *_ = frame()
+        with pytest.raises(hz.InvalidArgumentError, match="depth: size 16x24 differs"):
+            s.process(c, depth=np.ones((24, 16), np.float32))
+        with pytest.raises(hz.InvalidArgumentError, match="motion: needs 2"):
+            s.process(c, motion=np.ones((24, 32), np.float32))
+        with pytest.raises(hz.InvalidArgumentError, match="color"):
+            s.process(np.ones((24, 32), np.float32))
+        with pytest.raises(hz.InvalidArgumentError, match="empty"):
+            s.process(np.ones((0, 32, 4), np.float32))
+        with pytest.raises(hz.InvalidArgumentError, match="out"):
+            s.process(c, out=np.zeros((24, 32, 2), np.float32))
+        with pytest.raises(hz.InvalidArgumentError, match="together"):
+            s.process(c, world_to_camera=np.eye(4))
+        with pytest.raises(hz.InvalidArgumentError, match="4x4"):
+            s.process(c, world_to_camera=np.eye(3), world_to_ndc=np.eye(4))
+        with pytest.raises(hz.InvalidArgumentError, match="dtype"):
+            s.process(c.astype(np.complex64))
+        assert s.last_report is None, "failed calls leave no report"
+
+
+def _run(session, frames, cancel=None):
+    outs = []
+    for t, (c, cov, m, d) in enumerate(frames):
+        if cancel is not None and t == cancel[0]:
+            calls = []
+
+            def progress(p, calls=calls):
+                assert 0.0 <= p <= 1.0
+                calls.append(p)
+                return len(calls) < cancel[1]
+
+            before = session.history_length
+            with pytest.raises(hz.CancelledError, match="cancelled"):
+                session.process(c, coverage=cov, motion=m, depth=d, frame_index=t, progress=progress)
+            assert session.history_length == before
+            assert calls == sorted(calls), "progress is monotonic"
+        outs.append(session.process(c, coverage=cov, motion=m, depth=d, frame_index=t))
+    return outs
+
+
+def test_cancel_leaves_state_unchanged(device):
+    frames = [frame(t=t) for t in range(5)]
+    with hz.Session(device, backend="classical") as probe:
+        calls = []
+        probe.process(frames[0][0], progress=lambda p: calls.append(p) or True)
+    total = len(calls)
+    assert total >= 2 and calls[-1] == 1.0
+    for at in (1, (total + 1) // 2, total):
+        with hz.Session(device, backend="classical") as ref, hz.Session(device, backend="classical") as s:
+            expected = _run(ref, frames)
+            got = _run(s, frames, cancel=(2, at))
+            for e, g in zip(expected, got):
+                np.testing.assert_array_equal(e, g)
+
+
+def test_progress_exception_cancels_and_propagates(device):
+    with hz.Session(device, backend="classical") as s:
+
+        def boom(p):
+            raise KeyError("from the host")
+
+        with pytest.raises(hz.CancelledError) as e:
+            s.process(frame()[0], progress=boom)
+        assert isinstance(e.value.__cause__, KeyError)
+        assert s.history_length == 0
+
+
+def test_messages(device, caplog):
+    c, *_ = frame(hole=False)
+    c[0, 0, 0] = np.nan
+    c[1, 1, 1] = -np.inf
+    got = []
+    with hz.Session(device, backend="bypass", on_message=lambda level, text: got.append((level, text))) as s:
+        out = s.process(c, frame_index=0)
+        assert np.isfinite(out).all()
+        assert s.last_report["sanitized"] == 2
+    assert any(level == "warning" and "NaN" in text for level, text in got), got
+    with caplog.at_level(logging.INFO, logger="harmonizer"), hz.Session(device, backend="bypass") as s:
+        s.process(c, frame_index=0)
+        s.process(c, frame_index=3)
+    texts = [r.getMessage() for r in caplog.records if r.name == "harmonizer"]
+    assert any("NaN" in t for t in texts) and any("not consecutive" in t for t in texts), texts
+
+
+def test_two_sessions_on_two_threads(device):
+    seqs = [[frame(t=t + 10 * k) for t in range(5)] for k in range(2)]
+
+    def run(k, results):
+        with hz.Session(device, backend="classical") as s:
+            results[k] = _run(s, seqs[k])
+
+    sequential, threaded = {}, {}
+    for k in range(2):
+        run(k, sequential)
+    threads = [threading.Thread(target=run, args=(k, threaded)) for k in range(2)]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join()
+    for k in range(2):
+        for a, b in zip(sequential[k], threaded[k]):
+            np.testing.assert_array_equal(a, b)
+
+
+def test_lifetimes(device):
+    d = hz.Device(threads=1)
+    assert d.threads == 1
+    s = hz.Session(d, backend="bypass")
+    d.close()  # sessions keep their device alive
+    s.process(frame()[0])
+    s.close()
+    s.close()
+    with pytest.raises(hz.InvalidOperationError, match="closed"):
+        s.process(frame()[0])
+    with pytest.raises(hz.InvalidOperationError, match="closed"):
+        hz.Session(d)
+    with pytest.raises(hz.InvalidArgumentError):
+        hz.Device(threads=-1)
+
+
+def test_missing_library_is_reported():
+    env = dict(os.environ, HARMONIZER_LIB="/nonexistent/libharmonizer.so")
+    code = "import harmonizer as hz\ntry:\n    hz.version()\nexcept hz.LibraryNotFoundError as e:\n    print(e)\n"
+    r = subprocess.run(
+        [sys.executable, "-c", code], env=env, cwd=REPO / "ffi" / "python", capture_output=True, text=True, check=True
+    )
+    assert "/nonexistent/libharmonizer.so" in r.stdout and "cargo build" in r.stdout
