@@ -6,7 +6,8 @@ Each scene runs in its own bpy process (``render_scene.py``) so a crash or a
 leak cannot take the whole run down; a scene that fails is recorded in
 ``<out>/failed/scene_<id>.txt`` and skipped on the next run unless
 ``--retry-failed``. The split (train/test) is decided by scene id. Safe to stop
-at any moment (Ctrl-C, kill): a scene appears only when complete.
+at any moment (Ctrl-C, ``kill <pid>``: the scene being rendered is ended too
+and redone on the next run): a scene appears only when complete.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -47,6 +49,17 @@ def add_render_args(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--test-every", type=int, default=10, help="scene ids = k*N-1 are held out as test")
 
 
+_current: dict = {"child": None, "stopping": False}
+
+
+def _stop(signum, frame) -> None:
+    """SIGTERM/SIGINT: end the scene being rendered too (it is redone on resume)."""
+    _current["stopping"] = True
+    child = _current["child"]
+    if child is not None and child.poll() is None:
+        child.terminate()
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=TRAINING_DIR / "data")
@@ -63,6 +76,8 @@ def main(argv: list[str] | None = None) -> int:
     r = subprocess.run([str(args.bpy_python), "-m", "training.synth.assets"], cwd=REPO)
     if r.returncode != 0:
         return r.returncode
+    signal.signal(signal.SIGTERM, _stop)
+    signal.signal(signal.SIGINT, _stop)
     failed_dir = args.out / "failed"
     ids = list(parse_range(args.scenes))
     done = skipped = failed = 0
@@ -101,14 +116,22 @@ def main(argv: list[str] | None = None) -> int:
             str(args.test_every),
         ]
         ts = time.time()
+        child = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        _current["child"] = child
         try:
-            p = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=args.timeout)
-            rc, tail = p.returncode, (p.stdout + p.stderr)[-3000:]
+            out, _ = child.communicate(timeout=args.timeout)
+            rc, tail = child.returncode, out[-3000:]
         except subprocess.TimeoutExpired:
-            rc, tail = -1, f"timed out after {args.timeout} s"
+            child.kill()
+            out, _ = child.communicate()
+            rc, tail = -1, f"timed out after {args.timeout} s\n{out[-2000:]}"
+        _current["child"] = None
+        if _current["stopping"]:
+            print(f"[{time.strftime('%H:%M:%S')}] stopped during scene {sid}; rerun to resume", flush=True)
+            return 130
         if rc == 0 and (d / "meta.json").exists():
             done += 1
-            last = [ln for ln in p.stdout.splitlines() if ln.startswith("{")]
+            last = [ln for ln in out.splitlines() if ln.startswith("{")]
             print(f"[{time.strftime('%H:%M:%S')}] scene {sid} ok in {time.time() - ts:.0f}s {last[-1] if last else ''}", flush=True)
             fail_note.unlink(missing_ok=True)
         else:
