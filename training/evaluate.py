@@ -81,8 +81,18 @@ def run_harmonize(exe: Path, in_dir: Path, out_dir: Path, extra: list[str], thre
     out_dir.mkdir(parents=True, exist_ok=True)
     env = dict(os.environ)
     env.setdefault("ORT_DYLIB_PATH", str(DEFAULT_ORT))
-    cmd = [str(exe), "run", str(in_dir / "input.####.exr"), "-o", str(out_dir / "out.####.exr"),
-           "--layout", "generic", "--threads", str(threads), *extra]
+    cmd = [
+        str(exe),
+        "run",
+        str(in_dir / "input.####.exr"),
+        "-o",
+        str(out_dir / "out.####.exr"),
+        "--layout",
+        "generic",
+        "--threads",
+        str(threads),
+        *extra,
+    ]
     p = subprocess.run(cmd, capture_output=True, text=True, env=env)
     if p.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} failed (exit {p.returncode}): {p.stderr[-2000:]}")
@@ -122,13 +132,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--data", type=Path, default=REPO / "training" / "data")
     ap.add_argument("--split", default="test")
     ap.add_argument("--model", type=Path, help="ONNX model (manifest beside it); omit to skip the neural rows")
-    ap.add_argument("--harmonize", type=Path, default=Path(os.environ.get("HZ_HARMONIZE", REPO / "target/release/harmonize")))
+    ap.add_argument(
+        "--harmonize", type=Path, default=Path(os.environ.get("HZ_HARMONIZE", REPO / "target/release/harmonize"))
+    )
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--max-scenes", type=int, default=0)
     args = ap.parse_args(argv)
     if not args.harmonize.exists():
-        print(f"evaluate: {args.harmonize} not found (cargo build --release -p harmonize-cli, or --harmonize)", file=sys.stderr)
+        print(
+            f"evaluate: {args.harmonize} not found (cargo build --release -p harmonize-cli, or --harmonize)",
+            file=sys.stderr,
+        )
         return 2
     scenes = list_scenes(args.data, args.split)
     if args.max_scenes:
@@ -172,11 +187,16 @@ def main(argv: list[str] | None = None) -> int:
             summary[method][stream] = {k: mean_of(sr, k) for k in keys}
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "per_frame.json").write_text(json.dumps(rows, indent=0))
-    (args.out / "metrics.json").write_text(json.dumps({"scenes": [p.name for p in scenes], "summary": summary}, indent=1))
+    (args.out / "metrics.json").write_text(
+        json.dumps({"scenes": [p.name for p in scenes], "summary": summary}, indent=1)
+    )
     lines = ["| method | subset | " + " | ".join(keys) + " |", "|---" * (len(keys) + 2) + "|"]
     for method, subs in summary.items():
         for sub, vals in subs.items():
-            cells = [("-" if vals[k] is None else f"{vals[k]:.4f}" if k in ("ssim", "warp_err") else f"{vals[k]:.2f}") for k in keys]
+            cells = [
+                ("-" if vals[k] is None else f"{vals[k]:.4f}" if k in ("ssim", "warp_err") else f"{vals[k]:.2f}")
+                for k in keys
+            ]
             lines.append(f"| {method} | {sub} | " + " | ".join(cells) + " |")
     (args.out / "metrics.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))

@@ -50,7 +50,7 @@ class ModelConfig:
         return d
 
     @staticmethod
-    def from_dict(d: dict) -> "ModelConfig":
+    def from_dict(d: dict) -> ModelConfig:
         d = dict(d)
         d["widths"] = tuple(d["widths"])
         return ModelConfig(**d)
@@ -228,7 +228,9 @@ def reproject_hop(
         wsum = wsum + wk
     # tap[:, :c] holds img*valid and tap[:, c] valid: renormalize by the kept valid weight.
     vw = acc[:, c]
-    color = torch.where(vw.unsqueeze(1) > 1e-6, acc[:, :c] / vw.clamp(min=1e-6).unsqueeze(1), torch.zeros_like(acc[:, :c]))
+    color = torch.where(
+        vw.unsqueeze(1) > 1e-6, acc[:, :c] / vw.clamp(min=1e-6).unsqueeze(1), torch.zeros_like(acc[:, :c])
+    )
     return color, vw.clamp(0, 1).unsqueeze(1)
 
 

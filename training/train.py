@@ -56,9 +56,7 @@ class SampleCache:
             if len(self.cache) >= self.size:
                 self.cache.pop(next(iter(self.cache)))
             s = load_sample(scene, stream)
-            self.cache[key] = {
-                k: s[k] for k in ("input", "target", "depth", "motion", "mask_insert", "mask_shadow")
-            }
+            self.cache[key] = {k: s[k] for k in ("input", "target", "depth", "motion", "mask_insert", "mask_shadow")}
         return self.cache[key]
 
 
@@ -154,10 +152,9 @@ def patch_loss(out: torch.Tensor, gt: torch.Tensor, rng: np.random.Generator, n:
         if down > 1 and size // down >= 8:
             o = F.avg_pool2d(o, down)
             g = F.avg_pool2d(g, down)
-        grad = (
-            (o[..., 1:, :] - o[..., :-1, :] - (g[..., 1:, :] - g[..., :-1, :])).abs().mean()
-            + (o[..., :, 1:] - o[..., :, :-1] - (g[..., :, 1:] - g[..., :, :-1])).abs().mean()
-        )
+        grad = (o[..., 1:, :] - o[..., :-1, :] - (g[..., 1:, :] - g[..., :-1, :])).abs().mean() + (
+            o[..., :, 1:] - o[..., :, :-1] - (g[..., :, 1:] - g[..., :, :-1])
+        ).abs().mean()
         total = total + (1 - ssim(o, g)) + grad
     return total / max(n, 1)
 
@@ -234,7 +231,13 @@ def run_window(model: Enhancer, batch: dict, cfg: dict, rng: np.random.Generator
 def save_checkpoint(path: Path, model, opt, step: int, cfg: dict) -> None:
     tmp = path.with_suffix(".tmp")
     torch.save(
-        {"model": model.state_dict(), "opt": opt.state_dict(), "step": step, "cfg": cfg, "model_cfg": model.cfg.to_dict()},
+        {
+            "model": model.state_dict(),
+            "opt": opt.state_dict(),
+            "step": step,
+            "cfg": cfg,
+            "model_cfg": model.cfg.to_dict(),
+        },
         tmp,
     )
     os.replace(tmp, path)
@@ -274,7 +277,10 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
     scenes = list_scenes(args.data, "train")
     if not scenes:
-        print(f"train: no complete scene under {args.data / 'train'} (render some with training.synth.generate)", file=sys.stderr)
+        print(
+            f"train: no complete scene under {args.data / 'train'} (render some with training.synth.generate)",
+            file=sys.stderr,
+        )
         return 2
     args.run.mkdir(parents=True, exist_ok=True)
     cfg = {
@@ -319,7 +325,12 @@ def main(argv: list[str] | None = None) -> int:
         batch = make_batch(cache, rng, cfg)
         # Cosine learning rate with a short warm-up.
         warmup = max(1, min(200, args.steps // 10))
-        lr = cfg["lr"] * min(1.0, (step + 1) / warmup) * 0.5 * (1 + math.cos(math.pi * min(step / max(args.steps, 1), 1.0)))
+        lr = (
+            cfg["lr"]
+            * min(1.0, (step + 1) / warmup)
+            * 0.5
+            * (1 + math.cos(math.pi * min(step / max(args.steps, 1), 1.0)))
+        )
         for gparam in opt.param_groups:
             gparam["lr"] = lr
         loss, parts, _ = run_window(model, batch, cfg, rng)

@@ -151,7 +151,10 @@ def extract_library(sh3f: Path, assets_dir: Path = ASSETS_DIR) -> dict:
     models = []
     n = 1
     while f"id#{n}" in props:
-        k = lambda name: f"{name}#{n}"  # noqa: E731
+
+        def k(name: str, n: int = n) -> str:
+            return f"{name}#{n}"
+
         model_rel = props.get(k("model"), "").lstrip("/")
         obj = dest / model_rel
         if model_rel and obj.suffix.lower() == ".obj" and obj.exists():

@@ -256,7 +256,7 @@ def reconstruction_inputs(
     level = float(rng.uniform(0.5, 2.0))
     pts, cols, rads = [], [], []
     params = {"depth_noise": level, "views": []}
-    for color, depth, (w2c, w2ndc) in zip(ctx_colors, ctx_depths, ctx_cams):
+    for color, depth, (w2c, w2ndc) in zip(ctx_colors, ctx_depths, ctx_cams, strict=True):
         h, w = depth.shape
         # Per-view exposure/white-balance drift (seams) and loss of detail.
         gain = np.exp(rng.normal(0, 0.06, 3) + rng.normal(0, 0.08)).astype(np.float32)

@@ -132,7 +132,10 @@ def main(argv: list[str] | None = None) -> int:
         if rc == 0 and (d / "meta.json").exists():
             done += 1
             last = [ln for ln in out.splitlines() if ln.startswith("{")]
-            print(f"[{time.strftime('%H:%M:%S')}] scene {sid} ok in {time.time() - ts:.0f}s {last[-1] if last else ''}", flush=True)
+            print(
+                f"[{time.strftime('%H:%M:%S')}] scene {sid} ok in {time.time() - ts:.0f}s {last[-1] if last else ''}",
+                flush=True,
+            )
             fail_note.unlink(missing_ok=True)
         else:
             failed += 1

@@ -175,9 +175,7 @@ def import_model(entry: dict, assets_dir: Path, name: str) -> bpy.types.Object:
     size = np.array(entry["size_m"], np.float64)  # width (x), depth (y), height (z)
     scale = size / ext
     centre = (lo + hi) / 2
-    m = Matrix.Diagonal((scale[0], scale[1], scale[2], 1.0)) @ Matrix.Translation(
-        (-centre[0], -centre[1], -lo[2])
-    )
+    m = Matrix.Diagonal((scale[0], scale[1], scale[2], 1.0)) @ Matrix.Translation((-centre[0], -centre[1], -lo[2]))
     me.transform(m)
     me.update()
     return obj
@@ -338,7 +336,7 @@ def build_scene(rng: np.random.Generator, catalog: dict, cfg: dict) -> dict:
     n_ctx = int(rng.integers(2, 4))
     span = dth * (cfg["frames"] - 1)
     ctx_poses = []
-    for k in range(n_ctx):
+    for _ in range(n_ctx):
         th = th0 + span * rng.uniform(-0.6, 1.6) + rng.normal(0, math.radians(12))
         r = r0 * rng.uniform(0.85, 1.3)
         hh = h0 + rng.uniform(-0.3, 0.4)

@@ -28,7 +28,7 @@ def test_encoding_matches_the_runtime_formula():
     rgba[:, 3, :2] = 0.0  # holes
     rgba[:, :3] *= rgba[:, 3:4]
     a = rgba[0, 3]
-    lum = (0.2126 * rgba[0, 0] + 0.7152 * rgba[0, 1] + 0.0722 * rgba[0, 2])
+    lum = 0.2126 * rgba[0, 0] + 0.7152 * rgba[0, 1] + 0.0722 * rgba[0, 2]
     ok = a >= 1e-3
     lavg = math.exp((a[ok] * np.log(1e-4 + lum[ok] / a[ok])).sum() / a[ok].sum())
     s = frame_scale(torch.from_numpy(rgba), 0.18)
