@@ -71,14 +71,12 @@ fn find_tokens(name: &str) -> Vec<(usize, usize, usize)> {
                     continue;
                 }
             }
-            b'<' => {
-                if name[i..].starts_with("<F") {
-                    let (k, pad) = digits_at(i + 2);
-                    if k < b.len() && b[k] == b'>' {
-                        out.push((i, k + 1, pad.max(1)));
-                        i = k + 1;
-                        continue;
-                    }
+            b'<' if name[i..].starts_with("<F") => {
+                let (k, pad) = digits_at(i + 2);
+                if k < b.len() && b[k] == b'>' {
+                    out.push((i, k + 1, pad.max(1)));
+                    i = k + 1;
+                    continue;
                 }
             }
             _ => {}
