@@ -94,3 +94,38 @@ def test_export_matches_pytorch_in_onnx_runtime(tmp_path):
     on_disk = json.loads((tmp_path / "model.json").read_text())
     assert on_disk == manifest and on_disk["residual"] is True
     assert on_disk["input"]["channels"][:5] == ["color.r", "color.g", "color.b", "coverage", "insert"]
+
+
+def test_training_steps_reduce_the_loss_on_a_fixed_window():
+    from training.train import run_window
+
+    torch.manual_seed(0)
+    rng = np.random.default_rng(0)
+    n, fr, h, w = 2, 3, 32, 32
+    base = torch.from_numpy(rng.random((n, fr, 3, 4, 4)).astype(np.float32))
+    tgt = torch.nn.functional.interpolate(base.view(n * fr, 3, 4, 4), size=(h, w), mode="bilinear").view(n, fr, 3, h, w)
+    cov = torch.ones(n, fr, 1, h, w)
+    cov[..., 10:16, 12:20] = 0.0  # a hole
+    noisy = (tgt * 0.7 + 0.05 * torch.randn_like(tgt)).clamp(min=0) * cov
+    batch = {
+        "input": torch.cat([noisy, cov], 2),
+        "target": tgt,
+        "depth": torch.full((n, fr, 1, h, w), 3.0),
+        "motion": torch.zeros(n, fr, 2, h, w),
+        "insert": torch.zeros(n, fr, 1, h, w),
+        "shadow": torch.zeros(n, fr, 1, h, w),
+        "prefill": 1,
+        "temporal": True,
+    }
+    cfg = {"loss_gain": 4.0, "w_l2": 1.0, "w_patch": 0.2, "w_temporal": 0.5, "patches": 2}
+    model = Enhancer(ModelConfig(widths=(8, 8, 12, 16)))
+    opt = torch.optim.Adam(model.parameters(), lr=3e-3)
+    losses = []
+    for step in range(60):
+        loss, parts, outs = run_window(model, batch, cfg, np.random.default_rng([0, step]))
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(parts["l2"])
+    assert len(outs) == fr - 1  # the prefilled frame is not predicted
+    assert np.mean(losses[-5:]) < 0.3 * np.mean(losses[:3])
