@@ -2,7 +2,7 @@
 
 A small UNet for CPUs: the input (current frame encoded, coverage, insert
 mask, K reprojected previous enhanced frames with their validity) is
-pixel-unshuffled by 2, runs through dense 3x3 convolutions with ReLU at four
+pixel-unshuffled by 2, runs through dense 3x3 convolutions with leaky ReLU at four
 resolutions, is pixel-shuffled back and added to the encoded input color
 (residual). Channel names, color encoding and reprojection follow
 ``training/export_contract.md`` and ``core/src/backend/neural/``.
@@ -56,8 +56,17 @@ class ModelConfig:
         return ModelConfig(**d)
 
 
+NEGATIVE_SLOPE = 0.1
+
+
+def act() -> nn.Module:
+    """Leaky ReLU: plain ReLU layers died in training (the last decoder layer
+    went inactive); ONNX Runtime fuses LeakyRelu into Conv like Relu."""
+    return nn.LeakyReLU(NEGATIVE_SLOPE, inplace=True)
+
+
 def conv(cin: int, cout: int) -> nn.Module:
-    return nn.Sequential(nn.Conv2d(cin, cout, 3, padding=1), nn.ReLU(inplace=True))
+    return nn.Sequential(nn.Conv2d(cin, cout, 3, padding=1), act())
 
 
 class Enhancer(nn.Module):
@@ -79,7 +88,7 @@ class Enhancer(nn.Module):
         prev = cin
         for i, c in enumerate(w):
             if i > 0:
-                self.down.append(nn.Sequential(nn.Conv2d(prev, c, 3, stride=2, padding=1), nn.ReLU(inplace=True)))
+                self.down.append(nn.Sequential(nn.Conv2d(prev, c, 3, stride=2, padding=1), act()))
                 prev = c
             self.enc.append(nn.Sequential(conv(prev, c), conv(c, c)))
             prev = c
@@ -87,7 +96,8 @@ class Enhancer(nn.Module):
         for i in range(len(w) - 2, -1, -1):
             self.dec.append(nn.Sequential(conv(w[i + 1] + w[i], w[i]), conv(w[i], w[i])))
         self.head = nn.Conv2d(w[0], 3 * r * r, 3, padding=1)
-        nn.init.zeros_(self.head.weight)
+        # Small (not zero) so gradients reach every layer from the first step.
+        nn.init.normal_(self.head.weight, std=1e-3)
         nn.init.zeros_(self.head.bias)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:

@@ -93,6 +93,7 @@ def test_export_matches_pytorch_in_onnx_runtime(tmp_path):
     assert [i.name for i in proto.graph.input] == ["input"]
     on_disk = json.loads((tmp_path / "model.json").read_text())
     assert on_disk == manifest and on_disk["residual"] is True
+    assert 16 <= on_disk["tile_overlap"] <= 62 and on_disk["tile_size"] >= 4 * on_disk["tile_overlap"] + 2
     assert on_disk["input"]["channels"][:5] == ["color.r", "color.g", "color.b", "coverage", "insert"]
 
 
