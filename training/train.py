@@ -60,7 +60,7 @@ class SampleCache:
         return self.cache[key]
 
 
-def make_batch(cache: SampleCache, rng: np.random.Generator, cfg: dict) -> dict:
+def make_batch(cache: SampleCache, rng: np.random.Generator, cfg: dict, key: float = 0.18) -> dict:
     """A batch of windows: frames ``[B, F, C, H, W]`` tensors, F = prefill + unroll."""
     B, K, L = cfg["batch"], cfg["context_frames"], cfg["unroll"]
     crop_h, crop_w = cfg["crop"]
@@ -97,8 +97,14 @@ def make_batch(cache: SampleCache, rng: np.random.Generator, cfg: dict) -> dict:
         g = float(np.exp(rng.normal(0, 0.5)))
         inp[..., :3] *= g
         tgt *= g
-        items.append((inp, tgt, dep, mot, ins, shd, pre))
+        # The runtime computes the exposure scale over the whole frame, not the crop.
+        full = s["input"][fr].copy()
+        full[..., :3] *= g
+        with torch.no_grad():
+            scale = frame_scale(torch.from_numpy(full.transpose(0, 3, 1, 2).copy()), key).numpy()
+        items.append((inp, tgt, dep, mot, ins, shd, pre, scale))
     pre = min(it[6] for it in items)
+    scales = np.stack([it[7][len(it[7]) - min(len(i[0]) for i in items) :] for it in items])
     F_ = min(len(it[0]) for it in items)
 
     def stack(i):
@@ -115,6 +121,7 @@ def make_batch(cache: SampleCache, rng: np.random.Generator, cfg: dict) -> dict:
         "motion": stack(3),
         "insert": stack(4),
         "shadow": stack(5),
+        "scale": torch.from_numpy(scales.astype(np.float32)),
         "prefill": min(pre, F_ - 1),
         "temporal": temporal,
     }
@@ -182,7 +189,7 @@ def run_window(model: Enhancer, batch: dict, cfg: dict, rng: np.random.Generator
             hist = [reproject_hop(c, v, d_prev, d_cur, mv) for c, v in hist]
             # The depth of history frames is only needed one hop back (chaining).
         rgba = inp[:, f]
-        scale = frame_scale(rgba, mcfg.key)
+        scale = batch["scale"][:, f] if "scale" in batch else frame_scale(rgba, mcfg.key)
         gt_enc = encode(tgt[:, f], scale, mcfg.log_range)
         if f < pre:
             # Prefill: a near-truth "enhanced" frame (small random gain and blur).
@@ -322,7 +329,7 @@ def main(argv: list[str] | None = None) -> int:
     while step < args.steps:
         rng = np.random.default_rng([cfg["seed"], step])
         torch.manual_seed(cfg["seed"] * 1_000_003 + step)
-        batch = make_batch(cache, rng, cfg)
+        batch = make_batch(cache, rng, cfg, mcfg.key)
         # Cosine learning rate with a short warm-up.
         warmup = max(1, min(200, args.steps // 10))
         lr = (
