@@ -62,7 +62,20 @@ impl Taps {
         sum: 0.0,
     };
 
-    #[inline]
+    /// Renormalizes the kept weights to sum 1; `sum` keeps their sum before.
+    #[inline(always)]
+    fn normalized(mut self) -> Taps {
+        if self.sum > 0.0 {
+            let inv = 1.0 / self.sum;
+            for v in &mut self.w {
+                *v *= inv;
+            }
+            self.sum = self.sum.min(1.0);
+        }
+        self
+    }
+
+    #[inline(always)]
     fn sample(&self, plane: &[f32]) -> f32 {
         self.w[0] * plane[self.idx[0]]
             + self.w[1] * plane[self.idx[1]]
@@ -74,7 +87,7 @@ impl Taps {
 /// Bilinear taps at pixel position (`x`, `y`) (pixel centres at +0.5) in a
 /// `w` x `h` image. With `depth`, taps whose depth does not match `expected`
 /// are dropped.
-#[inline]
+#[inline(always)]
 fn taps(x: f32, y: f32, w: usize, h: usize, depth: Option<&[f32]>, expected: f32) -> Taps {
     let fx = x - 0.5;
     let fy = y - 0.5;
@@ -82,21 +95,59 @@ fn taps(x: f32, y: f32, w: usize, h: usize, depth: Option<&[f32]>, expected: f32
     if !(fx > -1.0 && fy > -1.0 && fx < w as f32 && fy < h as f32) {
         return Taps::NONE;
     }
-    let x0f = fx.floor();
-    let y0f = fy.floor();
-    let ax = fx - x0f;
-    let ay = fy - y0f;
-    let x0 = x0f as isize;
-    let y0 = y0f as isize;
-    let cand = [
-        (x0, y0, (1.0 - ax) * (1.0 - ay)),
-        (x0 + 1, y0, ax * (1.0 - ay)),
-        (x0, y0 + 1, (1.0 - ax) * ay),
-        (x0 + 1, y0 + 1, ax * ay),
+    // floor() of values > -1 without a libm call: truncate the shifted value.
+    let x0 = (fx + 1.0) as isize - 1;
+    let y0 = (fy + 1.0) as isize - 1;
+    let ax = fx - x0 as f32;
+    let ay = fy - y0 as f32;
+    let wt = [
+        (1.0 - ax) * (1.0 - ay),
+        ax * (1.0 - ay),
+        (1.0 - ax) * ay,
+        ax * ay,
     ];
+    if x0 >= 0 && y0 >= 0 && (x0 as usize) + 1 < w && (y0 as usize) + 1 < h {
+        // Interior: all four taps exist.
+        let i = y0 as usize * w + x0 as usize;
+        let idx = [i, i + 1, i + w, i + w + 1];
+        let Some(d) = depth else {
+            return Taps {
+                idx,
+                w: wt,
+                sum: 1.0,
+            };
+        };
+        let pass = [
+            depth_match(expected, d[idx[0]]),
+            depth_match(expected, d[idx[1]]),
+            depth_match(expected, d[idx[2]]),
+            depth_match(expected, d[idx[3]]),
+        ];
+        if pass == [true; 4] {
+            return Taps {
+                idx,
+                w: wt,
+                sum: 1.0,
+            };
+        }
+        let mut t = Taps {
+            idx,
+            w: wt,
+            sum: 0.0,
+        };
+        for n in 0..4 {
+            if !pass[n] || wt[n] <= 0.0 {
+                t.w[n] = 0.0;
+            }
+            t.sum += t.w[n];
+        }
+        return t.normalized();
+    }
+    // Border: drop the taps outside the image.
+    let cand = [(x0, y0), (x0 + 1, y0), (x0, y0 + 1), (x0 + 1, y0 + 1)];
     let mut t = Taps::NONE;
-    for (n, &(xi, yi, wt)) in cand.iter().enumerate() {
-        if wt <= 0.0 || xi < 0 || yi < 0 || xi >= w as isize || yi >= h as isize {
+    for (n, &(xi, yi)) in cand.iter().enumerate() {
+        if wt[n] <= 0.0 || xi < 0 || yi < 0 || xi >= w as isize || yi >= h as isize {
             continue;
         }
         let i = yi as usize * w + xi as usize;
@@ -106,17 +157,10 @@ fn taps(x: f32, y: f32, w: usize, h: usize, depth: Option<&[f32]>, expected: f32
             }
         }
         t.idx[n] = i;
-        t.w[n] = wt;
-        t.sum += wt;
+        t.w[n] = wt[n];
+        t.sum += wt[n];
     }
-    if t.sum > 0.0 {
-        let inv = 1.0 / t.sum;
-        for v in &mut t.w {
-            *v *= inv;
-        }
-        t.sum = t.sum.min(1.0);
-    }
-    t
+    t.normalized()
 }
 
 /// Runs `f(row, [row slices of each plane])` over all rows, in parallel on
@@ -185,23 +229,41 @@ pub(crate) enum Source<'a> {
 }
 
 impl Source<'_> {
-    /// Position in the next frame, expected depth there (NaN: unknown) and validity.
-    #[inline]
-    fn at(&self, i: usize, j: usize, w: usize) -> (f32, f32, f32, f32) {
-        let p = i * w + j;
+    /// Runs `f` with a function that gives, for pixel (row, col), the
+    /// position in the next frame, the expected depth there (NaN: unknown) and
+    /// the validity so far; one monomorphized loop per kind of source.
+    #[inline(always)]
+    fn with<R>(self, w: usize, f: impl SourceUser<R>) -> R {
         match self {
             Source::Current { motion, depth } => {
-                let n = motion.len();
-                (
-                    j as f32 + 0.5 + motion.data[p],
-                    i as f32 + 0.5 + motion.data[n + p],
-                    depth.map_or(f32::NAN, |d| d[p]),
-                    1.0,
-                )
+                let (mx, my) = (motion.plane(0), motion.plane(1));
+                match depth {
+                    Some(d) => f.run(&move |i: usize, j: usize| {
+                        let p = i * w + j;
+                        (j as f32 + 0.5 + mx[p], i as f32 + 0.5 + my[p], d[p], 1.0)
+                    }),
+                    None => f.run(&move |i: usize, j: usize| {
+                        let p = i * w + j;
+                        (
+                            j as f32 + 0.5 + mx[p],
+                            i as f32 + 0.5 + my[p],
+                            f32::NAN,
+                            1.0,
+                        )
+                    }),
+                }
             }
-            Source::Chain(c) => (c.x[p], c.y[p], c.depth[p], c.valid[p]),
+            Source::Chain(c) => f.run(&move |i: usize, j: usize| {
+                let p = i * w + j;
+                (c.x[p], c.y[p], c.depth[p], c.valid[p])
+            }),
         }
     }
+}
+
+/// A loop generic over how positions are found (see [`Source::with`]).
+trait SourceUser<R> {
+    fn run<S: Fn(usize, usize) -> (f32, f32, f32, f32) + Sync>(self, at: &S) -> R;
 }
 
 /// Samples history frame `frame`'s color at the positions of `src`.
@@ -210,35 +272,48 @@ pub(crate) fn hop_color(
     frame: &HistoryFrame,
     pool: Option<&rayon::ThreadPool>,
 ) -> ReprojectedFrame {
-    let (w, h) = (frame.color.width, frame.color.height);
-    let mut color = Image::zeros(w, h, 4);
-    let mut valid = vec![0.0f32; w * h];
-    let [c0, c1, c2, c3] = planes4(&mut color);
-    let hist = &frame.color;
-    let hdepth = frame.depth.as_deref();
-    par_rows(
-        pool,
-        [c0, c1, c2, c3, &mut valid],
-        w,
-        |i, [r0, r1, r2, r3, rv]| {
-            for j in 0..w {
-                let (x, y, d, v) = src.at(i, j, w);
-                if v <= 0.0 {
-                    continue;
+    src.with(frame.color.width, ColorHop { frame, pool })
+}
+
+struct ColorHop<'a> {
+    frame: &'a HistoryFrame,
+    pool: Option<&'a rayon::ThreadPool>,
+}
+
+impl SourceUser<ReprojectedFrame> for ColorHop<'_> {
+    fn run<S: Fn(usize, usize) -> (f32, f32, f32, f32) + Sync>(self, at: &S) -> ReprojectedFrame {
+        let frame = self.frame;
+        let (w, h) = (frame.color.width, frame.color.height);
+        let mut color = Image::zeros(w, h, 4);
+        let mut valid = vec![0.0f32; w * h];
+        let [c0, c1, c2, c3] = planes4(&mut color);
+        let hist = &frame.color;
+        let (p0, p1, p2, p3) = (hist.plane(0), hist.plane(1), hist.plane(2), hist.plane(3));
+        let hdepth = frame.depth.as_deref();
+        par_rows(
+            self.pool,
+            [c0, c1, c2, c3, &mut valid],
+            w,
+            |i, [r0, r1, r2, r3, rv]| {
+                for j in 0..w {
+                    let (x, y, d, v) = at(i, j);
+                    if v <= 0.0 {
+                        continue;
+                    }
+                    let t = taps(x, y, w, h, if d.is_nan() { None } else { hdepth }, d);
+                    if t.sum <= 0.0 {
+                        continue;
+                    }
+                    r0[j] = t.sample(p0);
+                    r1[j] = t.sample(p1);
+                    r2[j] = t.sample(p2);
+                    r3[j] = t.sample(p3);
+                    rv[j] = v * t.sum;
                 }
-                let t = taps(x, y, w, h, if d.is_nan() { None } else { hdepth }, d);
-                if t.sum <= 0.0 {
-                    continue;
-                }
-                r0[j] = t.sample(hist.plane(0));
-                r1[j] = t.sample(hist.plane(1));
-                r2[j] = t.sample(hist.plane(2));
-                r3[j] = t.sample(hist.plane(3));
-                rv[j] = v * t.sum;
-            }
-        },
-    );
-    ReprojectedFrame { color, valid }
+            },
+        );
+        ReprojectedFrame { color, valid }
+    }
 }
 
 /// Follows the motion vectors of history frame `frame` one hop further.
@@ -248,40 +323,52 @@ pub(crate) fn hop_chain(
     frame: &HistoryFrame,
     pool: Option<&rayon::ThreadPool>,
 ) -> Chain {
-    let (w, h) = (frame.color.width, frame.color.height);
-    let n = w * h;
-    let mut chain = Chain {
-        x: vec![0.0; n],
-        y: vec![0.0; n],
-        depth: vec![f32::NAN; n],
-        valid: vec![0.0; n],
-    };
-    let motion = frame
-        .motion
-        .as_ref()
-        .expect("hop_chain needs the frame's motion vectors");
-    let (mx, my) = (motion.plane(0), motion.plane(1));
-    let hdepth = frame.depth.as_deref();
-    let Chain { x, y, depth, valid } = &mut chain;
-    par_rows(pool, [x, y, depth, valid], w, |i, [rx, ry, rd, rv]| {
-        for j in 0..w {
-            let (x, y, d, v) = src.at(i, j, w);
-            if v <= 0.0 {
-                continue;
+    src.with(frame.color.width, ChainHop { frame, pool })
+}
+
+struct ChainHop<'a> {
+    frame: &'a HistoryFrame,
+    pool: Option<&'a rayon::ThreadPool>,
+}
+
+impl SourceUser<Chain> for ChainHop<'_> {
+    fn run<S: Fn(usize, usize) -> (f32, f32, f32, f32) + Sync>(self, at: &S) -> Chain {
+        let frame = self.frame;
+        let (w, h) = (frame.color.width, frame.color.height);
+        let n = w * h;
+        let mut chain = Chain {
+            x: vec![0.0; n],
+            y: vec![0.0; n],
+            depth: vec![f32::NAN; n],
+            valid: vec![0.0; n],
+        };
+        let motion = frame
+            .motion
+            .as_ref()
+            .expect("hop_chain needs the frame's motion vectors");
+        let (mx, my) = (motion.plane(0), motion.plane(1));
+        let hdepth = frame.depth.as_deref();
+        let Chain { x, y, depth, valid } = &mut chain;
+        par_rows(self.pool, [x, y, depth, valid], w, |i, [rx, ry, rd, rv]| {
+            for j in 0..w {
+                let (x, y, d, v) = at(i, j);
+                if v <= 0.0 {
+                    continue;
+                }
+                let t = taps(x, y, w, h, if d.is_nan() { None } else { hdepth }, d);
+                if t.sum <= 0.0 {
+                    continue;
+                }
+                rx[j] = x + t.sample(mx);
+                ry[j] = y + t.sample(my);
+                if let Some(hd) = hdepth {
+                    rd[j] = t.sample(hd);
+                }
+                rv[j] = v * t.sum;
             }
-            let t = taps(x, y, w, h, if d.is_nan() { None } else { hdepth }, d);
-            if t.sum <= 0.0 {
-                continue;
-            }
-            rx[j] = x + t.sample(mx);
-            ry[j] = y + t.sample(my);
-            if let Some(hd) = hdepth {
-                rd[j] = t.sample(hd);
-            }
-            rv[j] = v * t.sum;
-        }
-    });
-    chain
+        });
+        chain
+    }
 }
 
 /// Reprojects history frame `frame` with the current frame's depth and both
