@@ -216,8 +216,8 @@ pub struct Manifest {
     pub residual: bool,
     /// The network sees color premultiplied by coverage (`true`, holes are 0)
     /// or straight color (`false`, color divided by coverage where coverage
-    /// > 1e-3, else 0). Either way it predicts the complete frame (alpha 1)
-    /// in the same form as its input.
+    /// is at least 1e-3, else 0). Either way it predicts the complete frame
+    /// (alpha 1) in the same form as its input.
     #[serde(default = "default_true")]
     pub premultiplied: bool,
     /// Color encoding.

@@ -128,14 +128,14 @@ impl NeuralModel {
             options.threads
         };
         let session = (|| -> std::result::Result<ort::session::Session, ort::Error> {
-            Ok(ort::session::Session::builder(&env)?
+            ort::session::Session::builder(&env)?
                 .with_intra_threads(threads)?
                 .with_inter_threads(1)?
                 .with_parallel_execution(false)?
                 .with_deterministic_compute(true)?
                 .with_intra_op_spinning(false)?
                 .with_inter_op_spinning(false)?
-                .commit_from_memory(onnx)?)
+                .commit_from_memory(onnx)
         })()
         .map_err(|e| model_err(origin, format!("ONNX Runtime cannot load it: {e}")))?;
 
@@ -355,7 +355,7 @@ fn check_signature(
     let fixed = (dim(input[3]), dim(input[2]));
     for (d, name) in [(fixed.0, "width"), (fixed.1, "height")] {
         if let Some(d) = d {
-            if d % manifest.spatial_multiple != 0 || d < 2 * manifest.tile_overlap + 2 {
+            if !d.is_multiple_of(manifest.spatial_multiple) || d < 2 * manifest.tile_overlap + 2 {
                 return Err(model_err(
                     origin,
                     format!(
@@ -391,11 +391,21 @@ struct Sources<'a> {
     premultiplied: bool,
 }
 
+/// Writes `f(frame index)` for every window pixel (`xs`, `ys`: frame columns and rows).
+#[inline]
+fn each(out: &mut [f32], xs: &[usize], ys: &[usize], w: usize, f: impl Fn(usize) -> f32) {
+    for (row, &sy) in out.chunks_mut(xs.len()).zip(ys) {
+        let base = sy * w;
+        for (o, &sx) in row.iter_mut().zip(xs) {
+            *o = f(base + sx);
+        }
+    }
+}
+
 impl Sources<'_> {
     /// Fills one input channel of a tile window.
     fn fill(&self, ch: InputChannel, xs: &[usize], ys: &[usize], out: &mut [f32]) {
         let w = self.width;
-        let ww = xs.len();
         let straight = |v: f32, a: f32| -> f32 {
             if a >= COVERAGE_EPSILON {
                 v / a
@@ -403,59 +413,62 @@ impl Sources<'_> {
                 0.0
             }
         };
-        let mut each = |f: &dyn Fn(usize) -> f32| {
-            for (row, &sy) in out.chunks_mut(ww).zip(ys) {
-                let base = sy * w;
-                for (o, &sx) in row.iter_mut().zip(xs) {
-                    *o = f(base + sx);
-                }
-            }
-        };
         match ch {
             InputChannel::Color(c) => {
                 let p = self.color.plane(c);
                 match (self.premultiplied, self.coverage) {
-                    (false, Some(cov)) => each(&|i| self.codec.encode(straight(p[i], cov[i]))),
-                    _ => each(&|i| self.codec.encode(p[i])),
+                    (false, Some(cov)) => each(out, xs, ys, w, |i| {
+                        self.codec.encode(straight(p[i], cov[i]))
+                    }),
+                    _ => each(out, xs, ys, w, |i| self.codec.encode(p[i])),
                 }
             }
             InputChannel::Coverage => match self.coverage {
-                Some(cov) => each(&|i| cov[i]),
+                Some(cov) => each(out, xs, ys, w, |i| cov[i]),
                 None => out.fill(1.0),
             },
             InputChannel::Insert => match self.insert {
-                Some(m) => each(&|i| m[i]),
+                Some(m) => each(out, xs, ys, w, |i| m[i]),
                 None => out.fill(0.0),
             },
             InputChannel::Disparity => match self.depth {
-                Some(d) => each(&|i| 1.0 / (1.0 + d[i].max(0.0))),
+                Some(d) => each(out, xs, ys, w, |i| 1.0 / (1.0 + d[i].max(0.0))),
                 None => out.fill(0.0),
             },
             InputChannel::Normal(c) => match self.normal {
-                Some(n) => each(&|i| n.plane(c)[i]),
+                Some(n) => {
+                    let p = n.plane(c);
+                    each(out, xs, ys, w, |i| p[i])
+                }
                 None => out.fill(0.0),
             },
             InputChannel::Motion(c) => match self.motion {
-                Some(m) => each(&|i| m.plane(c)[i]),
+                Some(m) => {
+                    let p = m.plane(c);
+                    each(out, xs, ys, w, |i| p[i])
+                }
                 None => out.fill(0.0),
             },
             InputChannel::History(k, c) => match self.history.get(k) {
                 Some(h) => {
                     let (p, a) = (h.color.plane(c), h.color.plane(3));
                     if self.premultiplied {
-                        each(&|i| self.codec.encode(p[i]))
+                        each(out, xs, ys, w, |i| self.codec.encode(p[i]))
                     } else {
-                        each(&|i| self.codec.encode(straight(p[i], a[i])))
+                        each(out, xs, ys, w, |i| self.codec.encode(straight(p[i], a[i])))
                     }
                 }
                 None => out.fill(0.0),
             },
             InputChannel::HistoryAlpha(k) => match self.history.get(k) {
-                Some(h) => each(&|i| h.color.plane(3)[i]),
+                Some(h) => {
+                    let a = h.color.plane(3);
+                    each(out, xs, ys, w, |i| a[i])
+                }
                 None => out.fill(0.0),
             },
             InputChannel::Valid(k) => match self.history.get(k) {
-                Some(h) => each(&|i| h.valid[i]),
+                Some(h) => each(out, xs, ys, w, |i| h.valid[i]),
                 None => out.fill(0.0),
             },
         }
