@@ -61,16 +61,24 @@ impl Layout {
         let packed_pixel = channels
             .checked_mul(sample)
             .ok_or_else(|| Error::invalid(format!("{what}: channel count {channels} overflows")))?;
-        let pixel_stride = if pixel_stride == 0 { packed_pixel } else { pixel_stride };
+        let pixel_stride = if pixel_stride == 0 {
+            packed_pixel
+        } else {
+            pixel_stride
+        };
         if pixel_stride < packed_pixel {
             return Err(Error::invalid(format!(
                 "{what}: pixel stride {pixel_stride} bytes is smaller than {channels} channels of {sample} bytes"
             )));
         }
-        let packed_row = width
-            .checked_mul(pixel_stride)
-            .ok_or_else(|| Error::invalid(format!("{what}: width {width} x pixel stride overflows")))?;
-        let row_stride = if row_stride == 0 { packed_row } else { row_stride };
+        let packed_row = width.checked_mul(pixel_stride).ok_or_else(|| {
+            Error::invalid(format!("{what}: width {width} x pixel stride overflows"))
+        })?;
+        let row_stride = if row_stride == 0 {
+            packed_row
+        } else {
+            row_stride
+        };
         if row_stride < packed_row {
             return Err(Error::invalid(format!(
                 "{what}: row stride {row_stride} bytes is smaller than width {width} x pixel stride {pixel_stride}"
@@ -86,13 +94,23 @@ impl Layout {
             .and_then(|v| v.checked_add((width - 1).checked_mul(pixel_stride)?))
             .and_then(|v| v.checked_add(packed_pixel))
             .and_then(|v| v.checked_add(offset))
-            .ok_or_else(|| Error::invalid(format!("{what}: {width}x{height} image size overflows")))?;
+            .ok_or_else(|| {
+                Error::invalid(format!("{what}: {width}x{height} image size overflows"))
+            })?;
         if end > len {
             return Err(Error::invalid(format!(
                 "{what}: {width}x{height}x{channels} image needs {end} bytes, buffer has {len}"
             )));
         }
-        Ok(Layout { format, width, height, channels, offset, pixel_stride, row_stride })
+        Ok(Layout {
+            format,
+            width,
+            height,
+            channels,
+            offset,
+            pixel_stride,
+            row_stride,
+        })
     }
 
     #[inline]
@@ -124,7 +142,15 @@ impl<'a> ImageView<'a> {
         row_stride: usize,
     ) -> Result<Self> {
         let layout = Layout::new(
-            what, data.len(), format, width, height, channels, offset, pixel_stride, row_stride,
+            what,
+            data.len(),
+            format,
+            width,
+            height,
+            channels,
+            offset,
+            pixel_stride,
+            row_stride,
         )?;
         Ok(ImageView { data, layout })
     }
@@ -137,7 +163,17 @@ impl<'a> ImageView<'a> {
         height: usize,
         channels: usize,
     ) -> Result<Self> {
-        Self::new(what, f32_bytes(data), PixelFormat::F32, width, height, channels, 0, 0, 0)
+        Self::new(
+            what,
+            f32_bytes(data),
+            PixelFormat::F32,
+            width,
+            height,
+            channels,
+            0,
+            0,
+            0,
+        )
     }
 
     /// Width in pixels.
@@ -179,23 +215,38 @@ impl<'a> ImageView<'a> {
         let l = &self.layout;
         debug_assert_eq!(out.len(), l.width);
         let base = l.index(0, y, c);
+        let n = l.width;
         match l.format {
             PixelFormat::F32 => {
-                for (x, o) in out.iter_mut().enumerate() {
-                    let i = base + x * l.pixel_stride;
-                    *o = f32::from_ne_bytes([
-                        self.data[i],
-                        self.data[i + 1],
-                        self.data[i + 2],
-                        self.data[i + 3],
-                    ]);
+                let (step, start) = (l.pixel_stride / 4, base / 4);
+                if let Some(samples) = aligned::<f32>(self.data) {
+                    let row = &samples[start..start + (n - 1) * step + 1];
+                    if step == 1 {
+                        out.copy_from_slice(row);
+                    } else {
+                        out.iter_mut()
+                            .zip(row.iter().step_by(step))
+                            .for_each(|(o, v)| *o = *v);
+                    }
+                } else {
+                    let row = &self.data[base..base + (n - 1) * l.pixel_stride + 4];
+                    for (o, b) in out.iter_mut().zip(row.chunks(l.pixel_stride)) {
+                        *o = f32::from_ne_bytes([b[0], b[1], b[2], b[3]]);
+                    }
                 }
             }
             PixelFormat::F16 => {
-                for (x, o) in out.iter_mut().enumerate() {
-                    let i = base + x * l.pixel_stride;
-                    *o = half::f16::from_bits(u16::from_ne_bytes([self.data[i], self.data[i + 1]]))
-                        .to_f32();
+                let (step, start) = (l.pixel_stride / 2, base / 2);
+                if let Some(samples) = aligned::<u16>(self.data) {
+                    let row = &samples[start..start + (n - 1) * step + 1];
+                    out.iter_mut()
+                        .zip(row.iter().step_by(step))
+                        .for_each(|(o, v)| *o = half::f16::from_bits(*v).to_f32());
+                } else {
+                    let row = &self.data[base..base + (n - 1) * l.pixel_stride + 2];
+                    for (o, b) in out.iter_mut().zip(row.chunks(l.pixel_stride)) {
+                        *o = half::f16::from_bits(u16::from_ne_bytes([b[0], b[1]])).to_f32();
+                    }
                 }
             }
         }
@@ -224,7 +275,15 @@ impl<'a> ImageViewMut<'a> {
         row_stride: usize,
     ) -> Result<Self> {
         let layout = Layout::new(
-            what, data.len(), format, width, height, channels, offset, pixel_stride, row_stride,
+            what,
+            data.len(),
+            format,
+            width,
+            height,
+            channels,
+            offset,
+            pixel_stride,
+            row_stride,
         )?;
         Ok(ImageViewMut { data, layout })
     }
@@ -237,7 +296,17 @@ impl<'a> ImageViewMut<'a> {
         height: usize,
         channels: usize,
     ) -> Result<Self> {
-        Self::new(what, f32_bytes_mut(data), PixelFormat::F32, width, height, channels, 0, 0, 0)
+        Self::new(
+            what,
+            f32_bytes_mut(data),
+            PixelFormat::F32,
+            width,
+            height,
+            channels,
+            0,
+            0,
+            0,
+        )
     }
 
     /// Width in pixels.
@@ -258,22 +327,57 @@ impl<'a> ImageViewMut<'a> {
         let l = self.layout;
         debug_assert_eq!(src.len(), l.width);
         let base = l.index(0, y, c);
+        let n = l.width;
         match l.format {
             PixelFormat::F32 => {
-                for (x, v) in src.iter().enumerate() {
-                    let i = base + x * l.pixel_stride;
-                    self.data[i..i + 4].copy_from_slice(&v.to_ne_bytes());
+                let (step, start) = (l.pixel_stride / 4, base / 4);
+                if let Some(samples) = aligned_mut::<f32>(self.data) {
+                    let row = &mut samples[start..start + (n - 1) * step + 1];
+                    if step == 1 {
+                        row.copy_from_slice(src);
+                    } else {
+                        row.iter_mut()
+                            .step_by(step)
+                            .zip(src)
+                            .for_each(|(o, v)| *o = *v);
+                    }
+                } else {
+                    let row = &mut self.data[base..base + (n - 1) * l.pixel_stride + 4];
+                    for (b, v) in row.chunks_mut(l.pixel_stride).zip(src) {
+                        b[..4].copy_from_slice(&v.to_ne_bytes());
+                    }
                 }
             }
             PixelFormat::F16 => {
-                for (x, v) in src.iter().enumerate() {
-                    let i = base + x * l.pixel_stride;
-                    self.data[i..i + 2]
-                        .copy_from_slice(&half::f16::from_f32(*v).to_bits().to_ne_bytes());
+                let (step, start) = (l.pixel_stride / 2, base / 2);
+                if let Some(samples) = aligned_mut::<u16>(self.data) {
+                    let row = &mut samples[start..start + (n - 1) * step + 1];
+                    row.iter_mut()
+                        .step_by(step)
+                        .zip(src)
+                        .for_each(|(o, v)| *o = half::f16::from_f32(*v).to_bits());
+                } else {
+                    let row = &mut self.data[base..base + (n - 1) * l.pixel_stride + 2];
+                    for (b, v) in row.chunks_mut(l.pixel_stride).zip(src) {
+                        b[..2].copy_from_slice(&half::f16::from_f32(*v).to_bits().to_ne_bytes());
+                    }
                 }
             }
         }
     }
+}
+
+/// The buffer as samples of `T` when its start is aligned for `T` (the tail
+/// that does not fill a whole sample is dropped; layouts never reach it).
+fn aligned<T: bytemuck::Pod>(data: &[u8]) -> Option<&[T]> {
+    let whole = data.len() / std::mem::size_of::<T>() * std::mem::size_of::<T>();
+    bytemuck::try_cast_slice(&data[..whole]).ok()
+}
+
+/// Mutable form of [`aligned`].
+fn aligned_mut<T: bytemuck::Pod>(data: &mut [u8]) -> Option<&mut [T]> {
+    let whole = data.len() / std::mem::size_of::<T>() * std::mem::size_of::<T>();
+    bytemuck::try_cast_slice_mut(&mut data[..whole]).ok()
 }
 
 /// The bytes of an f32 slice (native endianness).
@@ -284,4 +388,75 @@ pub(crate) fn f32_bytes(data: &[f32]) -> &[u8] {
 /// The mutable bytes of an f32 slice (native endianness).
 pub(crate) fn f32_bytes_mut(data: &mut [f32]) -> &mut [u8] {
     bytemuck::cast_slice_mut(data)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rgba_buffer_read_as_rgb_with_16_byte_stride() {
+        let data: Vec<f32> = (0..2 * 3 * 4).map(|i| i as f32).collect();
+        let v = ImageView::new(
+            "color",
+            f32_bytes(&data),
+            PixelFormat::F32,
+            3,
+            2,
+            3,
+            0,
+            16,
+            0,
+        )
+        .unwrap();
+        let mut row = [0.0; 3];
+        v.read_row(1, 2, &mut row);
+        assert_eq!(row, [14.0, 18.0, 22.0]);
+        assert_eq!(v.get(2, 1, 1), 21.0);
+    }
+
+    #[test]
+    fn unaligned_and_f16_buffers_read_and_write() {
+        // f32 samples starting one byte into the buffer: the byte path.
+        let vals = [1.5f32, -2.0, 3.25, 4.0];
+        let mut bytes = vec![0u8; 1 + 16];
+        for (i, v) in vals.iter().enumerate() {
+            bytes[1 + 4 * i..5 + 4 * i].copy_from_slice(&v.to_ne_bytes());
+        }
+        let v = ImageView::new("x", &bytes[1..], PixelFormat::F32, 4, 1, 1, 0, 0, 0).unwrap();
+        let mut row = [0.0; 4];
+        v.read_row(0, 0, &mut row);
+        assert_eq!(row, vals);
+        let mut out = vec![0u8; 1 + 16];
+        let mut w =
+            ImageViewMut::new("y", &mut out[1..], PixelFormat::F32, 4, 1, 1, 0, 0, 0).unwrap();
+        w.write_row(0, 0, &vals);
+        assert_eq!(&out[1..], &bytes[1..]);
+
+        let halfs: Vec<u16> = [0.5f32, 1.0, 2.0]
+            .iter()
+            .map(|v| half::f16::from_f32(*v).to_bits())
+            .collect();
+        let hb: Vec<u8> = halfs.iter().flat_map(|h| h.to_ne_bytes()).collect();
+        let v = ImageView::new("h", &hb, PixelFormat::F16, 3, 1, 1, 0, 0, 0).unwrap();
+        let mut row = [0.0; 3];
+        v.read_row(0, 0, &mut row);
+        assert_eq!(row, [0.5, 1.0, 2.0]);
+    }
+
+    #[test]
+    fn short_buffers_and_overflow_are_refused() {
+        let data = vec![0.0f32; 11];
+        let e = ImageView::from_f32("depth", &data, 4, 3, 1)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("depth") && e.contains("48") && e.contains("44"),
+            "{e}"
+        );
+        let e = ImageView::new("c", &[0u8; 4], PixelFormat::F32, usize::MAX, 2, 1, 0, 0, 0)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("overflow"), "{e}");
+    }
 }
