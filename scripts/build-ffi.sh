@@ -1,0 +1,45 @@
+#!/usr/bin/env bash
+# Builds libharmonizer (release: shared and static) and installs the header,
+# the libraries, a pkg-config file and a CMake package into a prefix.
+#
+#   scripts/build-ffi.sh [PREFIX]     # default: target/dist
+#
+# Then: pkg-config --cflags --libs harmonizer (PKG_CONFIG_PATH=PREFIX/lib/pkgconfig)
+# or CMake: find_package(harmonizer) with CMAKE_PREFIX_PATH=PREFIX.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+ROOT=$PWD
+PREFIX=${1:-$ROOT/target/dist}
+mkdir -p "$PREFIX"
+PREFIX=$(cd "$PREFIX" && pwd)
+
+cargo build --release -p harmonizer-ffi
+TARGET_DIR=${CARGO_TARGET_DIR:-$ROOT/target}
+VERSION=$(sed -n 's/^#define HZ_VERSION_STRING "\(.*\)"$/\1/p' ffi/include/harmonizer.h)
+MAJOR=${VERSION%%.*}
+case "$(uname -s)" in
+    Darwin) SHARED=libharmonizer.dylib ;;
+    *) SHARED=libharmonizer.so ;;
+esac
+STATIC=libharmonizer.a
+# The system libraries the Rust static library needs (rustc's native-static-libs).
+STATIC_LIBS=$(cargo rustc --release -q -p harmonizer-ffi --lib --crate-type staticlib -- --print native-static-libs 2>&1 |
+    sed -n 's/.*native-static-libs: //p' | tail -n 1)
+STATIC_LIBS=${STATIC_LIBS:--lpthread -ldl -lm}
+
+install -d "$PREFIX/include" "$PREFIX/lib/pkgconfig" "$PREFIX/lib/cmake/harmonizer"
+install -m 644 ffi/include/harmonizer.h "$PREFIX/include/"
+install -m 755 "$TARGET_DIR/release/$SHARED" "$PREFIX/lib/"
+install -m 644 "$TARGET_DIR/release/$STATIC" "$PREFIX/lib/"
+subst() {
+    sed -e "s|@PREFIX@|$PREFIX|g" -e "s|@VERSION@|$VERSION|g" -e "s|@VERSION_MAJOR@|$MAJOR|g" \
+        -e "s|@SHARED_NAME@|$SHARED|g" -e "s|@STATIC_NAME@|$STATIC|g" -e "s|@STATIC_LIBS@|$STATIC_LIBS|g" "$1"
+}
+subst ffi/harmonizer.pc.in >"$PREFIX/lib/pkgconfig/harmonizer.pc"
+subst cmake/harmonizer-config.cmake.in >"$PREFIX/lib/cmake/harmonizer/harmonizer-config.cmake"
+subst cmake/harmonizer-config-version.cmake.in >"$PREFIX/lib/cmake/harmonizer/harmonizer-config-version.cmake"
+# The Python binding, with the library next to it (found without HARMONIZER_LIB).
+install -d "$PREFIX/python/harmonizer"
+install -m 644 ffi/python/harmonizer/*.py ffi/python/harmonizer/py.typed "$PREFIX/python/harmonizer/"
+install -m 755 "$TARGET_DIR/release/$SHARED" "$PREFIX/python/harmonizer/"
+echo "installed libharmonizer $VERSION into $PREFIX"

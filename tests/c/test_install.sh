@@ -1,0 +1,56 @@
+#!/usr/bin/env bash
+# Installs libharmonizer into a fresh prefix (scripts/build-ffi.sh) and builds
+# examples/c/enhance_sequence.c the ways a host would: with pkg-config (shared
+# and static) and with CMake's find_package(harmonizer) (imported targets
+# harmonizer::harmonizer and harmonizer::harmonizer_static); runs each, and
+# checks that the shared library exports only hz_* symbols.
+set -euo pipefail
+ROOT=$(cd "$(dirname "$0")/../.." && pwd)
+WORK=$(mktemp -d "${TMPDIR:-/tmp}/harmonizer-install.XXXXXX")
+trap 'rm -rf "$WORK"' EXIT
+PREFIX=$WORK/prefix
+"$ROOT/scripts/build-ffi.sh" "$PREFIX"
+EXAMPLE=$ROOT/examples/c/enhance_sequence.c
+WARN="-Wall -Wextra -Werror -pedantic"
+
+echo "== exported symbols"
+bad=$(nm -D --defined-only "$PREFIX/lib/libharmonizer.so" | awk '{print $3}' | grep -v '^hz_' || true)
+if [[ -n "$bad" ]]; then
+    echo "FAIL: libharmonizer.so exports symbols other than hz_*:"; echo "$bad" | head; exit 1
+fi
+echo "ok: $(nm -D --defined-only "$PREFIX/lib/libharmonizer.so" | grep -c ' hz_') hz_* symbols, nothing else"
+
+echo "== pkg-config"
+export PKG_CONFIG_PATH=$PREFIX/lib/pkgconfig
+[[ "$(pkg-config --modversion harmonizer)" == "$(sed -n 's/^#define HZ_VERSION_STRING "\(.*\)"$/\1/p' "$ROOT/ffi/include/harmonizer.h")" ]]
+# shellcheck disable=SC2046
+gcc -std=c99 $WARN "$EXAMPLE" $(pkg-config --cflags --libs harmonizer) -Wl,-rpath,"$PREFIX/lib" -lm -o "$WORK/enhance_pc_shared"
+# shellcheck disable=SC2046
+gcc -std=c99 $WARN "$EXAMPLE" $(pkg-config --cflags harmonizer) "$PREFIX/lib/libharmonizer.a" \
+    $(pkg-config --static --libs-only-l harmonizer | sed 's/-lharmonizer//') -lm -o "$WORK/enhance_pc_static"
+mkdir -p "$WORK/frames"
+"$WORK/enhance_pc_shared" 6 64 36 "$WORK/frames" | tail -n 2
+"$WORK/enhance_pc_static" 3 64 36 | tail -n 1
+[[ -s "$WORK/frames/output_0005.pfm" ]]
+if ldd "$WORK/enhance_pc_static" | grep -q libharmonizer; then
+    echo "FAIL: the static build links libharmonizer.so"; exit 1
+fi
+
+echo "== CMake find_package(harmonizer)"
+CMAKE=${CMAKE:-$(command -v cmake || true)}
+if [[ -z "$CMAKE" && -x "$ROOT/.venv/bin/cmake" ]]; then CMAKE=$ROOT/.venv/bin/cmake; fi
+if [[ -z "$CMAKE" ]]; then
+    echo "cmake not found: installing it from PyPI into .venv (pip install cmake)"
+    "$ROOT/.venv/bin/python" -m pip install -q cmake
+    CMAKE=$ROOT/.venv/bin/cmake
+fi
+"$CMAKE" -S "$ROOT/tests/c/cmake" -B "$WORK/cmake-build" -DCMAKE_PREFIX_PATH="$PREFIX" -DCMAKE_BUILD_TYPE=Release >/dev/null
+"$CMAKE" --build "$WORK/cmake-build" >/dev/null
+LD_LIBRARY_PATH=$PREFIX/lib "$WORK/cmake-build/enhance_shared" 3 64 36 | tail -n 1
+"$WORK/cmake-build/enhance_static" 3 64 36 | tail -n 1
+
+echo "== Python binding next to its library"
+(cd "$WORK" && env -u HARMONIZER_LIB PYTHONPATH="$PREFIX/python" "$ROOT/.venv/bin/python" -c \
+    "import harmonizer as hz, numpy as np; s = hz.Session(hz.Device(), backend='bypass'); \
+c = np.ones((4, 4, 4), np.float32); assert (s.process(c)[..., :3] == 1).all(); print('ok: python', hz.version())")
+echo "install test passed"
