@@ -728,7 +728,6 @@ pub unsafe extern "C" fn hz_session_process(
                 "parameter {name:?} was set but not committed; call hz_session_commit first"
             )));
         }
-        let prev_index = s.report.as_ref().and_then(|r| r.frame_index);
         let progress = s.progress;
         let mut on_progress = progress.map(|p| move |v: f64| p.call(v));
         let (image, report) = {
@@ -747,20 +746,18 @@ pub unsafe extern "C" fn hz_session_process(
         // reference to the host's buffers is alive.
         unsafe { out.write(&image) };
         if let Some(m) = s.message {
-            if let Some(r) = report.reset.filter(|r| *r != ResetReason::FirstFrame) {
+            // Frame gaps already come with a warning from the core.
+            let reset = report
+                .reset
+                .filter(|r| !matches!(r, ResetReason::FirstFrame | ResetReason::FrameGap));
+            if let Some(r) = reset {
                 let idx = report
                     .frame_index
                     .map_or("?".to_string(), |i| i.to_string());
-                match (r, prev_index) {
-                    (ResetReason::FrameGap, Some(p)) => m.call(
-                        hz_message_level::HZ_MESSAGE_WARNING,
-                        &format!("frame {idx}: not consecutive to frame {p}; temporal state reset (gap_policy reset)"),
-                    ),
-                    _ => m.call(
-                        hz_message_level::HZ_MESSAGE_INFO,
-                        &format!("frame {idx}: temporal state reset ({})", r.name()),
-                    ),
-                }
+                m.call(
+                    hz_message_level::HZ_MESSAGE_INFO,
+                    &format!("frame {idx}: temporal state reset ({})", r.name()),
+                );
             }
             for w in &report.warnings {
                 m.call(hz_message_level::HZ_MESSAGE_WARNING, w);

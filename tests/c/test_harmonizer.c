@@ -275,6 +275,7 @@ static void test_nan_inf(hz_device *device) {
     f.rgba[10] = -INFINITY;
     f.rgba[17] = -1.0f;
     f.depth[3] = NAN;
+    f.motion[6] = 1e6f; /* far longer than the image */
     describe(&d, &f, 0, 1);
     CHECK_OK(hz_session_set_message_callback(s, on_message, &m));
     CHECK_OK(hz_session_process(s, &d.frame, &o));
@@ -292,7 +293,8 @@ static void test_nan_inf(hz_device *device) {
         CHECK(hz_session_get_report_warning(s, 99, text, sizeof text, NULL) == HZ_ERROR_INVALID_ARGUMENT,
               "warning index out of range");
     }
-    CHECK(m.warnings >= 1 && strstr(m.last, "NaN") != NULL, "message callback: %d, %s", m.warnings, m.last);
+    CHECK(m.warnings >= 3, "message callback: %d warnings (color NaN, AOV NaN, motion), last: %s", m.warnings, m.last);
+    CHECK(strstr(m.last, "longer than the image") != NULL, "motion warning: %s", m.last);
     free(out);
     free_frame(&f);
     CHECK_OK(hz_session_free(s));
@@ -510,6 +512,38 @@ static void test_cancel(hz_device *device) {
     }
 }
 
+/* A callback that calls back into its own session is refused, not deadlocked. */
+typedef struct reentry {
+    hz_session *session;
+    hz_status status;
+} reentry;
+
+static bool reenter(void *user, double p) {
+    reentry *r = (reentry *)user;
+    size_t n = 0;
+    (void)p;
+    r->status = hz_session_get_history_length(r->session, &n);
+    return true;
+}
+
+static void test_reentry(hz_device *device) {
+    size_t w = 8, h = 4;
+    hz_session *s = new_session(device, "bypass");
+    frame_data f = make_frame(w, h, 0);
+    frame_desc d;
+    float *out = alloc_floats(w * h * 4);
+    hz_image o = image(out, w, h, 4, 0);
+    reentry r = {NULL, HZ_OK};
+    r.session = s;
+    describe(&d, &f, 0, 0);
+    CHECK_OK(hz_session_set_progress_callback(s, reenter, &r));
+    CHECK_OK(hz_session_process(s, &d.frame, &o));
+    CHECK(r.status == HZ_ERROR_INVALID_OPERATION, "re-entry status %u", (unsigned)r.status);
+    free(out);
+    free_frame(&f);
+    CHECK_OK(hz_session_free(s));
+}
+
 /* ---- two sessions on two threads: same results as one after the other ---- */
 
 typedef struct worker {
@@ -582,6 +616,7 @@ int main(void) {
     test_bad_arguments(device);
     test_resize(device);
     test_cancel(device);
+    test_reentry(device);
     test_threads(device);
     CHECK_OK(hz_device_free(device));
     printf("%s: %d checks, %d failures\n", failures ? "FAILED" : "ok", checks, failures);
