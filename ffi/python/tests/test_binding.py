@@ -290,3 +290,33 @@ def test_missing_library_is_reported():
         [sys.executable, "-c", code], env=env, cwd=REPO / "ffi" / "python", capture_output=True, text=True, check=True
     )
     assert "/nonexistent/libharmonizer.so" in r.stdout and "cargo build" in r.stdout
+
+
+FIXTURES = REPO / "core" / "tests" / "fixtures" / "models"
+
+
+def test_neural_model_from_file_and_bytes():
+    """The real ONNX Runtime through the ABI, on the core's identity fixture model."""
+    onnx = FIXTURES / "identity.onnx"
+    color, cov, *_ = frame(hole=False)
+    for model in (onnx, (onnx.read_bytes(), (FIXTURES / "identity.json").read_text())):
+        with hz.Device(threads=2, model=model) as d, hz.Session(d, backend="neural", stabilize=False) as s:
+            assert s.backend_name == "neural"
+            assert (s.model_name, s.model_version) == ("identity", "1.0.0")
+            out = s.process(color, coverage=cov, frame_index=0)
+            np.testing.assert_allclose(out[..., :3], color[..., :3], rtol=1e-3, atol=1e-4)
+            assert s.last_report["backend"] == "neural"
+
+
+def test_model_and_runtime_errors():
+    onnx = FIXTURES / "identity.onnx"
+    with hz.Device(model=onnx, ort_library="/nonexistent/libonnxruntime.so") as d:
+        with pytest.raises(hz.RuntimeMissingError) as e:
+            hz.Session(d, backend="neural")
+        assert e.value.status == hz.Status.RUNTIME_MISSING and "/nonexistent/libonnxruntime.so" in str(e.value)
+    with hz.Device(model=FIXTURES / "no_such_model.onnx") as d:
+        with pytest.raises((hz.ModelError, hz.IoError)) as e:
+            hz.Session(d, backend="neural")
+        assert "no_such_model" in str(e.value)
+    with pytest.raises(hz.InvalidArgumentError, match="model"):
+        hz.Device(model=(b"", "{}"))
