@@ -5,7 +5,8 @@
 //! then an interleaved comparison (direct and ABI calls alternate frame by
 //! frame, so load from other processes hits both alike) that prints the
 //! median ms/frame of each path and the overhead in percent (target <= 2 %).
-//! `-- --summary-only` skips the criterion groups.
+//! `-- --summary-only` skips the criterion groups; `cargo test --benches`
+//! runs each criterion benchmark once and skips the summary.
 
 use std::ffi::CString;
 use std::ptr::null;
@@ -296,14 +297,20 @@ fn interleaved() -> Vec<String> {
 }
 
 fn main() {
-    let summary_only = std::env::args().any(|a| a == "--summary-only");
+    let args: Vec<String> = std::env::args().collect();
+    // `cargo bench` passes `--bench`; without it (`cargo test --benches`)
+    // criterion runs each benchmark once as a test and the summary is skipped.
+    let benching = args.iter().any(|a| a == "--bench");
+    let summary_only = args.iter().any(|a| a == "--summary-only");
     if !summary_only {
         let mut c = Criterion::default().configure_from_args();
         criterion_groups(&mut c);
         c.final_summary();
     }
-    println!("ABI overhead (median ms/frame, direct and ABI interleaved):");
-    for line in interleaved() {
-        println!("{line}");
+    if benching || summary_only {
+        println!("ABI overhead (median ms/frame, direct and ABI interleaved):");
+        for line in interleaved() {
+            println!("{line}");
+        }
     }
 }
