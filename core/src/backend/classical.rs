@@ -3,7 +3,8 @@
 //!
 //! 1. **inpaint** (`fill_holes`): pixels with coverage < 1 are completed
 //!    from the reprojected history (frame 0, then older frames only where
-//!    still missing), then by push-pull over a window around what is left.
+//!    still missing, and only while more than [`OLDER_HISTORY_MIN_HOLES`] of
+//!    the frame is missing), then by push-pull over a window around the rest.
 //! 2. **harmonize** (`harmonize`, needs the insert mask): the insert's color
 //!    statistics are matched part of the way to a ring of background; the
 //!    filter parameters are smoothed over time in the [`Carry`] (key
@@ -25,6 +26,10 @@ use crate::ops::{harmonize, inpaint, par_bands_mut, shadow, stabilize};
 
 /// Carry key of the smoothed harmonization filter ([`harmonize::Tone::to_vec`]).
 pub const TONE_KEY: &str = "classical.harmonize.tone";
+
+/// Share of the frame that must still be missing after history frame `k`
+/// for frame `k + 1` to be reprojected and used for hole filling.
+pub const OLDER_HISTORY_MIN_HOLES: f64 = 0.01;
 
 /// The classical pipeline.
 #[derive(Debug, Default)]
@@ -69,7 +74,11 @@ pub fn run_ops(
         let mut holes = stages.time("inpaint", || pool.install(|| inpaint::find_holes(img)));
         let mut k = 0;
         while let Some(hh) = holes {
-            if k >= history.len() {
+            // Older frames only while much is missing: reprojecting one costs
+            // more than the rest of the pipeline, and push-pull fills small
+            // residues well.
+            let enough = k == 0 || hh.count as f64 > OLDER_HISTORY_MIN_HOLES * (w * h) as f64;
+            if k >= history.len() || !enough {
                 break;
             }
             let past = stages.time("reproject", || pool.install(|| history.reproject(k)));
@@ -87,13 +96,23 @@ pub fn run_ops(
     }
     progress.report(0.4)?;
 
-    match (&frame.insert_mask, params.harmonize) {
-        (Some(mask), true) => {
+    // The insert's bounding box, shared by harmonization and the shadow.
+    let insert = match &frame.insert_mask {
+        Some(mask) if params.harmonize || params.contact_shadows => stages
+            .time("harmonize", || {
+                pool.install(|| harmonize::insert_rect(mask, w, h))
+            })
+            .map(|rect| (mask, rect)),
+        _ => None,
+    };
+    match insert {
+        Some((mask, rect)) if params.harmonize => {
             let estimate = stages.time("harmonize", || {
                 pool.install(|| {
                     harmonize::estimate(
                         img,
                         mask,
+                        rect,
                         frame.coverage.as_deref(),
                         frame.depth.as_deref(),
                     )
@@ -109,7 +128,7 @@ pub fn run_ops(
             };
             if let Some(tone) = tone {
                 stages.time("harmonize", || {
-                    pool.install(|| harmonize::apply(img, mask, &tone))
+                    pool.install(|| harmonize::apply(img, mask, rect, &tone))
                 });
                 carry.values.insert(TONE_KEY.to_string(), tone.to_vec());
             }
@@ -121,9 +140,11 @@ pub fn run_ops(
     progress.report(0.6)?;
 
     if params.contact_shadows && params.shadow_strength > 0.0 {
-        if let (Some(mask), Some(depth)) = (&frame.insert_mask, &frame.depth) {
+        if let (Some((mask, rect)), Some(depth)) = (insert, &frame.depth) {
             stages.time("shadow", || {
-                pool.install(|| shadow::contact_shadow(img, mask, depth, params.shadow_strength))
+                pool.install(|| {
+                    shadow::contact_shadow(img, mask, rect, depth, params.shadow_strength)
+                })
             });
         }
     }

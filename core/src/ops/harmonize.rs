@@ -18,7 +18,7 @@
 
 use rayon::prelude::*;
 
-use super::{bbox_above, fast_exp2, fast_log2, par_bands_mut, Rect, EMPTY_DEPTH};
+use super::{bbox_above, fast_exp2, fast_log2, fmax, par_bands_mut, Rect, EMPTY_DEPTH};
 use crate::frame::Image;
 
 /// Cell size (pixels) of the downsampled mask the ring is built on.
@@ -215,7 +215,7 @@ pub struct Ring {
     pub grid_height: usize,
     /// Ring cells, row-major.
     pub cells: Vec<bool>,
-    /// Bounding box of the insert (mask above 0.02).
+    /// Bounding box of the insert (mask above 0).
     pub insert: Rect,
 }
 
@@ -229,9 +229,14 @@ impl Ring {
     }
 }
 
-/// Builds the ring around the insert mask; `None` when the mask is empty.
-pub fn ring(mask: &[f32], width: usize, height: usize) -> Option<Ring> {
-    let (insert, _) = bbox_above(mask, width, height, 0.02)?;
+/// The bounding box of an insert mask (pixels with mask > 0).
+pub fn insert_rect(mask: &[f32], width: usize, height: usize) -> Option<Rect> {
+    bbox_above(mask, width, height, 0.0).map(|(r, _)| r)
+}
+
+/// Builds the ring around the insert mask whose bounding box is `insert`
+/// (see [`insert_rect`]); `None` when no cell of the mask exceeds 0.02.
+pub fn ring(mask: &[f32], insert: Rect, width: usize, height: usize) -> Option<Ring> {
     let size = insert.width().max(insert.height());
     let ring_px = (size / 4).clamp(8, 128);
     let r_cells = ring_px.div_ceil(RING_CELL);
@@ -256,6 +261,9 @@ pub fn ring(mask: &[f32], width: usize, height: usize) -> Option<Ring> {
         .collect();
     let inner = dilate(&inside, gw, gh, 1);
     let outer = dilate(&inside, gw, gh, r_cells);
+    if !inside.iter().any(|&v| v) {
+        return None;
+    }
     let cells = outer.iter().zip(&inner).map(|(&o, &i)| o && !i).collect();
     Some(Ring {
         area,
@@ -267,7 +275,8 @@ pub fn ring(mask: &[f32], width: usize, height: usize) -> Option<Ring> {
 }
 
 /// Statistics of the insert and of its ring in a 4-plane image, sampling
-/// every other pixel in both directions. `coverage` (the renderer's, before
+/// every other pixel in both directions (sparser for large inserts, about
+/// 32k samples at most). `coverage` (the renderer's, before
 /// hole filling) down-weights filled pixels; `depth` excludes empty pixels
 /// from the ring. `None` when either region has too few samples.
 pub fn measure(
@@ -280,13 +289,19 @@ pub fn measure(
     let w = img.width;
     let area = ring.area;
     let planes = [img.plane(0), img.plane(1), img.plane(2), img.plane(3)];
-    let rows: Vec<usize> = (area.y0..area.y1).step_by(2).collect();
+    // Every `step`-th pixel in both directions: at least every other one,
+    // at most about 32k samples.
+    let step = ((area.width() * area.height()) as f64 / 32768.0)
+        .sqrt()
+        .ceil()
+        .clamp(2.0, 16.0) as usize;
+    let rows: Vec<usize> = (area.y0..area.y1).step_by(step).collect();
     let partial: Vec<(Sums, Sums)> = rows
         .par_iter()
         .map(|&y| {
             let mut si = [0.0; 7];
             let mut sb = [0.0; 7];
-            for x in (area.x0..area.x1).step_by(2) {
+            for x in (area.x0..area.x1).step_by(step) {
                 let p = y * w + x;
                 let a = planes[3][p];
                 if a <= 1e-3 {
@@ -362,10 +377,11 @@ pub fn tone_from_stats(insert: &Stats, ring: &Stats) -> Tone {
 pub fn estimate(
     img: &Image,
     mask: &[f32],
+    insert: Rect,
     coverage: Option<&[f32]>,
     depth: Option<&[f32]>,
 ) -> Option<Tone> {
-    let ring = ring(mask, img.width, img.height)?;
+    let ring = ring(mask, insert, img.width, img.height)?;
     let (si, sb) = measure(img, mask, &ring, coverage, depth)?;
     Some(tone_from_stats(&si, &sb))
 }
@@ -373,40 +389,40 @@ pub fn estimate(
 /// Applies `tone` to the insert in place, weighted by the mask: per pixel
 /// `mu' = pivot + exposure + contrast * (mu - pivot)` and
 /// `l'_k = mu' + saturation * chi_k + wb_k`, then `c'_k = c_k * 2^(l'_k - l_k)`
-/// (so black stays black). Only pixels inside the mask's bounding box are read.
-pub fn apply(img: &mut Image, mask: &[f32], tone: &Tone) {
-    let (w, h) = (img.width, img.height);
-    let Some((rect, _)) = bbox_above(mask, w, h, 0.0) else {
-        return;
-    };
-    if tone.is_identity() {
+/// (so black stays black). Only pixels inside `insert` (the mask's bounding
+/// box, [`insert_rect`]) are touched.
+pub fn apply(img: &mut Image, mask: &[f32], insert: Rect, tone: &Tone) {
+    let w = img.width;
+    let rect = insert;
+    if tone.is_identity() || rect.is_empty() {
         return;
     }
     let t = *tone;
     par_bands_mut(img, rect.y0, rect.y1).for_each(|(y0, [r, g, b, a])| {
         let rows = a.len() / w;
         for dy in 0..rows {
-            for x in rect.x0..rect.x1 {
-                let p = (y0 + dy) * w + x;
-                let m = mask[p];
-                let i = dy * w + x;
-                let cov = a[i];
-                if m <= 0.0 || cov <= 1e-6 {
-                    continue;
-                }
-                let k = 1.0 / cov;
-                let c = [r[i] * k, g[i] * k, b[i] * k];
-                let (l, mu, chi) = log_color(c[0], c[1], c[2]);
+            let span = dy * w + rect.x0..dy * w + rect.x1;
+            let mrow = &mask[(y0 + dy) * w + rect.x0..(y0 + dy) * w + rect.x1];
+            let (rr, gr, br) = (
+                &mut r[span.clone()],
+                &mut g[span.clone()],
+                &mut b[span.clone()],
+            );
+            let ar = &a[span];
+            // Branch-free so it vectorizes; m = 0 leaves a pixel exactly as it was.
+            for x in 0..mrow.len() {
+                let m = mrow[x];
+                let k = 1.0 / fmax(ar[x], 1e-6);
+                let (l, mu, chi) = log_color(rr[x] * k, gr[x] * k, br[x] * k);
                 let mu2 = t.pivot + t.exposure + t.contrast * (mu - t.pivot);
-                let mut out = [0.0f32; 3];
-                for ch in 0..3 {
+                let gain = |ch: usize| {
                     let l2 = mu2 + t.saturation * chi[ch] + t.white_balance[ch];
-                    let changed = c[ch] * fast_exp2(l2 - l[ch]);
-                    out[ch] = (c[ch] + m * (changed - c[ch])) * cov;
-                }
-                r[i] = out[0];
-                g[i] = out[1];
-                b[i] = out[2];
+                    1.0 + m * (fast_exp2(l2 - l[ch]) - 1.0)
+                };
+                let (g0, g1, g2) = (gain(0), gain(1), gain(2));
+                rr[x] *= g0;
+                gr[x] *= g1;
+                br[x] *= g2;
             }
         }
     });
@@ -444,7 +460,7 @@ mod tests {
     #[test]
     fn ring_surrounds_the_insert_without_touching_it() {
         let (_, mask) = scene(160, 120, |t| [t; 3]);
-        let ring = ring(&mask, 160, 120).unwrap();
+        let ring = ring(&mask, insert_rect(&mask, 160, 120).unwrap(), 160, 120).unwrap();
         assert_eq!(
             ring.insert,
             Rect {
@@ -492,11 +508,12 @@ mod tests {
             e
         };
         let before = err(&img);
-        let tone = estimate(&img, &mask, None, None).unwrap();
+        let rect = insert_rect(&mask, 160, 120).unwrap();
+        let tone = estimate(&img, &mask, rect, None, None).unwrap();
         assert!(tone.exposure < -0.5, "{tone:?}");
         assert!(tone.white_balance[2] < -0.2, "{tone:?}");
         assert!(tone.contrast > 1.0, "{tone:?}");
-        apply(&mut img, &mask, &tone);
+        apply(&mut img, &mask, rect, &tone);
         let after = err(&img);
         assert!(after < 0.5 * before, "log error {before} -> {after}");
         // The background is untouched.
@@ -507,12 +524,13 @@ mod tests {
     fn a_matching_insert_stays_nearly_unchanged() {
         let (mut img, mask) = scene(160, 120, |t| [0.6 * t, 0.5 * t, 0.4 * t]);
         let orig = img.clone();
-        let tone = estimate(&img, &mask, None, None).unwrap();
+        let rect = insert_rect(&mask, 160, 120).unwrap();
+        let tone = estimate(&img, &mask, rect, None, None).unwrap();
         assert!(
             tone.exposure.abs() < 0.1 && tone.white_balance.iter().all(|v| v.abs() < 0.05),
             "{tone:?}"
         );
-        apply(&mut img, &mask, &tone);
+        apply(&mut img, &mask, rect, &tone);
         for (a, b) in img.data.iter().zip(&orig.data) {
             assert!((a - b).abs() <= 0.1 * b.abs() + 1e-4);
         }
@@ -539,6 +557,8 @@ mod tests {
     #[test]
     fn empty_mask_means_no_estimate() {
         let img = Image::filled(32, 32, 4, 0.5);
-        assert!(estimate(&img, &[0.0; 32 * 32], None, None).is_none());
+        assert!(insert_rect(&[0.0; 32 * 32], 32, 32).is_none());
+        let faint = vec![0.01; 32 * 32];
+        assert!(estimate(&img, &faint, Rect::full(32, 32), None, None).is_none());
     }
 }

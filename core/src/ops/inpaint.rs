@@ -46,6 +46,9 @@ pub fn fill_from_history(img: &mut Image, history: &ReprojectedFrame, rect: Rect
             let rows = a.len() / w;
             for dy in 0..rows {
                 let y = y0 + dy;
+                if super::row_min(&a[dy * w + rect.x0..dy * w + rect.x1]) >= FULL {
+                    continue;
+                }
                 let mut first = None;
                 let mut last = 0;
                 let mut count = 0;
@@ -99,45 +102,97 @@ pub fn fill_from_history(img: &mut Image, history: &ReprojectedFrame, rect: Rect
 }
 
 /// The window push-pull works in for holes inside `holes`: the holes' box
-/// grown by its own size (at least 64 pixels) so large holes see enough
-/// surroundings, clipped to the image.
+/// grown by an eighth of its size (32 to 128 pixels), clipped to the image.
+/// Every hole inside the box is surrounded by data inside the window, so
+/// the fill only loses the weak far-field influence of the rest of the frame.
 pub fn fill_window(holes: Rect, width: usize, height: usize) -> Rect {
-    let margin = holes.width().max(holes.height()).max(64);
+    let margin = (holes.width().max(holes.height()) / 8).clamp(32, 128);
     holes.expand(margin, width, height)
 }
 
 /// One pyramid level: 4 planes, RGB premultiplied by the weight in plane 3.
 type Level = Image;
 
+/// A window of a 4-plane image: planes with a row stride and an origin.
+struct View<'a> {
+    planes: [&'a [f32]; 4],
+    stride: usize,
+    x0: usize,
+    y0: usize,
+    width: usize,
+    height: usize,
+}
+
+impl<'a> View<'a> {
+    fn of(img: &'a Image, window: Rect) -> View<'a> {
+        View {
+            planes: [img.plane(0), img.plane(1), img.plane(2), img.plane(3)],
+            stride: img.width,
+            x0: window.x0,
+            y0: window.y0,
+            width: window.width(),
+            height: window.height(),
+        }
+    }
+
+    fn row(&self, c: usize, y: usize) -> &'a [f32] {
+        let s = (self.y0 + y) * self.stride + self.x0;
+        &self.planes[c][s..s + self.width]
+    }
+}
+
+/// Sums pairs: `out[i] = a[2i] + a[2i+1] (+ b[2i] + b[2i+1])`, a lone last sample alone.
+fn pair_sums(a: &[f32], b: Option<&[f32]>, out: &mut [f32]) {
+    let pairs = a.len() / 2;
+    match b {
+        Some(b) => {
+            for ((o, p), q) in out.iter_mut().zip(a.chunks_exact(2)).zip(b.chunks_exact(2)) {
+                *o = (p[0] + p[1]) + (q[0] + q[1]);
+            }
+            if a.len() % 2 == 1 {
+                out[pairs] = a[a.len() - 1] + b[b.len() - 1];
+            }
+        }
+        None => {
+            for (o, p) in out.iter_mut().zip(a.chunks_exact(2)) {
+                *o = p[0] + p[1];
+            }
+            if a.len() % 2 == 1 {
+                out[pairs] = a[a.len() - 1];
+            }
+        }
+    }
+}
+
 /// Pull step: 2x2 box sums with the weight clamped to 1 (a coarse pixel is
 /// complete as soon as one fine pixel's worth of data falls into it).
-fn pull(src: &[&[f32]; 4], sw: usize, sh: usize) -> Level {
+fn pull(src: &View<'_>) -> Level {
+    let (sw, sh) = (src.width, src.height);
     let (dw, dh) = (sw.div_ceil(2), sh.div_ceil(2));
     let mut dst = Image::zeros(dw, dh, 4);
     par_bands_mut(&mut dst, 0, dh).for_each(|(y0, [r, g, b, a])| {
         let rows = a.len() / dw;
+        let mut k = vec![0.0f32; dw];
         for dy in 0..rows {
             let y = y0 + dy;
-            let ys = 2 * y..(2 * y + 2).min(sh);
-            for x in 0..dw {
-                let mut s = [0.0f32; 4];
-                for sy in ys.clone() {
-                    for sx in 2 * x..(2 * x + 2).min(sw) {
-                        let i = sy * sw + sx;
-                        for (c, acc) in s.iter_mut().enumerate() {
-                            *acc += src[c][i];
-                        }
-                    }
-                }
-                let wsum = s[3];
-                let o = dy * dw + x;
-                if wsum > 0.0 {
-                    let wc = wsum.min(1.0);
-                    let k = wc / wsum;
-                    r[o] = s[0] * k;
-                    g[o] = s[1] * k;
-                    b[o] = s[2] * k;
-                    a[o] = wc;
+            let (sy0, sy1) = (2 * y, 2 * y + 1);
+            let two = |c: usize| (src.row(c, sy0), (sy1 < sh).then(|| src.row(c, sy1)));
+            let out = dy * dw..(dy + 1) * dw;
+            let (p, q) = two(3);
+            let ao = &mut a[out.clone()];
+            pair_sums(p, q, ao);
+            for (kk, wa) in k.iter_mut().zip(ao.iter_mut()) {
+                let wsum = *wa;
+                let wc = wsum.min(1.0);
+                *kk = if wsum > 0.0 { wc / wsum } else { 0.0 };
+                *wa = if wsum > 0.0 { wc } else { 0.0 };
+            }
+            for (c, plane) in [&mut *r, &mut *g, &mut *b].into_iter().enumerate() {
+                let (p, q) = two(c);
+                let o = &mut plane[out.clone()];
+                pair_sums(p, q, o);
+                for (v, kk) in o.iter_mut().zip(&k) {
+                    *v *= kk;
                 }
             }
         }
@@ -159,35 +214,63 @@ fn taps(fine: usize, coarse: usize) -> Vec<(usize, usize, f32)> {
         .collect()
 }
 
-/// Push step at a coarse level: completes `level` in place with the
-/// bilinearly upsampled, already complete `coarser` level.
+/// Push into one band of rows: every pixel of columns `xs` with A < 1 gets
+/// `C += (1 - A) * up(coarser)` and A = 1. `planes` hold whole rows of
+/// `stride` samples; `first` is the band's first row in the window's
+/// coordinates (the index into `ty`).
+#[allow(clippy::too_many_arguments)]
+fn push_band(
+    planes: [&mut [f32]; 4],
+    stride: usize,
+    xs: std::ops::Range<usize>,
+    first: usize,
+    tx: &[(usize, usize, f32)],
+    ty: &[(usize, usize, f32)],
+    coarser: &Level,
+    up: &mut [f32],
+) {
+    let [r, g, b, a] = planes;
+    let cw = coarser.width;
+    let rows = a.len() / stride;
+    for dy in 0..rows {
+        let row = dy * stride;
+        if super::row_min(&a[row + xs.start..row + xs.end]) >= FULL {
+            continue;
+        }
+        // The coarse level interpolated to this row, then per hole pixel across.
+        let (j0, j1, fy) = ty[first + dy];
+        for c in 0..3 {
+            let p = coarser.plane(c);
+            let (t, bt) = (&p[j0 * cw..(j0 + 1) * cw], &p[j1 * cw..(j1 + 1) * cw]);
+            for ((u, t), bt) in up[c * cw..(c + 1) * cw].iter_mut().zip(t).zip(bt) {
+                *u = t + fy * (bt - t);
+            }
+        }
+        for x in xs.clone() {
+            let o = row + x;
+            let cov = a[o];
+            if cov >= FULL {
+                continue;
+            }
+            let (i0, i1, fx) = tx[x - xs.start];
+            let m = 1.0 - cov;
+            for (c, out) in [&mut *r, &mut *g, &mut *b].into_iter().enumerate() {
+                let u = &up[c * cw..(c + 1) * cw];
+                out[o] += m * (u[i0] + fx * (u[i1] - u[i0]));
+            }
+            a[o] = 1.0;
+        }
+    }
+}
+
+/// Completes every pixel with A < 1 of `level` (all of it) from `coarser`.
 fn push_level(level: &mut Level, coarser: &Level) {
     let (w, h) = (level.width, level.height);
     let tx = taps(w, coarser.width);
     let ty = taps(h, coarser.height);
-    let cw = coarser.width;
-    let cp: [&[f32]; 3] = [coarser.plane(0), coarser.plane(1), coarser.plane(2)];
-    par_bands_mut(level, 0, h).for_each(|(y0, [r, g, b, a])| {
-        let rows = a.len() / w;
-        for dy in 0..rows {
-            let (j0, j1, fy) = ty[y0 + dy];
-            for x in 0..w {
-                let o = dy * w + x;
-                let cov = a[o];
-                if cov >= FULL {
-                    continue;
-                }
-                let (i0, i1, fx) = tx[x];
-                let m = 1.0 - cov;
-                for (c, out) in [&mut *r, &mut *g, &mut *b].into_iter().enumerate() {
-                    let p = cp[c];
-                    let top = p[j0 * cw + i0] + fx * (p[j0 * cw + i1] - p[j0 * cw + i0]);
-                    let bot = p[j1 * cw + i0] + fx * (p[j1 * cw + i1] - p[j1 * cw + i0]);
-                    out[o] += m * (top + fy * (bot - top));
-                }
-                a[o] = 1.0;
-            }
-        }
+    par_bands_mut(level, 0, h).for_each(|(y0, planes)| {
+        let mut up = vec![0.0f32; 3 * coarser.width];
+        push_band(planes, w, 0..w, y0, &tx, &ty, coarser, &mut up);
     });
 }
 
@@ -201,34 +284,16 @@ pub fn push_pull(img: &mut Image, window: Rect) {
     }
     let (w0, h0) = (window.width(), window.height());
     let width = img.width;
-    // Level 0 is the window; copy it out when it is not the whole image so the
-    // pyramid code works on packed planes.
-    let whole = window == Rect::full(img.width, img.height);
-    let packed: Option<Level> = (!whole).then(|| {
-        let mut lv = Image::zeros(w0, h0, 4);
-        for c in 0..4 {
-            let src = img.plane(c);
-            let dst = lv.plane_mut(c);
-            for y in 0..h0 {
-                let s = (window.y0 + y) * width + window.x0;
-                dst[y * w0..(y + 1) * w0].copy_from_slice(&src[s..s + w0]);
-            }
-        }
-        lv
-    });
-    let base: &Image = packed.as_ref().unwrap_or(img);
-    let src = [base.plane(0), base.plane(1), base.plane(2), base.plane(3)];
 
     // Pull until a level has no holes or is a single pixel.
-    let mut levels: Vec<Level> = vec![pull(&src, w0, h0)];
+    let mut levels: Vec<Level> = vec![pull(&View::of(img, window))];
     loop {
         let last = levels.last().expect("one level");
-        let complete = last.plane(3).iter().all(|&a| a >= FULL);
+        let complete = super::row_min(last.plane(3)) >= FULL;
         if complete || (last.width == 1 && last.height == 1) {
             break;
         }
-        let s = [last.plane(0), last.plane(1), last.plane(2), last.plane(3)];
-        let next = pull(&s, last.width, last.height);
+        let next = pull(&View::of(last, Rect::full(last.width, last.height)));
         levels.push(next);
     }
     // The coarsest level: normalize to opaque color (0 where nothing at all).
@@ -254,29 +319,18 @@ pub fn push_pull(img: &mut Image, window: Rect) {
     let l1 = &levels[0];
     let tx = taps(w0, l1.width);
     let ty = taps(h0, l1.height);
-    let cw = l1.width;
-    let cp: [&[f32]; 3] = [l1.plane(0), l1.plane(1), l1.plane(2)];
-    par_bands_mut(img, window.y0, window.y1).for_each(|(y0, [r, g, b, a])| {
-        let rows = a.len() / width;
-        for dy in 0..rows {
-            let (j0, j1, fy) = ty[y0 + dy - window.y0];
-            for x in window.x0..window.x1 {
-                let o = dy * width + x;
-                let cov = a[o];
-                if cov >= FULL {
-                    continue;
-                }
-                let (i0, i1, fx) = tx[x - window.x0];
-                let m = 1.0 - cov;
-                for (c, out) in [&mut *r, &mut *g, &mut *b].into_iter().enumerate() {
-                    let p = cp[c];
-                    let top = p[j0 * cw + i0] + fx * (p[j0 * cw + i1] - p[j0 * cw + i0]);
-                    let bot = p[j1 * cw + i0] + fx * (p[j1 * cw + i1] - p[j1 * cw + i0]);
-                    out[o] += m * (top + fy * (bot - top));
-                }
-                a[o] = 1.0;
-            }
-        }
+    par_bands_mut(img, window.y0, window.y1).for_each(|(y0, planes)| {
+        let mut up = vec![0.0f32; 3 * l1.width];
+        push_band(
+            planes,
+            width,
+            window.x0..window.x1,
+            y0 - window.y0,
+            &tx,
+            &ty,
+            l1,
+            &mut up,
+        );
     });
 }
 

@@ -14,7 +14,7 @@
 
 use rayon::prelude::*;
 
-use super::{bbox_above, par_bands_mut, Rect, EMPTY_DEPTH};
+use super::{fast_exp2, fmax, fmin, par_bands_mut, Rect, EMPTY_DEPTH};
 use crate::frame::Image;
 
 /// Relative depth difference at which the shadow falls to 1/e.
@@ -78,43 +78,65 @@ fn gaussian(sigma: f32) -> Vec<f32> {
         .collect()
 }
 
-/// Builds the shadow map of the insert in `mask` standing at `depth`.
-/// `None` when the mask is empty or no footprint pixel has a depth.
-pub fn shadow_map(mask: &[f32], depth: &[f32], width: usize, height: usize) -> Option<ShadowMap> {
-    let (rect, _) = bbox_above(mask, width, height, 0.5)?;
-    // Footprint: lowest insert pixel per column and the insert's depth there
-    // (one pixel inside the edge when possible: edge depth may be background).
+/// Builds the shadow map of the insert in `mask` (bounding box `insert`, see
+/// [`super::harmonize::insert_rect`]) standing at `depth`. `None` when no
+/// pixel of the mask exceeds 0.5 or no footprint pixel has a depth.
+pub fn shadow_map(
+    mask: &[f32],
+    depth: &[f32],
+    insert: Rect,
+    width: usize,
+    height: usize,
+) -> Option<ShadowMap> {
+    // Footprint: lowest insert pixel per column (row-major scan: the last
+    // row that has the column inside wins) and the insert's depth there, one
+    // pixel inside the edge when possible (edge depth may be background).
+    let iw = insert.width();
+    let mut lowest = vec![usize::MAX; iw];
+    let mut above = vec![usize::MAX; iw];
+    for y in insert.y0..insert.y1 {
+        let row = &mask[y * width + insert.x0..y * width + insert.x1];
+        for (i, &m) in row.iter().enumerate() {
+            if m > 0.5 {
+                if lowest[i] != usize::MAX && lowest[i] + 1 == y {
+                    above[i] = lowest[i];
+                } else {
+                    above[i] = usize::MAX;
+                }
+                lowest[i] = y;
+            }
+        }
+    }
     let mut foot: Vec<(usize, usize, f32)> = Vec::new();
-    for x in rect.x0..rect.x1 {
-        let Some(yb) = (rect.y0..rect.y1)
-            .rev()
-            .find(|&y| mask[y * width + x] > 0.5)
-        else {
+    let (mut fx0, mut fx1) = (usize::MAX, 0);
+    let (mut ymin, mut ymax) = (usize::MAX, 0);
+    for i in 0..iw {
+        let yb = lowest[i];
+        if yb == usize::MAX {
             continue;
-        };
-        let yi = if yb > rect.y0 && mask[(yb - 1) * width + x] > 0.5 {
-            yb - 1
-        } else {
-            yb
-        };
+        }
+        let x = insert.x0 + i;
+        let yi = if above[i] != usize::MAX { above[i] } else { yb };
         let d = depth[yi * width + x];
         if d.is_finite() && d > 0.0 && d < EMPTY_DEPTH {
             foot.push((x, yb, d));
+            fx0 = fx0.min(x);
+            fx1 = fx1.max(x + 1);
+            ymin = ymin.min(yb);
+            ymax = ymax.max(yb);
         }
     }
     if foot.is_empty() {
         return None;
     }
-    let size = (rect.width() as f32)
-        .max(0.25 * rect.height() as f32)
+    let size = ((fx1 - fx0) as f32)
+        .max(0.25 * insert.height() as f32)
         .max(8.0);
     let (sx, sb, sa) = (SIGMA_SIDE * size, SIGMA_BELOW * size, SIGMA_ABOVE * size);
     let cell = ((size / 48.0) as usize).clamp(1, 4);
-    let ymin = foot.iter().map(|f| f.1).min().expect("footprint");
-    let ymax = foot.iter().map(|f| f.1).max().expect("footprint");
     let area = Rect {
-        x0: rect.x0.saturating_sub((3.0 * sx).ceil() as usize),
-        x1: (rect.x1 + (3.0 * sx).ceil() as usize).min(width),
+        x0: fx0.saturating_sub((3.0 * sx).ceil() as usize),
+        x1: (fx1 + (3.0 * sx).ceil() as usize).min(width),
         y0: ymin.saturating_sub((3.0 * sa).ceil() as usize + 1),
         y1: (ymax + (3.0 * sb).ceil() as usize + 2).min(height),
     };
@@ -131,44 +153,59 @@ pub fn shadow_map(mask: &[f32], depth: &[f32], width: usize, height: usize) -> O
     // Horizontal: normalized Gaussian.
     let kx = gaussian(sx / cell as f32);
     let kx_sum: f32 = kx.iter().sum();
+    let kx: Vec<f32> = kx.iter().map(|k| k / kx_sum).collect();
     let rx = kx.len() / 2;
     let mut tmp_o = vec![0.0f32; gw * gh];
     let mut tmp_d = vec![0.0f32; gw * gh];
     for y in 0..gh {
+        let (so_row, sd_row) = (&occ[y * gw..(y + 1) * gw], &dep[y * gw..(y + 1) * gw]);
+        if so_row.iter().all(|&v| v == 0.0) {
+            continue;
+        }
         for x in 0..gw {
             let (mut so, mut sd) = (0.0, 0.0);
-            for (t, k) in kx.iter().enumerate() {
-                let xs = x as isize + t as isize - rx as isize;
-                if xs < 0 || xs >= gw as isize {
-                    continue;
-                }
-                so += k * occ[y * gw + xs as usize];
-                sd += k * dep[y * gw + xs as usize];
+            let lo = x.saturating_sub(rx);
+            let hi = (x + rx + 1).min(gw);
+            for xs in lo..hi {
+                let k = kx[xs + rx - x];
+                so += k * so_row[xs];
+                sd += k * sd_row[xs];
             }
-            tmp_o[y * gw + x] = so / kx_sum;
-            tmp_d[y * gw + x] = sd / kx_sum;
+            tmp_o[y * gw + x] = so;
+            tmp_d[y * gw + x] = sd;
         }
     }
-    // Vertical: peak-1 asymmetric kernel; source `dy` rows above the target
-    // (target below the footprint) uses the long reach.
+    // Vertical: peak-1 asymmetric kernel; a source `dy` rows above the
+    // target (the target below the footprint) uses the long reach.
     let (sbc, sac) = (sb / cell as f32, (sa / cell as f32).max(0.5));
     let rb = (3.0 * sbc).ceil() as isize;
     let ra = (3.0 * sac).ceil() as isize;
-    for x in 0..gw {
-        for y in 0..gh {
-            let (mut so, mut sd) = (0.0, 0.0);
-            for dy in -ra..=rb {
-                let ys = y as isize - dy;
-                if ys < 0 || ys >= gh as isize {
-                    continue;
-                }
-                let s = if dy >= 0 { sbc } else { sac };
-                let k = (-0.5 * (dy * dy) as f32 / (s * s)).exp();
-                so += k * tmp_o[ys as usize * gw + x];
-                sd += k * tmp_d[ys as usize * gw + x];
+    let kv: Vec<f32> = (-ra..=rb)
+        .map(|dy| {
+            let s = if dy >= 0 { sbc } else { sac };
+            (-0.5 * (dy * dy) as f32 / (s * s)).exp()
+        })
+        .collect();
+    occ.fill(0.0);
+    dep.fill(0.0);
+    for ys in 0..gh {
+        let (so_row, sd_row) = (
+            &tmp_o[ys * gw..(ys + 1) * gw],
+            &tmp_d[ys * gw..(ys + 1) * gw],
+        );
+        if so_row.iter().all(|&v| v == 0.0) {
+            continue;
+        }
+        for (t, &k) in kv.iter().enumerate() {
+            let y = ys as isize + t as isize - ra;
+            if y < 0 || y >= gh as isize {
+                continue;
             }
-            occ[y * gw + x] = so;
-            dep[y * gw + x] = sd;
+            let y = y as usize;
+            for x in 0..gw {
+                occ[y * gw + x] += k * so_row[x];
+                dep[y * gw + x] += k * sd_row[x];
+            }
         }
     }
     for (o, d) in occ.iter_mut().zip(dep.iter_mut()) {
@@ -190,40 +227,82 @@ pub fn shadow_map(mask: &[f32], depth: &[f32], width: usize, height: usize) -> O
     })
 }
 
-/// Darkens the background of a 4-plane image under the insert by
-/// `strength` at most. Returns the area touched, `None` when nothing was.
-pub fn contact_shadow(img: &mut Image, mask: &[f32], depth: &[f32], strength: f32) -> Option<Rect> {
-    if strength <= 0.0 {
+/// Darkens the background of a 4-plane image under the insert (bounding box
+/// `insert`) by `strength` at most. Returns the area touched, `None` when
+/// nothing was.
+pub fn contact_shadow(
+    img: &mut Image,
+    mask: &[f32],
+    insert: Rect,
+    depth: &[f32],
+    strength: f32,
+) -> Option<Rect> {
+    if strength <= 0.0 || insert.is_empty() {
         return None;
     }
     let (w, h) = (img.width, img.height);
-    let map = shadow_map(mask, depth, w, h)?;
+    let map = shadow_map(mask, depth, insert, w, h)?;
     let area = map.area;
-    par_bands_mut(img, area.y0, area.y1).for_each(|(y0, [r, g, b, a])| {
-        let rows = a.len() / w;
+    let gw = map.grid_width;
+    let f = map.cell as f32;
+    // Horizontal bilinear taps per column of the area.
+    let tx: Vec<(usize, usize, f32)> = (area.x0..area.x1)
+        .map(|x| {
+            let u = (((x - area.x0) as f32 + 0.5) / f - 0.5).clamp(0.0, (gw - 1) as f32);
+            let i0 = u as usize;
+            (i0, (i0 + 1).min(gw - 1), u - i0 as f32)
+        })
+        .collect();
+    // -(z^2) in log2 units for fast_exp2.
+    let k = -std::f32::consts::LOG2_E / (DEPTH_TOLERANCE * DEPTH_TOLERANCE);
+    par_bands_mut(img, area.y0, area.y1).for_each(|(y0, [r, g, b, _a])| {
+        let rows = r.len() / w;
+        let mut orow = vec![0.0f32; gw];
+        let mut drow = vec![0.0f32; gw];
+        let mut ofull = vec![0.0f32; tx.len()];
+        let mut dfull = vec![0.0f32; tx.len()];
         for dy in 0..rows {
             let y = y0 + dy;
-            for x in area.x0..area.x1 {
-                let p = y * w + x;
-                let m = mask[p];
-                if m >= 1.0 {
-                    continue;
-                }
-                let (o, fd) = map.sample(x, y);
-                if o <= 1e-4 {
-                    continue;
-                }
-                let d = depth[p];
-                if !(d.is_finite() && d < EMPTY_DEPTH) || fd <= 0.0 {
-                    continue;
-                }
-                let z = (d - fd) / (DEPTH_TOLERANCE * fd);
-                let s = strength * o * (-z * z).exp() * (1.0 - m);
-                let k = 1.0 - s;
-                let i = dy * w + x;
-                r[i] *= k;
-                g[i] *= k;
-                b[i] *= k;
+            let v =
+                (((y - area.y0) as f32 + 0.5) / f - 0.5).clamp(0.0, (map.grid_height - 1) as f32);
+            let j0 = v as usize;
+            let j1 = (j0 + 1).min(map.grid_height - 1);
+            let fy = v - j0 as f32;
+            let (o0, o1) = (
+                &map.occlusion[j0 * gw..(j0 + 1) * gw],
+                &map.occlusion[j1 * gw..(j1 + 1) * gw],
+            );
+            if o0.iter().chain(o1).all(|&o| o <= 1e-4) {
+                continue;
+            }
+            let (d0, d1) = (
+                &map.depth[j0 * gw..(j0 + 1) * gw],
+                &map.depth[j1 * gw..(j1 + 1) * gw],
+            );
+            for i in 0..gw {
+                orow[i] = o0[i] + fy * (o1[i] - o0[i]);
+                drow[i] = d0[i] + fy * (d1[i] - d0[i]);
+            }
+            // Occlusion and footprint depth at full resolution (gathers),
+            // then a branch-free pass that vectorizes.
+            for (t, &(i0, i1, fx)) in tx.iter().enumerate() {
+                ofull[t] = orow[i0] + fx * (orow[i1] - orow[i0]);
+                dfull[t] = drow[i0] + fx * (drow[i1] - drow[i0]);
+            }
+            let span = dy * w + area.x0..dy * w + area.x1;
+            let full = y * w + area.x0..y * w + area.x1;
+            let (mrow, drow_px) = (&mask[full.clone()], &depth[full]);
+            let (rr, gr, br) = (&mut r[span.clone()], &mut g[span.clone()], &mut b[span]);
+            for x in 0..mrow.len() {
+                let (o, fd, m, d) = (ofull[x], dfull[x], mrow[x], drow_px[x]);
+                let ok = (o > 1e-4) & (m < 1.0) & (d < EMPTY_DEPTH) & (fd > 0.0);
+                // fmin also maps a NaN to the bound.
+                let z = fmin((d - fd) / fmax(fd, 1e-6), 1e3);
+                let s = strength * o * fast_exp2(k * z * z) * (1.0 - m) * (ok as u32 as f32);
+                let keep = 1.0 - s;
+                rr[x] *= keep;
+                gr[x] *= keep;
+                br[x] *= keep;
             }
         }
     });
@@ -268,7 +347,8 @@ mod tests {
     fn darkens_below_not_above_nor_far_nor_the_insert() {
         let (mut img, mask, depth) = scene();
         let w = img.width;
-        contact_shadow(&mut img, &mask, &depth, 0.6).unwrap();
+        let rect = crate::ops::harmonize::insert_rect(&mask, w, img.height).unwrap();
+        contact_shadow(&mut img, &mask, rect, &depth, 0.6).unwrap();
         let v = |x: usize, y: usize| img.at(x, y, 1);
         assert!(
             v(100, 111) < 0.5 * (1.0 - 0.4),
@@ -290,9 +370,12 @@ mod tests {
     fn no_shadow_without_insert_or_depth_or_strength() {
         let (mut img, mask, depth) = scene();
         let orig = img.clone();
-        assert!(contact_shadow(&mut img, &vec![0.0; mask.len()], &depth, 0.6).is_none());
-        assert!(contact_shadow(&mut img, &mask, &vec![1e10; depth.len()], 0.6).is_none());
-        assert!(contact_shadow(&mut img, &mask, &depth, 0.0).is_none());
+        let rect = crate::ops::harmonize::insert_rect(&mask, img.width, img.height).unwrap();
+        let empty = vec![0.0; mask.len()];
+        assert!(contact_shadow(&mut img, &empty, rect, &depth, 0.6).is_none());
+        assert!(contact_shadow(&mut img, &mask, Rect::default(), &depth, 0.6).is_none());
+        assert!(contact_shadow(&mut img, &mask, rect, &vec![1e10; depth.len()], 0.6).is_none());
+        assert!(contact_shadow(&mut img, &mask, rect, &depth, 0.0).is_none());
         assert_eq!(img, orig);
     }
 }

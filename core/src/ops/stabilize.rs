@@ -11,7 +11,7 @@
 
 use rayon::prelude::*;
 
-use super::{par_bands_mut, BAND_ROWS};
+use super::{fmax, fmin, par_bands_mut, BAND_ROWS};
 use crate::frame::Image;
 use crate::temporal::ReprojectedFrame;
 
@@ -93,6 +93,8 @@ pub fn stabilize(img: &mut Image, history: &ReprojectedFrame, blend: f32) {
         };
         let mut centre = edges[bi].0.clone();
         let mut below = vec![0.0; 3 * w];
+        let mut vlo = vec![0.0; 3 * w];
+        let mut vhi = vec![0.0; 3 * w];
         let mut lo = vec![0.0; 3 * w];
         let mut hi = vec![0.0; 3 * w];
         for dy in 0..rows {
@@ -106,49 +108,83 @@ pub fn stabilize(img: &mut Image, history: &ReprojectedFrame, blend: f32) {
                 below.copy_from_slice(&centre);
             }
             // Vertical then horizontal 3-tap min/max.
-            for i in 0..3 * w {
-                lo[i] = above[i].min(centre[i]).min(below[i]);
-                hi[i] = above[i].max(centre[i]).max(below[i]);
+            for (((l, hh), (a0, a1)), a2) in vlo
+                .iter_mut()
+                .zip(vhi.iter_mut())
+                .zip(above.iter().zip(centre.iter()))
+                .zip(below.iter())
+            {
+                *l = fmin(fmin(*a0, *a1), *a2);
+                *hh = fmax(fmax(*a0, *a1), *a2);
             }
             for c in 0..3 {
-                let l = &mut lo[c * w..(c + 1) * w];
-                let hh = &mut hi[c * w..(c + 1) * w];
-                let (mut lp, mut hp) = (l[0], hh[0]);
-                for x in 0..w {
-                    let xn = (x + 1).min(w - 1);
-                    let (lc, hc) = (l[x], hh[x]);
-                    l[x] = lp.min(lc).min(l[xn]);
-                    hh[x] = hp.max(hc).max(hh[xn]);
-                    lp = lc;
-                    hp = hc;
-                }
+                let span = c * w..(c + 1) * w;
+                min3(&vlo[span.clone()], &mut lo[span.clone()]);
+                max3(&vhi[span.clone()], &mut hi[span]);
             }
-            let row = dy * w;
+            let row = dy * w..(dy + 1) * w;
             let prow = y * w;
+            let (rr, gr, br, ar) = (
+                &mut r[row.clone()],
+                &mut g[row.clone()],
+                &mut b[row.clone()],
+                &a[row],
+            );
+            let hr = &hist[prow..prow + w];
+            let hg = &hist[n + prow..n + prow + w];
+            let hb = &hist[2 * n + prow..2 * n + prow + w];
+            let ha = &hist[3 * n + prow..3 * n + prow + w];
+            let vv = &valid[prow..prow + w];
+            let (ly, lco, lcg) = (&lo[..w], &lo[w..2 * w], &lo[2 * w..]);
+            let (hy, hco, hcg) = (&hi[..w], &hi[w..2 * w], &hi[2 * w..]);
             for x in 0..w {
-                let i = row + x;
-                let p = prow + x;
-                let cov = a[i];
-                let v = valid[p];
-                let ha = hist[3 * n + p];
-                if cov <= 0.0 || v <= 0.0 || ha <= MIN_HISTORY_ALPHA {
-                    continue;
-                }
-                let k = cov / ha;
-                let [hy, hco, hcg] = to_ycocg(hist[p] * k, hist[n + p] * k, hist[2 * n + p] * k);
-                let cy = hy.clamp(lo[x], hi[x]);
-                let cco = hco.clamp(lo[w + x], hi[w + x]);
-                let ccg = hcg.clamp(lo[2 * w + x], hi[2 * w + x]);
-                let [hr, hg, hb] = from_ycocg(cy, cco, ccg);
-                let wt = blend * v * ha.min(1.0);
-                r[i] = (r[i] + wt * (hr - r[i])).max(0.0);
-                g[i] = (g[i] + wt * (hg - g[i])).max(0.0);
-                b[i] = (b[i] + wt * (hb - b[i])).max(0.0);
+                let (cov, v, hav) = (ar[x], vv[x], ha[x]);
+                let ok = (cov > 0.0) & (v > 0.0) & (hav > MIN_HISTORY_ALPHA);
+                let k = cov / fmax(hav, MIN_HISTORY_ALPHA);
+                let [ty, tco, tcg] = to_ycocg(hr[x] * k, hg[x] * k, hb[x] * k);
+                let [cr, cg, cb] = from_ycocg(
+                    fmin(fmax(ty, ly[x]), hy[x]),
+                    fmin(fmax(tco, lco[x]), hco[x]),
+                    fmin(fmax(tcg, lcg[x]), hcg[x]),
+                );
+                // Branch-free (vectorizable): weight 0 where the history is unusable.
+                let wt = blend * v * fmin(hav, 1.0) * (ok as u32 as f32);
+                rr[x] = fmax(rr[x] + wt * (cr - rr[x]), 0.0);
+                gr[x] = fmax(gr[x] + wt * (cg - gr[x]), 0.0);
+                br[x] = fmax(br[x] + wt * (cb - br[x]), 0.0);
             }
             std::mem::swap(&mut above, &mut centre);
             std::mem::swap(&mut centre, &mut below);
         }
     });
+}
+
+/// `dst[x] = min(src[x-1], src[x], src[x+1])`, edges clamped.
+fn min3(src: &[f32], dst: &mut [f32]) {
+    let w = src.len();
+    if w < 2 {
+        dst.copy_from_slice(src);
+        return;
+    }
+    dst[0] = fmin(src[0], src[1]);
+    for (d, s) in dst[1..w - 1].iter_mut().zip(src.windows(3)) {
+        *d = fmin(fmin(s[0], s[1]), s[2]);
+    }
+    dst[w - 1] = fmin(src[w - 2], src[w - 1]);
+}
+
+/// `dst[x] = max(src[x-1], src[x], src[x+1])`, edges clamped.
+fn max3(src: &[f32], dst: &mut [f32]) {
+    let w = src.len();
+    if w < 2 {
+        dst.copy_from_slice(src);
+        return;
+    }
+    dst[0] = fmax(src[0], src[1]);
+    for (d, s) in dst[1..w - 1].iter_mut().zip(src.windows(3)) {
+        *d = fmax(fmax(s[0], s[1]), s[2]);
+    }
+    dst[w - 1] = fmax(src[w - 2], src[w - 1]);
 }
 
 #[cfg(test)]
