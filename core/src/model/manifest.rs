@@ -116,9 +116,9 @@ impl Default for Encoding {
 pub enum InputChannel {
     /// `color.r|g|b`: the current frame's color, encoded (index 0..3).
     Color(usize),
-    /// `coverage`: the frame's coverage in [0,1] (1 when the host gave none).
+    /// `coverage`: the frame's coverage in 0..=1 (1 when the host gave none).
     Coverage,
-    /// `insert`: the insert mask in [0,1] (0 when the host gave none).
+    /// `insert`: the insert mask in 0..=1 (0 when the host gave none).
     Insert,
     /// `disparity`: `1 / (1 + depth)` of the planar depth (0 when absent).
     Disparity,

@@ -44,7 +44,7 @@ pub fn log_average_luminance(color: &Image, coverage: Option<&[f32]>) -> Option<
 
 impl ColorCodec {
     /// The codec for one frame: with `exposure: frame`, `s = key / log-average
-    /// luminance` of the whole frame (1 when nothing is covered), clamped to [1e-6, 1e6].
+    /// luminance` of the whole frame (1 when nothing is covered), clamped to 1e-6..=1e6.
     pub fn for_frame(encoding: &Encoding, color: &Image, coverage: Option<&[f32]>) -> ColorCodec {
         let (key, exposure, log_range) = match *encoding {
             Encoding::Linear { key, exposure } => (key, exposure, None),
