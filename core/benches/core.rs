@@ -83,6 +83,51 @@ fn reprojection(c: &mut Criterion) {
     g.finish();
 }
 
+/// The neural backend with the `box3` fixture model (a 3x3 box filter, so the
+/// time is the tiling machinery: encoding, tile assembly, ONNX Runtime calls,
+/// feathered blending) at 1024x576: untiled, and in 256 px and 128 px tiles.
+/// Needs ONNX Runtime (`scripts/setup-venv.sh`).
+fn tiling(c: &mut Criterion) {
+    use harmonizer_core::backend::neural::{runtime, Neural};
+    use harmonizer_core::backend::{Backend, BackendInput, Carry, Progress, Stages};
+    use harmonizer_core::{Device, DeviceOptions, FrameInput, ImageView, ModelSource, Params};
+
+    let lib = runtime::locate(None)
+        .unwrap_or_else(|e| panic!("the tiling bench needs ONNX Runtime: run scripts/setup-venv.sh ({e})"));
+    let model_path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/models/box3.onnx");
+    let device = Device::new(DeviceOptions {
+        threads: THREADS,
+        ort_library: Some(lib),
+        memory_limit: 0,
+        model: ModelSource::File(model_path),
+    })
+    .expect("device");
+    let model = device.neural_model().expect("box3 model").expect("a model");
+    let backend = Neural { model: model.clone() };
+    let (w, h) = (1024, 576);
+    let rgb: Vec<f32> = (0..w * h * 3).map(|i| ((i * 7919) % 1000) as f32 / 250.0).collect();
+    let input = FrameInput::new(ImageView::from_f32("color", &rgb, w, h, 3).unwrap());
+    let frame = PreparedFrame::from_input(&input, DepthKind::Planar).unwrap();
+    let history = History::default();
+
+    let mut g = c.benchmark_group("tiling");
+    g.sample_size(10);
+    for (name, tile, overlap) in [("untiled", 2048, 16), ("tiles_256", 256, 16), ("tiles_128", 128, 16)] {
+        let params = Params { tile_size: tile, tile_overlap: overlap, ..Params::default() };
+        let tiles = model.tile_plan(w, h, &params).expect("tile plan").len();
+        g.bench_function(format!("box3_1024x576_{name}_{tiles}"), |b| {
+            b.iter(|| {
+                let view = HistoryView::new(&history, &frame, 4, device.pool());
+                let input = BackendInput { frame: &frame, history: &view, params: &params, pool: device.pool() };
+                backend
+                    .process(&input, &mut Carry::default(), &mut Progress::new(None), &mut Stages::default())
+                    .unwrap()
+            })
+        });
+    }
+    g.finish();
+}
+
 /// The classical backend at 1920x1080 with K = 4 on the synthetic scene
 /// (holes, an inserted sphere, flicker), the plain copy of the same bytes
 /// (the bypass backend: the memory-bandwidth floor), and each operation alone.
@@ -206,74 +251,5 @@ fn classical(c: &mut Criterion) {
     g.finish();
 }
 
-/// The neural backend with the `box3` fixture model (a 3x3 box filter, so the
-/// time is the tiling machinery: encoding, tile assembly, ONNX Runtime calls,
-/// feathered blending) at 1024x576: untiled, and in 256 px and 128 px tiles.
-/// Needs ONNX Runtime (`scripts/setup-venv.sh`).
-fn tiling(c: &mut Criterion) {
-    use harmonizer_core::backend::neural::{runtime, Neural};
-    use harmonizer_core::backend::{Backend, BackendInput, Carry, Progress, Stages};
-    use harmonizer_core::{Device, DeviceOptions, FrameInput, ImageView, ModelSource, Params};
-
-    let lib = runtime::locate(None).unwrap_or_else(|e| {
-        panic!("the tiling bench needs ONNX Runtime: run scripts/setup-venv.sh ({e})")
-    });
-    let model_path =
-        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/models/box3.onnx");
-    let device = Device::new(DeviceOptions {
-        threads: THREADS,
-        ort_library: Some(lib),
-        memory_limit: 0,
-        model: ModelSource::File(model_path),
-    })
-    .expect("device");
-    let model = device.neural_model().expect("box3 model").expect("a model");
-    let backend = Neural {
-        model: model.clone(),
-    };
-    let (w, h) = (1024, 576);
-    let rgb: Vec<f32> = (0..w * h * 3)
-        .map(|i| ((i * 7919) % 1000) as f32 / 250.0)
-        .collect();
-    let input = FrameInput::new(ImageView::from_f32("color", &rgb, w, h, 3).unwrap());
-    let frame = PreparedFrame::from_input(&input, DepthKind::Planar).unwrap();
-    let history = History::default();
-
-    let mut g = c.benchmark_group("tiling");
-    g.sample_size(10);
-    for (name, tile, overlap) in [
-        ("untiled", 2048, 16),
-        ("tiles_256", 256, 16),
-        ("tiles_128", 128, 16),
-    ] {
-        let params = Params {
-            tile_size: tile,
-            tile_overlap: overlap,
-            ..Params::default()
-        };
-        let tiles = model.tile_plan(w, h, &params).expect("tile plan").len();
-        g.bench_function(format!("box3_1024x576_{name}_{tiles}"), |b| {
-            b.iter(|| {
-                let view = HistoryView::new(&history, &frame, 4, device.pool());
-                let input = BackendInput {
-                    frame: &frame,
-                    history: &view,
-                    params: &params,
-                    pool: device.pool(),
-                };
-                backend
-                    .process(
-                        &input,
-                        &mut Carry::default(),
-                        &mut Progress::new(None),
-                        &mut Stages::default(),
-                    )
-                    .unwrap()
-            })
-        });
-    }
-    g.finish();
-}
-
-criterion_group!(benches, reprojection, classical, tiling);
+criterion_group!(benches, reprojection, tiling, classical);
 criterion_main!(benches);
