@@ -5,7 +5,7 @@ use std::sync::Arc;
 use crate::backend::{self, Backend, BackendInput, Carry, Progress, Stages};
 use crate::device::Device;
 use crate::error::{Error, Result};
-use crate::frame::{FrameInput, Image, ImageViewMut, PreparedFrame};
+use crate::frame::{FrameInput, Image, ImageViewMut, PreparedFrame, Recycler};
 use crate::params::{BackendKind, GapPolicy, ParamValue, Params};
 use crate::temporal::{History, HistoryFrame, HistoryView};
 
@@ -91,6 +91,8 @@ pub struct Session {
     staged: Params,
     backend: Box<dyn Backend>,
     state: State,
+    /// Frame-sized buffers reused from frame to frame (no page faults on the hot path).
+    recycler: Recycler,
 }
 
 impl std::fmt::Debug for Session {
@@ -133,6 +135,7 @@ impl Session {
             params,
             backend,
             state: State::default(),
+            recycler: Recycler::new(),
         })
     }
 
@@ -179,6 +182,7 @@ impl Session {
     }
 
     fn drop_state(&mut self, why: ResetReason) {
+        self.recycler = Recycler::new();
         let had = !self.state.history.is_empty() || self.state.last.is_some();
         self.state = State {
             pending_reset: had.then_some(why),
@@ -220,7 +224,7 @@ impl Session {
 
         let pool = self.device.pool();
         let frame = stages.time("prepare", || {
-            PreparedFrame::from_input_on(input, self.params.depth_kind, pool)
+            PreparedFrame::from_input_recycled(input, self.params.depth_kind, pool, &self.recycler)
         })?;
         if frame.sanitized > 0 {
             report.sanitized = frame.sanitized;
@@ -286,11 +290,12 @@ impl Session {
         }
         let empty = History::default();
         let history = if reset.is_some() { &empty } else { &st.history };
-        let mut view = HistoryView::new(
+        let mut view = HistoryView::new_recycled(
             history,
             &frame,
             self.params.context_frames,
             self.device.pool(),
+            &self.recycler,
         );
         if reset.is_none() && self.params.scene_cut_detection && !view.is_empty() {
             let cut = stages.time("scene_cut", || {
@@ -303,6 +308,10 @@ impl Session {
         }
         report.reset = reset;
         report.history_used = view.len();
+        if reset == Some(ResetReason::SizeChanged) {
+            self.recycler
+                .keep_frame_size(frame.width() * frame.height());
+        }
 
         let mut carry = if reset.is_some() {
             Carry::default()
@@ -316,17 +325,29 @@ impl Session {
             pool: self.device.pool(),
         };
         progress.set_span(0.05, 0.95);
-        let mut out =
-            self.backend
-                .process(&backend_input, &mut carry, &mut progress, &mut stages)?;
+        let out = self
+            .backend
+            .process(&backend_input, &mut carry, &mut progress, &mut stages);
+        let mut out = match out {
+            Ok(out) => out,
+            Err(e) => {
+                drop(view);
+                frame.recycle(&self.recycler);
+                return Err(e);
+            }
+        };
         progress.set_span(0.0, 1.0);
         if self.params.strength < 1.0 {
             stages.time("strength", || {
                 apply_strength(&mut out, &frame, self.params.strength)
             });
         }
-        progress.report(1.0)?;
+        let done = progress.report(1.0);
         drop(view);
+        if let Err(e) = done {
+            frame.recycle(&self.recycler);
+            return Err(e);
+        }
 
         // Commit: only now does the temporal state change.
         let capacity = self.params.context_frames;
@@ -335,17 +356,45 @@ impl Session {
         } else {
             std::mem::take(&mut self.state.history)
         };
+        let PreparedFrame {
+            color,
+            coverage,
+            depth,
+            motion,
+            normal,
+            insert_mask,
+            camera,
+            frame_index,
+            ..
+        } = frame;
+        let rec = &self.recycler;
+        rec.give(color.data);
+        for b in [coverage, insert_mask].into_iter().flatten() {
+            rec.give(b);
+        }
+        if let Some(n) = normal {
+            rec.give(n.data);
+        }
         if capacity > 0 {
-            history.push(
+            let mut kept = rec.image(out.width, out.height, out.channels);
+            kept.data.copy_from_slice(&out.data);
+            let evicted = history.push(
                 HistoryFrame {
-                    color: out.clone(),
-                    depth: frame.depth,
-                    motion: frame.motion,
-                    camera: frame.camera,
-                    frame_index: frame.frame_index,
+                    color: kept,
+                    depth,
+                    motion,
+                    camera,
+                    frame_index,
                 },
                 capacity,
             );
+            for f in evicted {
+                f.recycle(rec);
+            }
+        } else {
+            for b in [depth, motion.map(|m| m.data)].into_iter().flatten() {
+                rec.give(b);
+            }
         }
         self.state = State {
             history,

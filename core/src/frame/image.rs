@@ -17,12 +17,22 @@ pub struct Image {
 impl Image {
     /// A zero-filled image.
     pub fn zeros(width: usize, height: usize, channels: usize) -> Image {
-        Image { width, height, channels, data: vec![0.0; width * height * channels] }
+        Image {
+            width,
+            height,
+            channels,
+            data: vec![0.0; width * height * channels],
+        }
     }
 
     /// A constant image.
     pub fn filled(width: usize, height: usize, channels: usize, value: f32) -> Image {
-        Image { width, height, channels, data: vec![value; width * height * channels] }
+        Image {
+            width,
+            height,
+            channels,
+            data: vec![value; width * height * channels],
+        }
     }
 
     /// Pixels per plane.
@@ -65,5 +75,73 @@ impl Image {
     /// Bytes held.
     pub fn bytes(&self) -> usize {
         self.data.len() * std::mem::size_of::<f32>()
+    }
+}
+
+/// Sample buffers kept for reuse from one frame to the next.
+///
+/// Frame-sized buffers are tens of megabytes; allocating them fresh every
+/// frame costs a page fault and a page clear per 4 KiB, more than the work
+/// done on them. A session gives its spent buffers back here and takes them
+/// again for the next frame. A buffer taken has the requested length and
+/// *arbitrary* contents: the taker overwrites every sample.
+#[derive(Debug, Default)]
+pub struct Recycler {
+    free: std::sync::Mutex<Vec<Vec<f32>>>,
+}
+
+impl Recycler {
+    /// Buffers kept at most; more given back are freed.
+    pub const MAX_BUFFERS: usize = 48;
+
+    /// An empty recycler.
+    pub fn new() -> Recycler {
+        Recycler::default()
+    }
+
+    /// A buffer of exactly `len` samples, reused when one of that length is
+    /// held (contents arbitrary), else newly allocated (zeros).
+    pub fn take(&self, len: usize) -> Vec<f32> {
+        let reused = {
+            let mut free = self.free.lock().unwrap_or_else(|e| e.into_inner());
+            free.iter()
+                .rposition(|b| b.len() == len)
+                .map(|i| free.swap_remove(i))
+        };
+        reused.unwrap_or_else(|| vec![0.0; len])
+    }
+
+    /// An image whose samples are all to be overwritten by the caller.
+    pub fn image(&self, width: usize, height: usize, channels: usize) -> Image {
+        Image {
+            width,
+            height,
+            channels,
+            data: self.take(width * height * channels),
+        }
+    }
+
+    /// Keeps `buf` for a later [`Recycler::take`] of its length.
+    pub fn give(&self, buf: Vec<f32>) {
+        if buf.is_empty() {
+            return;
+        }
+        let mut free = self.free.lock().unwrap_or_else(|e| e.into_inner());
+        if free.len() < Self::MAX_BUFFERS {
+            free.push(buf);
+        }
+    }
+
+    /// Drops every buffer held whose length is not `len`, `2 * len`, ... up
+    /// to `4 * len` (after a change of frame size).
+    pub fn keep_frame_size(&self, len: usize) {
+        let mut free = self.free.lock().unwrap_or_else(|e| e.into_inner());
+        free.retain(|b| len > 0 && b.len() % len == 0 && b.len() / len <= 5);
+    }
+
+    /// Bytes held.
+    pub fn bytes(&self) -> usize {
+        let free = self.free.lock().unwrap_or_else(|e| e.into_inner());
+        free.iter().map(|b| b.len() * 4).sum()
     }
 }

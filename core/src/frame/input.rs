@@ -4,27 +4,57 @@
 
 use rayon::prelude::*;
 
-use super::{Camera, Image, ImageView};
+use super::{Camera, Image, ImageView, Recycler};
 use crate::error::{Error, Result};
 
-/// Reads channel `c` of `view` into `plane` row by row (in parallel on `pool`
-/// when given) and applies `fix` to every sample; returns how many samples
-/// `fix` reported as replaced.
-fn read_plane(
+/// Reads the first `img.channels` channels of `view` into the planes of
+/// `img` (every sample is overwritten), row by row with all channels of a row
+/// together (one pass over the host row), in parallel on `pool` when given;
+/// applies `fix(channel, sample)` to every sample and returns how many
+/// samples it reported as replaced.
+fn read_image(
     pool: Option<&rayon::ThreadPool>,
     view: &ImageView<'_>,
-    c: usize,
-    plane: &mut [f32],
-    fix: impl Fn(&mut f32) -> bool + Sync,
+    img: &mut Image,
+    fix: impl Fn(usize, &mut f32) -> bool + Sync,
 ) -> usize {
-    let w = view.width();
-    let row = |(y, row): (usize, &mut [f32])| -> usize {
-        view.read_row(y, c, row);
-        row.iter_mut().map(|v| usize::from(fix(v))).sum()
+    let (w, h) = (img.width, img.height);
+    if w == 0 || h == 0 {
+        return 0;
+    }
+    let mut planes: Vec<_> = img
+        .data
+        .chunks_mut(w * h)
+        .map(|p| p.chunks_mut(w))
+        .collect();
+    let rows: Vec<Vec<&mut [f32]>> = (0..h)
+        .map(|_| {
+            planes
+                .iter_mut()
+                .map(|p| p.next().expect("planes of equal size"))
+                .collect()
+        })
+        .collect();
+    let row = |(y, mut outs): (usize, Vec<&mut [f32]>)| -> usize {
+        let mut bad = 0;
+        for (c, out) in outs.iter_mut().enumerate() {
+            view.read_row(y, c, out);
+            bad += out
+                .iter_mut()
+                .map(|v| usize::from(fix(c, v)))
+                .sum::<usize>();
+        }
+        bad
     };
     match pool {
-        Some(pool) => pool.install(|| plane.par_chunks_mut(w).enumerate().map(row).sum()),
-        None => plane.chunks_mut(w).enumerate().map(row).sum(),
+        Some(pool) => pool.install(|| {
+            rows.into_par_iter()
+                .enumerate()
+                .with_min_len(8)
+                .map(row)
+                .sum()
+        }),
+        None => rows.into_iter().enumerate().map(row).sum(),
     }
 }
 
@@ -132,7 +162,7 @@ impl PreparedFrame {
 
     /// Validates `input` and converts it to the planar form (on the calling thread).
     pub fn from_input(input: &FrameInput<'_>, depth_kind: DepthKind) -> Result<PreparedFrame> {
-        Self::prepare(input, depth_kind, None)
+        Self::prepare(input, depth_kind, None, None)
     }
 
     /// Like [`PreparedFrame::from_input`], row-parallel on `pool`; the result
@@ -142,13 +172,39 @@ impl PreparedFrame {
         depth_kind: DepthKind,
         pool: &rayon::ThreadPool,
     ) -> Result<PreparedFrame> {
-        Self::prepare(input, depth_kind, Some(pool))
+        Self::prepare(input, depth_kind, Some(pool), None)
+    }
+
+    /// Like [`PreparedFrame::from_input_on`], with its buffers taken from
+    /// `recycler` (give them back with [`PreparedFrame::recycle`]).
+    pub fn from_input_recycled(
+        input: &FrameInput<'_>,
+        depth_kind: DepthKind,
+        pool: &rayon::ThreadPool,
+        recycler: &Recycler,
+    ) -> Result<PreparedFrame> {
+        Self::prepare(input, depth_kind, Some(pool), Some(recycler))
+    }
+
+    /// Gives the frame's buffers to `recycler`.
+    pub fn recycle(self, recycler: &Recycler) {
+        recycler.give(self.color.data);
+        for b in [self.coverage, self.depth, self.insert_mask]
+            .into_iter()
+            .flatten()
+        {
+            recycler.give(b);
+        }
+        for img in [self.motion, self.normal].into_iter().flatten() {
+            recycler.give(img.data);
+        }
     }
 
     fn prepare(
         input: &FrameInput<'_>,
         depth_kind: DepthKind,
         pool: Option<&rayon::ThreadPool>,
+        recycler: Option<&Recycler>,
     ) -> Result<PreparedFrame> {
         let (w, h) = (input.width(), input.height());
         if input.color.channels() < 3 {
@@ -192,42 +248,33 @@ impl PreparedFrame {
             ));
         }
 
-        let n = w * h;
-        let mut color = Image::zeros(w, h, 3);
-        let mut sanitized = 0usize;
-        for c in 0..3 {
-            sanitized += read_plane(
-                pool,
-                &input.color,
-                c,
-                &mut color.data[c * n..(c + 1) * n],
-                |v| {
-                    if v.is_finite() && *v >= 0.0 {
-                        false
-                    } else {
-                        *v = 0.0;
-                        true
-                    }
-                },
-            );
-        }
+        let take = |ch: usize| match recycler {
+            Some(r) => r.image(w, h, ch),
+            None => Image::zeros(w, h, ch),
+        };
+        let mut color = take(3);
+        let sanitized = read_image(pool, &input.color, &mut color, |_, v| {
+            if v.is_finite() && *v >= 0.0 {
+                false
+            } else {
+                *v = 0.0;
+                true
+            }
+        });
         let mut sanitized_aovs = 0usize;
         // NaN becomes `bad` (counted), everything else is clamped to [lo, hi].
         let mut read_planes = |v: &Option<ImageView<'_>>, ch: usize, lo: f32, hi: f32, bad: f32| {
             v.as_ref().map(|v| {
-                let mut img = Image::zeros(w, h, ch);
-                for c in 0..ch {
-                    sanitized_aovs +=
-                        read_plane(pool, v, c, &mut img.data[c * n..(c + 1) * n], |x| {
-                            if x.is_nan() {
-                                *x = bad;
-                                true
-                            } else {
-                                *x = x.clamp(lo, hi);
-                                false
-                            }
-                        });
-                }
+                let mut img = take(ch);
+                sanitized_aovs += read_image(pool, v, &mut img, |_, x| {
+                    if x.is_nan() {
+                        *x = bad;
+                        true
+                    } else {
+                        *x = x.clamp(lo, hi);
+                        false
+                    }
+                });
                 img
             })
         };
@@ -237,18 +284,16 @@ impl PreparedFrame {
         let normal = read_planes(&input.normal, 3, -f32::MAX, f32::MAX, 0.0);
         let limit = 4.0 * (w.max(h) as f32);
         let motion = input.motion.as_ref().map(|v| {
-            let mut img = Image::zeros(w, h, 2);
-            for (c, scale) in s.iter().copied().enumerate() {
-                sanitized_aovs += read_plane(pool, v, c, &mut img.data[c * n..(c + 1) * n], |x| {
-                    if x.is_nan() {
-                        *x = 0.0;
-                        true
-                    } else {
-                        *x = (x.clamp(-f32::MAX, f32::MAX) * scale).clamp(-limit, limit);
-                        false
-                    }
-                });
-            }
+            let mut img = take(2);
+            sanitized_aovs += read_image(pool, v, &mut img, |c, x| {
+                if x.is_nan() {
+                    *x = 0.0;
+                    true
+                } else {
+                    *x = (x.clamp(-f32::MAX, f32::MAX) * s[c]).clamp(-limit, limit);
+                    false
+                }
+            });
             img
         });
         if depth_kind == DepthKind::Euclidean {

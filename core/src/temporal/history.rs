@@ -2,7 +2,7 @@
 
 use std::collections::VecDeque;
 
-use crate::frame::{Camera, Image};
+use crate::frame::{Camera, Image, Recycler};
 
 /// One enhanced frame kept for the future.
 #[derive(Debug, Clone)]
@@ -20,6 +20,17 @@ pub struct HistoryFrame {
 }
 
 impl HistoryFrame {
+    /// Gives the frame's buffers to `rec`.
+    pub fn recycle(self, rec: &Recycler) {
+        rec.give(self.color.data);
+        if let Some(d) = self.depth {
+            rec.give(d);
+        }
+        if let Some(m) = self.motion {
+            rec.give(m.data);
+        }
+    }
+
     /// Bytes held.
     pub fn bytes(&self) -> usize {
         self.color.bytes()
@@ -47,10 +58,12 @@ impl History {
     pub fn clear(&mut self) {
         self.frames.clear();
     }
-    /// Adds the newest frame, keeping at most `capacity`.
-    pub fn push(&mut self, frame: HistoryFrame, capacity: usize) {
+    /// Adds the newest frame, keeping at most `capacity`; returns the frames
+    /// that no longer fit (oldest last), so their buffers can be reused.
+    pub fn push(&mut self, frame: HistoryFrame, capacity: usize) -> Vec<HistoryFrame> {
         self.frames.push_front(frame);
-        self.frames.truncate(capacity);
+        let keep = capacity.min(self.frames.len());
+        self.frames.split_off(keep).into()
     }
     /// Frame `k` (0 = previous).
     pub fn get(&self, k: usize) -> Option<&HistoryFrame> {

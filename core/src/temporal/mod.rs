@@ -12,7 +12,7 @@ use std::sync::OnceLock;
 pub use history::{History, HistoryFrame};
 pub use scene_cut::{is_scene_cut, scene_cut_score, SceneCutScore};
 
-use crate::frame::{Image, PreparedFrame};
+use crate::frame::{Image, PreparedFrame, Recycler};
 use reproject::{Chain, Source};
 
 /// History frame `k` aligned to the current view.
@@ -50,6 +50,25 @@ pub struct HistoryView<'a> {
     cache: Vec<OnceLock<ReprojectedFrame>>,
     /// `chains[h]`: positions in history frame `h + 1` (motion vectors).
     chains: Vec<OnceLock<Chain>>,
+    /// Where buffers come from and go back to when the view is dropped.
+    recycler: Option<&'a Recycler>,
+    /// `maps[k]`: depth + camera map into history frame `k` (for [`HistoryView::sample`]).
+    maps: Vec<OnceLock<reproject::CameraMap>>,
+}
+
+impl Drop for HistoryView<'_> {
+    fn drop(&mut self) {
+        let Some(rec) = self.recycler else {
+            return;
+        };
+        for r in self.cache.iter_mut().filter_map(OnceLock::take) {
+            rec.give(r.color.data);
+            rec.give(r.valid);
+        }
+        for c in self.chains.iter_mut().filter_map(OnceLock::take) {
+            c.recycle(rec);
+        }
+    }
 }
 
 impl std::fmt::Debug for HistoryView<'_> {
@@ -70,6 +89,28 @@ impl<'a> HistoryView<'a> {
         count: usize,
         pool: &'a rayon::ThreadPool,
     ) -> Self {
+        Self::build(history, current, count, pool, None)
+    }
+
+    /// Like [`HistoryView::new`], with the reprojected frames' buffers taken
+    /// from `recycler` and given back to it when the view is dropped.
+    pub fn new_recycled(
+        history: &'a History,
+        current: &'a PreparedFrame,
+        count: usize,
+        pool: &'a rayon::ThreadPool,
+        recycler: &'a Recycler,
+    ) -> Self {
+        Self::build(history, current, count, pool, Some(recycler))
+    }
+
+    fn build(
+        history: &'a History,
+        current: &'a PreparedFrame,
+        count: usize,
+        pool: &'a rayon::ThreadPool,
+        recycler: Option<&'a Recycler>,
+    ) -> Self {
         let (w, h) = (current.width(), current.height());
         let usable = history
             .iter()
@@ -85,6 +126,8 @@ impl<'a> HistoryView<'a> {
             chains: (0..count.saturating_sub(1))
                 .map(|_| OnceLock::new())
                 .collect(),
+            recycler,
+            maps: (0..count).map(|_| OnceLock::new()).collect(),
         }
     }
 
@@ -97,6 +140,8 @@ impl<'a> HistoryView<'a> {
             pool: None,
             cache: Vec::new(),
             chains: Vec::new(),
+            recycler: None,
+            maps: Vec::new(),
         }
     }
 
@@ -178,23 +223,84 @@ impl<'a> HistoryView<'a> {
         );
         self.cache[k].get_or_init(|| {
             let frame = self.frame(k);
+            let rec = self.recycler;
+            let (w, h) = (frame.color.width, frame.color.height);
+            let take = |ch: usize| match rec {
+                Some(r) => r.image(w, h, ch),
+                None => Image::zeros(w, h, ch),
+            };
             match self.mode(k) {
                 ReprojectionMode::MotionVectors => {
-                    reproject::hop_color(self.source(k), frame, self.pool)
+                    reproject::hop_color(self.source(k), frame, self.pool, rec)
                 }
                 ReprojectionMode::DepthCamera => {
-                    reproject::reproject_camera(self.current, frame, self.pool)
+                    reproject::reproject_camera(self.current, frame, self.pool, rec)
                 }
-                ReprojectionMode::Identity => ReprojectedFrame {
-                    color: frame.color.clone(),
-                    valid: vec![1.0; frame.color.len()],
-                },
-                ReprojectionMode::Unavailable => ReprojectedFrame {
-                    color: Image::zeros(frame.color.width, frame.color.height, 4),
-                    valid: vec![0.0; frame.color.len()],
-                },
+                ReprojectionMode::Identity => {
+                    let mut color = take(4);
+                    color.data.copy_from_slice(&frame.color.data);
+                    let mut valid = take(1).data;
+                    valid.fill(1.0);
+                    ReprojectedFrame { color, valid }
+                }
+                ReprojectionMode::Unavailable => {
+                    let mut color = take(4);
+                    color.data.fill(0.0);
+                    let mut valid = take(1).data;
+                    valid.fill(0.0);
+                    ReprojectedFrame { color, valid }
+                }
             }
         })
+    }
+
+    /// Pixel (row `i`, column `j`) of history frame `k` reprojected into
+    /// the current view: RGBA and validity, bit-identical to that pixel of
+    /// [`HistoryView::reproject`]. Cheap for `k = 0` (or once `k` is
+    /// reprojected): a sparse sample of the history costs only its pixels.
+    ///
+    /// # Panics
+    /// When `k >= self.len()` or the pixel is outside the frame.
+    pub fn sample(&self, k: usize, i: usize, j: usize) -> ([f32; 4], f32) {
+        let (w, h) = (self.current.width(), self.current.height());
+        assert!(i < h && j < w, "pixel ({j}, {i}) outside the {w}x{h} frame");
+        let rep = |r: &ReprojectedFrame| {
+            let p = i * w + j;
+            let c = &r.color;
+            (
+                [c.plane(0)[p], c.plane(1)[p], c.plane(2)[p], c.plane(3)[p]],
+                r.valid[p],
+            )
+        };
+        if let Some(r) = self.cache.get(k).and_then(OnceLock::get) {
+            return rep(r);
+        }
+        let frame = self.frame(k);
+        match self.mode(k) {
+            ReprojectionMode::MotionVectors if k == 0 => {
+                reproject::hop_color_pixel(self.source(0), frame, i, j)
+            }
+            ReprojectionMode::MotionVectors => rep(self.reproject(k)),
+            ReprojectionMode::DepthCamera => {
+                let depth = self
+                    .current
+                    .depth
+                    .as_deref()
+                    .expect("depth mode needs depth");
+                self.maps[k]
+                    .get_or_init(|| reproject::CameraMap::new(self.current, frame))
+                    .color_at(frame, depth, i, j)
+            }
+            ReprojectionMode::Identity => {
+                let p = i * w + j;
+                let c = &frame.color;
+                (
+                    [c.plane(0)[p], c.plane(1)[p], c.plane(2)[p], c.plane(3)[p]],
+                    1.0,
+                )
+            }
+            ReprojectionMode::Unavailable => ([0.0; 4], 0.0),
+        }
     }
 
     /// Where the motion-vector chain into history frame `k` starts its last hop.
@@ -215,7 +321,13 @@ impl<'a> HistoryView<'a> {
 
     /// Positions of the current pixels in history frame `k >= 1`.
     fn chain(&self, k: usize) -> &Chain {
-        self.chains[k - 1]
-            .get_or_init(|| reproject::hop_chain(self.source(k - 1), self.frame(k - 1), self.pool))
+        self.chains[k - 1].get_or_init(|| {
+            reproject::hop_chain(
+                self.source(k - 1),
+                self.frame(k - 1),
+                self.pool,
+                self.recycler,
+            )
+        })
     }
 }

@@ -26,7 +26,7 @@ use glam::{DMat4, DVec4};
 use rayon::prelude::*;
 
 use super::{HistoryFrame, ReprojectedFrame};
-use crate::frame::{Image, PreparedFrame};
+use crate::frame::{Image, PreparedFrame, Recycler};
 
 /// Depth at or beyond this is empty (sky, holes): it only matches other empty depth.
 pub const FAR_DEPTH: f32 = 1e9;
@@ -40,10 +40,9 @@ pub const DEPTH_TOLERANCE: f32 = 0.1;
 pub fn depth_match(expected: f32, seen: f32) -> bool {
     let far_e = expected >= FAR_DEPTH;
     let far_s = seen >= FAR_DEPTH;
-    if far_e || far_s {
-        return far_e && far_s;
-    }
-    (expected - seen).abs() <= DEPTH_TOLERANCE * expected.min(seen)
+    // Non-short-circuit operators: no branches in the per-tap test.
+    let near = (expected - seen).abs() <= DEPTH_TOLERANCE * expected.min(seen);
+    (far_e & far_s) | (!far_e & !far_s & near)
 }
 
 /// The bilinear taps at one position that passed the frame and depth tests,
@@ -213,6 +212,15 @@ pub(crate) struct Chain {
     valid: Vec<f32>,
 }
 
+impl Chain {
+    /// Gives the chain's buffers to `rec`.
+    pub(crate) fn recycle(self, rec: &Recycler) {
+        for b in [self.x, self.y, self.depth, self.valid] {
+            rec.give(b);
+        }
+    }
+}
+
 /// Where a hop starts: the current frame (positions from its motion vectors)
 /// or a chain into a history frame.
 #[derive(Clone, Copy)]
@@ -229,6 +237,22 @@ pub(crate) enum Source<'a> {
 }
 
 impl Source<'_> {
+    /// For pixel (row `i`, column `j`): the position in the next frame, the
+    /// expected depth there (NaN: unknown) and the validity so far.
+    #[inline(always)]
+    fn at(self, w: usize, i: usize, j: usize) -> (f32, f32, f32, f32) {
+        let p = i * w + j;
+        match self {
+            Source::Current { motion, depth } => (
+                j as f32 + 0.5 + motion.plane(0)[p],
+                i as f32 + 0.5 + motion.plane(1)[p],
+                depth.map_or(f32::NAN, |d| d[p]),
+                1.0,
+            ),
+            Source::Chain(c) => (c.x[p], c.y[p], c.depth[p], c.valid[p]),
+        }
+    }
+
     /// Runs `f` with a function that gives, for pixel (row, col), the
     /// position in the next frame, the expected depth there (NaN: unknown) and
     /// the validity so far; one monomorphized loop per kind of source.
@@ -266,30 +290,78 @@ trait SourceUser<R> {
     fn run<S: Fn(usize, usize) -> (f32, f32, f32, f32) + Sync>(self, at: &S) -> R;
 }
 
-/// Samples history frame `frame`'s color at the positions of `src`.
+/// Samples history frame `frame`'s color at the positions of `src`; buffers
+/// come from `rec` when given.
 pub(crate) fn hop_color(
     src: Source<'_>,
     frame: &HistoryFrame,
     pool: Option<&rayon::ThreadPool>,
+    rec: Option<&Recycler>,
 ) -> ReprojectedFrame {
-    src.with(frame.color.width, ColorHop { frame, pool })
+    src.with(frame.color.width, ColorHop { frame, pool, rec })
+}
+
+/// The color hop at one pixel: position (`x`, `y`) in `frame`, expected depth
+/// `d` (NaN: unknown), validity so far `v`; returns RGBA and validity.
+#[inline(always)]
+fn color_pixel(frame: &HistoryFrame, x: f32, y: f32, d: f32, v: f32) -> ([f32; 4], f32) {
+    if v <= 0.0 {
+        return ([0.0; 4], 0.0);
+    }
+    let hist = &frame.color;
+    let (w, h) = (hist.width, hist.height);
+    let hdepth = if d.is_nan() {
+        None
+    } else {
+        frame.depth.as_deref()
+    };
+    let t = taps(x, y, w, h, hdepth, d);
+    if t.sum <= 0.0 {
+        return ([0.0; 4], 0.0);
+    }
+    (
+        [
+            t.sample(hist.plane(0)),
+            t.sample(hist.plane(1)),
+            t.sample(hist.plane(2)),
+            t.sample(hist.plane(3)),
+        ],
+        v * t.sum,
+    )
+}
+
+/// The color hop of `src` into `frame` at pixel (row `i`, column `j`) alone;
+/// equal to that pixel of [`hop_color`].
+pub(crate) fn hop_color_pixel(
+    src: Source<'_>,
+    frame: &HistoryFrame,
+    i: usize,
+    j: usize,
+) -> ([f32; 4], f32) {
+    let (x, y, d, v) = src.at(frame.color.width, i, j);
+    color_pixel(frame, x, y, d, v)
 }
 
 struct ColorHop<'a> {
     frame: &'a HistoryFrame,
     pool: Option<&'a rayon::ThreadPool>,
+    rec: Option<&'a Recycler>,
+}
+
+/// A 4-plane image and a validity plane whose samples are all to be written.
+fn outputs(w: usize, h: usize, rec: Option<&Recycler>) -> (Image, Vec<f32>) {
+    match rec {
+        Some(r) => (r.image(w, h, 4), r.take(w * h)),
+        None => (Image::zeros(w, h, 4), vec![0.0; w * h]),
+    }
 }
 
 impl SourceUser<ReprojectedFrame> for ColorHop<'_> {
     fn run<S: Fn(usize, usize) -> (f32, f32, f32, f32) + Sync>(self, at: &S) -> ReprojectedFrame {
         let frame = self.frame;
         let (w, h) = (frame.color.width, frame.color.height);
-        let mut color = Image::zeros(w, h, 4);
-        let mut valid = vec![0.0f32; w * h];
+        let (mut color, mut valid) = outputs(w, h, self.rec);
         let [c0, c1, c2, c3] = planes4(&mut color);
-        let hist = &frame.color;
-        let (p0, p1, p2, p3) = (hist.plane(0), hist.plane(1), hist.plane(2), hist.plane(3));
-        let hdepth = frame.depth.as_deref();
         par_rows(
             self.pool,
             [c0, c1, c2, c3, &mut valid],
@@ -297,18 +369,12 @@ impl SourceUser<ReprojectedFrame> for ColorHop<'_> {
             |i, [r0, r1, r2, r3, rv]| {
                 for j in 0..w {
                     let (x, y, d, v) = at(i, j);
-                    if v <= 0.0 {
-                        continue;
-                    }
-                    let t = taps(x, y, w, h, if d.is_nan() { None } else { hdepth }, d);
-                    if t.sum <= 0.0 {
-                        continue;
-                    }
-                    r0[j] = t.sample(p0);
-                    r1[j] = t.sample(p1);
-                    r2[j] = t.sample(p2);
-                    r3[j] = t.sample(p3);
-                    rv[j] = v * t.sum;
+                    let (c, v) = color_pixel(frame, x, y, d, v);
+                    r0[j] = c[0];
+                    r1[j] = c[1];
+                    r2[j] = c[2];
+                    r3[j] = c[3];
+                    rv[j] = v;
                 }
             },
         );
@@ -322,13 +388,15 @@ pub(crate) fn hop_chain(
     src: Source<'_>,
     frame: &HistoryFrame,
     pool: Option<&rayon::ThreadPool>,
+    rec: Option<&Recycler>,
 ) -> Chain {
-    src.with(frame.color.width, ChainHop { frame, pool })
+    src.with(frame.color.width, ChainHop { frame, pool, rec })
 }
 
 struct ChainHop<'a> {
     frame: &'a HistoryFrame,
     pool: Option<&'a rayon::ThreadPool>,
+    rec: Option<&'a Recycler>,
 }
 
 impl SourceUser<Chain> for ChainHop<'_> {
@@ -336,11 +404,12 @@ impl SourceUser<Chain> for ChainHop<'_> {
         let frame = self.frame;
         let (w, h) = (frame.color.width, frame.color.height);
         let n = w * h;
+        let take = || self.rec.map_or_else(|| vec![0.0; n], |r| r.take(n));
         let mut chain = Chain {
-            x: vec![0.0; n],
-            y: vec![0.0; n],
-            depth: vec![f32::NAN; n],
-            valid: vec![0.0; n],
+            x: take(),
+            y: take(),
+            depth: take(),
+            valid: take(),
         };
         let motion = frame
             .motion
@@ -352,6 +421,10 @@ impl SourceUser<Chain> for ChainHop<'_> {
         par_rows(self.pool, [x, y, depth, valid], w, |i, [rx, ry, rd, rv]| {
             for j in 0..w {
                 let (x, y, d, v) = at(i, j);
+                rx[j] = 0.0;
+                ry[j] = 0.0;
+                rd[j] = f32::NAN;
+                rv[j] = 0.0;
                 if v <= 0.0 {
                     continue;
                 }
@@ -371,6 +444,111 @@ impl SourceUser<Chain> for ChainHop<'_> {
     }
 }
 
+/// The map from a current pixel and its planar depth to a position and
+/// expected depth in a history frame (static scene, both cameras known).
+pub(crate) struct CameraMap {
+    r0: DVec4,
+    r1: DVec4,
+    r3: DVec4,
+    zrow: DVec4,
+    to_clip: DMat4,
+    wf: f64,
+    hf: f64,
+}
+
+impl CameraMap {
+    /// The map of `current` (depth and camera needed) into `frame` (camera needed).
+    pub(crate) fn new(current: &PreparedFrame, frame: &HistoryFrame) -> CameraMap {
+        let cc = current
+            .camera
+            .expect("camera reprojection needs the current camera");
+        let hc = frame
+            .camera
+            .expect("camera reprojection needs the history camera");
+        let cam_to_world = cc.world_to_camera.as_dmat4().inverse();
+        let cam_to_ndc: DMat4 = cc.world_to_ndc.as_dmat4() * cam_to_world;
+        // Current camera space to the history frame's clip space and planar depth.
+        let to_clip: DMat4 = hc.world_to_ndc.as_dmat4() * cam_to_world;
+        let to_cam: DMat4 = hc.world_to_camera.as_dmat4() * cam_to_world;
+        CameraMap {
+            r0: cam_to_ndc.row(0),
+            r1: cam_to_ndc.row(1),
+            r3: cam_to_ndc.row(3),
+            zrow: to_cam.row(2),
+            to_clip,
+            wf: current.width() as f64,
+            hf: current.height() as f64,
+        }
+    }
+
+    /// The row term of row `i` (see [`CameraMap::position`]).
+    #[inline(always)]
+    fn row(&self, i: usize) -> DVec4 {
+        let v = (i as f64 + 0.5) / self.hf;
+        self.r1 - v * self.r3
+    }
+
+    /// Position in the history frame and expected depth there of column `j`
+    /// with row term `b` at planar depth `d`; `None` behind either camera.
+    #[inline(always)]
+    fn position(&self, b: DVec4, j: usize, d: f32) -> Option<(f32, f32, f32)> {
+        let u = (j as f64 + 0.5) / self.wf;
+        let a: DVec4 = self.r0 - u * self.r3;
+        let det = a.x * b.y - a.y * b.x;
+        if det.abs() < 1e-18 {
+            return None;
+        }
+        // (a . X = 0, b . X = 0) with X = (x, y, d, 1), or the direction (x, y, 1, 0).
+        let far = d >= FAR_DEPTH;
+        let (ac, bc, dz, dw) = if far {
+            (-a.z, -b.z, 1.0, 0.0)
+        } else {
+            let d = d as f64;
+            (-(a.z * d + a.w), -(b.z * d + b.w), d, 1.0)
+        };
+        let p = DVec4::new(
+            (ac * b.y - a.y * bc) / det,
+            (a.x * bc - ac * b.x) / det,
+            dz,
+            dw,
+        );
+        let zk = self.zrow.dot(p);
+        let clip = self.to_clip * p;
+        if zk <= 1e-9 || clip.w <= 1e-12 {
+            return None;
+        }
+        let px = (clip.x / clip.w * self.wf) as f32;
+        let py = (clip.y / clip.w * self.hf) as f32;
+        let expected = if far { f32::MAX } else { zk as f32 };
+        Some((px, py, expected))
+    }
+
+    /// RGBA and validity of `frame` seen from column `j` of the row with term
+    /// `b`, at planar depth `d`.
+    #[inline(always)]
+    fn color(&self, frame: &HistoryFrame, b: DVec4, j: usize, d: f32) -> ([f32; 4], f32) {
+        match self.position(b, j, d) {
+            // The expected depth is known: `color_pixel` tests it when the
+            // history frame has depth.
+            Some((px, py, expected)) => color_pixel(frame, px, py, expected, 1.0),
+            None => ([0.0; 4], 0.0),
+        }
+    }
+
+    /// [`CameraMap::color`] at pixel (row `i`, column `j`) alone; equal to
+    /// that pixel of [`reproject_camera`].
+    pub(crate) fn color_at(
+        &self,
+        frame: &HistoryFrame,
+        depth: &[f32],
+        i: usize,
+        j: usize,
+    ) -> ([f32; 4], f32) {
+        let w = self.wf as usize;
+        self.color(frame, self.row(i), j, depth[i * w + j])
+    }
+}
+
 /// Reprojects history frame `frame` with the current frame's depth and both
 /// cameras (static scene). The current frame must have depth and a camera and
 /// the history frame a camera.
@@ -378,78 +556,30 @@ pub(crate) fn reproject_camera(
     current: &PreparedFrame,
     frame: &HistoryFrame,
     pool: Option<&rayon::ThreadPool>,
+    rec: Option<&Recycler>,
 ) -> ReprojectedFrame {
     let (w, h) = (current.width(), current.height());
     let depth = current
         .depth
         .as_deref()
         .expect("camera reprojection needs depth");
-    let cc = current
-        .camera
-        .expect("camera reprojection needs the current camera");
-    let hc = frame
-        .camera
-        .expect("camera reprojection needs the history camera");
-    let cam_to_world = cc.world_to_camera.as_dmat4().inverse();
-    let cam_to_ndc: DMat4 = cc.world_to_ndc.as_dmat4() * cam_to_world;
-    // Current camera space to the history frame's clip space and planar depth.
-    let to_clip: DMat4 = hc.world_to_ndc.as_dmat4() * cam_to_world;
-    let to_cam: DMat4 = hc.world_to_camera.as_dmat4() * cam_to_world;
-    let zrow = to_cam.row(2);
-    let (r0, r1, r3) = (cam_to_ndc.row(0), cam_to_ndc.row(1), cam_to_ndc.row(3));
-    let (wf, hf) = (w as f64, h as f64);
-
-    let mut color = Image::zeros(w, h, 4);
-    let mut valid = vec![0.0f32; w * h];
+    let map = CameraMap::new(current, frame);
+    let (mut color, mut valid) = outputs(w, h, rec);
     let [c0, c1, c2, c3] = planes4(&mut color);
-    let hist = &frame.color;
-    let hdepth = frame.depth.as_deref();
     par_rows(
         pool,
         [c0, c1, c2, c3, &mut valid],
         w,
         |i, [o0, o1, o2, o3, ov]| {
-            let v = (i as f64 + 0.5) / hf;
-            let b: DVec4 = r1 - v * r3;
-            for j in 0..w {
-                let u = (j as f64 + 0.5) / wf;
-                let a: DVec4 = r0 - u * r3;
-                let det = a.x * b.y - a.y * b.x;
-                if det.abs() < 1e-18 {
-                    continue;
-                }
-                let d = depth[i * w + j];
-                // (a . X = 0, b . X = 0) with X = (x, y, d, 1), or the direction (x, y, 1, 0).
-                let far = d >= FAR_DEPTH;
-                let (ac, bc, dz, dw) = if far {
-                    (-a.z, -b.z, 1.0, 0.0)
-                } else {
-                    let d = d as f64;
-                    (-(a.z * d + a.w), -(b.z * d + b.w), d, 1.0)
-                };
-                let p = DVec4::new(
-                    (ac * b.y - a.y * bc) / det,
-                    (a.x * bc - ac * b.x) / det,
-                    dz,
-                    dw,
-                );
-                let zk = zrow.dot(p);
-                let clip = to_clip * p;
-                if zk <= 1e-9 || clip.w <= 1e-12 {
-                    continue;
-                }
-                let px = (clip.x / clip.w * wf) as f32;
-                let py = (clip.y / clip.w * hf) as f32;
-                let expected = if far { f32::MAX } else { zk as f32 };
-                let t = taps(px, py, w, h, hdepth, expected);
-                if t.sum <= 0.0 {
-                    continue;
-                }
-                o0[j] = t.sample(hist.plane(0));
-                o1[j] = t.sample(hist.plane(1));
-                o2[j] = t.sample(hist.plane(2));
-                o3[j] = t.sample(hist.plane(3));
-                ov[j] = t.sum;
+            let b = map.row(i);
+            let drow = &depth[i * w..(i + 1) * w];
+            for (j, &d) in drow.iter().enumerate() {
+                let (c, v) = map.color(frame, b, j, d);
+                o0[j] = c[0];
+                o1[j] = c[1];
+                o2[j] = c[2];
+                o3[j] = c[3];
+                ov[j] = v;
             }
         },
     );
