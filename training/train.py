@@ -202,7 +202,7 @@ def run_window(model: Enhancer, batch: dict, cfg: dict, rng: np.random.Generator
             continue
         x = assemble_input(mcfg, rgba, ins[:, f], hist, scale)
         out = model(x)
-        # Losses see the encoding times loss_gain (mid grey ~0.12, so SSIM's constants fit).
+        # Losses see the encoding times loss_gain (the default encoding puts the log-average at 0.4).
         lg = cfg["loss_gain"]
         l2 = F.mse_loss(out * lg, gt_enc * lg)
         pl = patch_loss(out * lg, gt_enc * lg, rng, cfg["patches"])
@@ -269,7 +269,7 @@ def add_args(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--p-no-history", type=float, default=0.3, help="share of non-temporal batches")
     ap.add_argument("--p-drop-insert", type=float, default=0.2)
     ap.add_argument("--patches", type=int, default=4)
-    ap.add_argument("--loss-gain", type=float, default=4.0, help="encoded color is scaled by this in the losses")
+    ap.add_argument("--loss-gain", type=float, default=1.0, help="encoded color is scaled by this in the losses")
     ap.add_argument("--w-l2", type=float, default=1.0)
     ap.add_argument("--w-patch", type=float, default=0.2)
     ap.add_argument("--w-temporal", type=float, default=0.5)
