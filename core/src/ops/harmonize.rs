@@ -448,8 +448,8 @@ mod tests {
                 } else {
                     [0.6 * t, 0.5 * t, 0.4 * t]
                 };
-                for k in 0..3 {
-                    img.data[k * n + p] = c[k];
+                for (k, v) in c.iter().enumerate() {
+                    img.data[k * n + p] = *v;
                 }
                 mask[p] = if inside { 1.0 } else { 0.0 };
             }

@@ -287,14 +287,14 @@ pub fn fast_log2(x: f32) -> f32 {
 /// reproducible; saturates to 0 below -126 and to a large value above 127.
 #[inline]
 pub fn fast_exp2(x: f32) -> f32 {
-    let x = x.max(-126.0).min(127.0);
+    let x = x.clamp(-126.0, 127.0);
     // floor without a libm call: truncate, then step down for negative fractions.
     let t = x as i32;
     let fl = if (t as f32) > x { t - 1 } else { t };
     let f = x - fl as f32;
     // 2^f on [0,1): Taylor polynomial of degree 6 of exp(f ln 2).
     let p = 1.0
-        + f * (0.693_147_2
+        + f * (std::f32::consts::LN_2
             + f * (0.240_226_5
                 + f * (0.055_504_1 + f * (0.009_618_1 + f * (0.001_333_6 + f * 0.000_154_0)))));
     f32::from_bits(((fl + 127) as u32) << 23) * p

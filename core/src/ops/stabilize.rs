@@ -289,9 +289,9 @@ mod tests {
                     hv[2].clamp(lo[2], hi[2]),
                 ];
                 let hr = from_ycocg(cl[0], cl[1], cl[2]);
-                for c in 0..3 {
+                for (c, hc) in hr.iter().enumerate() {
                     let cv = cur.at(x, y, c);
-                    let want = (cv + 0.7 * hist.valid[p] * (hr[c] - cv)).max(0.0);
+                    let want = (cv + 0.7 * hist.valid[p] * (hc - cv)).max(0.0);
                     assert!((fast.at(x, y, c) - want).abs() < 1e-5, "({x},{y},{c})");
                 }
             }

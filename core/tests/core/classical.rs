@@ -284,8 +284,8 @@ fn log_error(out: &Image, f: &Frame) -> f64 {
         if f.mask[p] > 0.0 {
             let (x, y) = (p % W, p / W);
             let o = rgb(out, x, y);
-            for c in 0..3 {
-                e += ((o[c] + 1e-3).log2() - (f.truth[3 * p + c] + 1e-3).log2()).abs() as f64;
+            for (c, oc) in o.iter().enumerate() {
+                e += ((oc + 1e-3).log2() - (f.truth[3 * p + c] + 1e-3).log2()).abs() as f64;
                 n += 1;
             }
         }
