@@ -84,7 +84,10 @@ impl Layout {
                 "{what}: row stride {row_stride} bytes is smaller than width {width} x pixel stride {pixel_stride}"
             )));
         }
-        if offset % sample != 0 || pixel_stride % sample != 0 || row_stride % sample != 0 {
+        if !offset.is_multiple_of(sample)
+            || !pixel_stride.is_multiple_of(sample)
+            || !row_stride.is_multiple_of(sample)
+        {
             return Err(Error::invalid(format!(
                 "{what}: offset and strides must be multiples of the sample size {sample}"
             )));
@@ -419,7 +422,7 @@ mod tests {
     fn unaligned_and_f16_buffers_read_and_write() {
         // f32 samples starting one byte into the buffer: the byte path.
         let vals = [1.5f32, -2.0, 3.25, 4.0];
-        let mut bytes = vec![0u8; 1 + 16];
+        let mut bytes = [0u8; 1 + 16];
         for (i, v) in vals.iter().enumerate() {
             bytes[1 + 4 * i..5 + 4 * i].copy_from_slice(&v.to_ne_bytes());
         }
@@ -427,7 +430,7 @@ mod tests {
         let mut row = [0.0; 4];
         v.read_row(0, 0, &mut row);
         assert_eq!(row, vals);
-        let mut out = vec![0u8; 1 + 16];
+        let mut out = [0u8; 1 + 16];
         let mut w =
             ImageViewMut::new("y", &mut out[1..], PixelFormat::F32, 4, 1, 1, 0, 0, 0).unwrap();
         w.write_row(0, 0, &vals);
