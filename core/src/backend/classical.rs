@@ -55,8 +55,8 @@ pub fn rgba_from_frame(frame: &PreparedFrame) -> Image {
 }
 
 /// Runs the four operations on `img` (the frame as [`rgba_from_frame`] makes
-/// it) with the parameters in `input`; the neural backend's `classical_post`
-/// stage calls this on its own output.
+/// it, or another backend's output when the classical pipeline runs as a
+/// post-stage, `classical_post`) with the parameters in `input`.
 pub fn run_ops(
     img: &mut Image,
     input: &BackendInput<'_>,
