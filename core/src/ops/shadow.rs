@@ -5,7 +5,7 @@
 //! the insert's depth there. On a grid downsampled by up to 4, the footprint
 //! is blurred horizontally (Gaussian, normalized) and vertically with an
 //! asymmetric kernel of peak 1 that reaches further below the footprint than
-//! above it, giving an occlusion `O` in [0,1] that is 1 on a long footprint
+//! above it, giving an occlusion `O` in 0..=1 that is 1 on a long footprint
 //! line; the footprint depth is blurred the same way. A background pixel is
 //! darkened by `strength * O * exp(-((d - D) / (0.1 D))^2) * (1 - mask)`:
 //! only where its depth `d` is close to the footprint depth `D` (the ground
@@ -37,7 +37,7 @@ pub struct ShadowMap {
     pub grid_width: usize,
     /// Grid height in cells.
     pub grid_height: usize,
-    /// Occlusion per cell in [0,1].
+    /// Occlusion per cell in 0..=1.
     pub occlusion: Vec<f32>,
     /// Footprint depth per cell (0 where the occlusion is 0).
     pub depth: Vec<f32>,
