@@ -240,7 +240,7 @@ fn version_and_major_mismatch() {
         "hz_device_new",
         unsafe extern "C" fn(u32, *const hz_device_options, *mut *mut hz_device) -> hz_status
     );
-    let mut d: *mut hz_device = 8 as *mut hz_device;
+    let mut d: *mut hz_device = std::ptr::dangling_mut();
     // SAFETY: valid out pointer.
     assert_eq!(unsafe { new(7, null(), &mut d) }, HZ_ERROR_NOT_SUPPORTED);
     assert!(d.is_null(), "a failed create sets the handle to NULL");
