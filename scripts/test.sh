@@ -56,7 +56,8 @@ want header && run_step header ./scripts/check-header.sh
 want rust && run_step rust cargo test --workspace --locked
 want release && run_step release cargo build --release --locked -p harmonizer-ffi -p harmonizer-cli
 export HARMONIZER_LIB="$PWD/target/release/libharmonizer.so"
-want c && run_step c ./tests/c/run.sh
+want c && run_step c-hosts make -C tests/c PROFILE=release
+want c && run_step c-install ./tests/c/test_install.sh
 want python && run_step python env PYTHONPATH="$PWD/ffi/python" .venv/bin/python -m pytest -q -p no:cacheprovider ffi/python/tests
 want usd && run_step usd ./tests/usd/run.sh -q
 want blender && run_step blender ./tests/blender/run.sh
