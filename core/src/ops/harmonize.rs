@@ -11,10 +11,21 @@
 //! downsampled by [`RING_CELL`] and excluding the insert and one cell around
 //! its edge; empty-depth pixels (sky) do not count.
 //!
-//! The filter moves the insert part of the way toward the ring (the
-//! `*_STRENGTH` constants), because an object's own colors legitimately
-//! differ from its surroundings: only a share of the difference is taken to
-//! be a lighting or grading mismatch, and every parameter is clamped.
+//! The filter is conservative, because an object's own colors legitimately
+//! differ from its surroundings (a yellow ball on a grey floor is not a
+//! lighting error): only the part of a difference that exceeds what object
+//! albedo explains is corrected. Exposure and white balance have a dead zone
+//! ([`EXPOSURE_DEAD_ZONE`], [`CHROMA_DEAD_ZONE`]) with a soft knee beyond,
+//! and only a share of the excess is taken (the `*_STRENGTH` constants).
+//! The brightness evidence is the smaller of the differences in mean
+//! brightness and in the brightest channel, so a saturated object (whose
+//! geometric-mean brightness is low) is not brightened. A chroma difference
+//! larger than any plausible illuminant cast ([`MAX_CAST`]) is taken to be
+//! the object's own color and left alone. Saturation and contrast stay at
+//! identity unless the evidence is strong: contrast only changes when the
+//! brightness spreads differ by more than [`CONTRAST_DEAD_ZONE`] stops, and
+//! saturation is only ever reduced, when the insert is far more saturated
+//! than its ring and its chroma points away from the ring's illuminant.
 
 use rayon::prelude::*;
 
@@ -23,14 +34,30 @@ use crate::frame::Image;
 
 /// Cell size (pixels) of the downsampled mask the ring is built on.
 pub const RING_CELL: usize = 4;
-/// Share of the log-brightness difference corrected by the exposure.
-pub const EXPOSURE_STRENGTH: f32 = 0.75;
-/// Share of the log-chroma difference corrected by the white balance.
-pub const WHITE_BALANCE_STRENGTH: f32 = 0.6;
-/// Exponent on the ratio of brightness spreads (contrast).
+/// Share of the brightness difference beyond the dead zone corrected by the exposure.
+pub const EXPOSURE_STRENGTH: f32 = 0.6;
+/// Brightness differences up to this many stops are object albedo: left alone.
+pub const EXPOSURE_DEAD_ZONE: f32 = 1.5;
+/// Width (stops) of the soft knee beyond [`EXPOSURE_DEAD_ZONE`].
+pub const EXPOSURE_KNEE: f32 = 1.0;
+/// Share of the chroma difference beyond the dead zone corrected by the white balance.
+pub const WHITE_BALANCE_STRENGTH: f32 = 0.5;
+/// RMS log-chroma differences up to this many stops are left alone.
+pub const CHROMA_DEAD_ZONE: f32 = 0.5;
+/// Width (stops) of the soft knee beyond [`CHROMA_DEAD_ZONE`].
+pub const CHROMA_KNEE: f32 = 0.25;
+/// RMS log-chroma differences fade from a correctable cast at this value to
+/// the object's own color (no correction) at `MAX_CAST + 0.4`.
+pub const MAX_CAST: f32 = 1.0;
+/// Brightness spreads whose ratio is within this many stops keep contrast 1.
+pub const CONTRAST_DEAD_ZONE: f32 = 0.75;
+/// Exponent on the part of the spread ratio beyond the dead zone (contrast).
 pub const CONTRAST_STRENGTH: f32 = 0.5;
-/// Exponent on the ratio of chroma magnitudes (saturation).
-pub const SATURATION_STRENGTH: f32 = 0.5;
+/// Saturation is only reduced when the insert's mean chroma magnitude
+/// exceeds the ring's by more than this (stops).
+pub const SATURATION_EVIDENCE: f32 = 1.0;
+/// Exponent on the chroma ratio beyond the evidence threshold (saturation).
+pub const SATURATION_STRENGTH: f32 = 0.3;
 /// Largest exposure change, stops.
 pub const MAX_EXPOSURE: f32 = 3.0;
 /// Largest white-balance shift per channel, stops.
@@ -341,33 +368,80 @@ pub fn measure(
     Some((finish(&si)?, finish(&sb)?))
 }
 
-/// The filter that moves the insert's statistics toward the ring's.
+/// The part of a signed difference `d` beyond a dead zone `dead`, with a
+/// quadratic knee of width `knee` (continuous with a continuous slope).
+pub fn beyond_dead_zone(d: f32, dead: f32, knee: f32) -> f32 {
+    let a = d.abs() - dead;
+    let e = if a <= 0.0 {
+        0.0
+    } else if a < knee {
+        a * a / (2.0 * knee)
+    } else {
+        a - 0.5 * knee
+    };
+    e.copysign(d)
+}
+
+/// The filter that corrects the part of the insert's difference to the ring
+/// that object albedo does not explain (see the module documentation).
 pub fn tone_from_stats(insert: &Stats, ring: &Stats) -> Tone {
-    let exposure = (EXPOSURE_STRENGTH as f64 * (ring.brightness - insert.brightness)) as f32;
-    let mut wb = [0.0f32; 3];
-    for (k, v) in wb.iter_mut().enumerate() {
-        let d = (ring.log_mean[k] - ring.brightness) - (insert.log_mean[k] - insert.brightness);
-        *v = ((WHITE_BALANCE_STRENGTH as f64 * d) as f32)
-            .clamp(-MAX_WHITE_BALANCE, MAX_WHITE_BALANCE);
-    }
+    // Brightness: the smaller of the mean and brightest-channel differences
+    // (0 when they disagree in sign).
+    let top = |s: &Stats| s.log_mean.iter().copied().fold(f64::MIN, f64::max);
+    let d_mean = (ring.brightness - insert.brightness) as f32;
+    let d_top = (top(ring) - top(insert)) as f32;
+    let d = if d_mean * d_top <= 0.0 {
+        0.0
+    } else {
+        d_mean.abs().min(d_top.abs()).copysign(d_mean)
+    };
+    let exposure = (EXPOSURE_STRENGTH * beyond_dead_zone(d, EXPOSURE_DEAD_ZONE, EXPOSURE_KNEE))
+        .clamp(-MAX_EXPOSURE, MAX_EXPOSURE);
+
+    // White balance: the mean log-chroma difference, shrunk as a vector.
+    let chroma = |s: &Stats, k: usize| (s.log_mean[k] - s.brightness) as f32;
+    let diff: [f32; 3] = std::array::from_fn(|k| chroma(ring, k) - chroma(insert, k));
+    let rms = ((diff[0] * diff[0] + diff[1] * diff[1] + diff[2] * diff[2]) / 3.0).sqrt();
+    let plausible = ((MAX_CAST + 0.4 - rms) / 0.4).clamp(0.0, 1.0);
+    let scale = if rms > 0.0 {
+        WHITE_BALANCE_STRENGTH * plausible * beyond_dead_zone(rms, CHROMA_DEAD_ZONE, CHROMA_KNEE)
+            / rms
+    } else {
+        0.0
+    };
+    let mut wb = diff.map(|v| (scale * v).clamp(-MAX_WHITE_BALANCE, MAX_WHITE_BALANCE));
     let mean = (wb[0] + wb[1] + wb[2]) / 3.0;
     wb.iter_mut().for_each(|v| *v -= mean);
-    let ratio = |a: f64, b: f64, strength: f32| -> f32 {
-        if a > 1e-3 && b > 1e-3 {
-            ((b / a).powf(strength as f64) as f32).clamp(1.0 / MAX_FACTOR, MAX_FACTOR)
-        } else {
-            1.0
-        }
+
+    // Contrast: only beyond a dead zone on the ratio of brightness spreads.
+    let contrast = if insert.brightness_std > 1e-3 && ring.brightness_std > 1e-3 {
+        let r = (ring.brightness_std / insert.brightness_std).log2() as f32;
+        let e = CONTRAST_STRENGTH * beyond_dead_zone(r, CONTRAST_DEAD_ZONE, 0.5);
+        e.exp2().clamp(1.0 / MAX_FACTOR, MAX_FACTOR)
+    } else {
+        1.0
     };
+
+    // Saturation: never raised; lowered only when the insert is far more
+    // saturated than its ring and its chroma points away from the ring's.
+    let ci: [f32; 3] = std::array::from_fn(|k| chroma(insert, k));
+    let cr: [f32; 3] = std::array::from_fn(|k| chroma(ring, k));
+    let dot = ci[0] * cr[0] + ci[1] * cr[1] + ci[2] * cr[2];
+    let excess = (insert.chroma - ring.chroma) as f32 - SATURATION_EVIDENCE;
+    let saturation = if excess > 0.0 && dot < 0.0 && insert.chroma > 1e-3 {
+        let target = (ring.chroma as f32 + SATURATION_EVIDENCE) / insert.chroma as f32;
+        target
+            .powf(SATURATION_STRENGTH)
+            .clamp(1.0 / MAX_FACTOR, 1.0)
+    } else {
+        1.0
+    };
+
     Tone {
-        exposure: exposure.clamp(-MAX_EXPOSURE, MAX_EXPOSURE),
+        exposure,
         white_balance: wb,
-        contrast: ratio(
-            insert.brightness_std,
-            ring.brightness_std,
-            CONTRAST_STRENGTH,
-        ),
-        saturation: ratio(insert.chroma, ring.chroma, SATURATION_STRENGTH),
+        contrast,
+        saturation,
         pivot: insert.brightness as f32,
     }
 }
@@ -485,11 +559,12 @@ mod tests {
     #[test]
     fn a_tone_shifted_insert_moves_toward_the_background_grade() {
         // The insert's true colors follow the background's grade; the render
-        // made it 2x too bright and blue, and flatter.
+        // made it 8x (3 stops) too bright, 4x too blue, and flatter: far
+        // beyond what the object's albedo could explain.
         let truth = |t: f32| [0.6 * t, 0.5 * t, 0.4 * t];
         let shifted = |t: f32| {
-            let c = truth(0.5 + 0.6 * (t - 0.5));
-            [2.0 * c[0], 2.0 * c[1], 2.0 * 1.6 * c[2]]
+            let c = truth(0.5 + 0.3 * (t - 0.5));
+            [8.0 * c[0], 8.0 * c[1], 8.0 * 4.0 * c[2]]
         };
         let (mut img, mask) = scene(160, 120, shifted);
         let (want, _) = scene(160, 120, truth);
@@ -511,11 +586,13 @@ mod tests {
         let rect = insert_rect(&mask, 160, 120).unwrap();
         let tone = estimate(&img, &mask, rect, None, None).unwrap();
         assert!(tone.exposure < -0.5, "{tone:?}");
-        assert!(tone.white_balance[2] < -0.2, "{tone:?}");
+        assert!(tone.white_balance[2] < -0.1, "{tone:?}");
         assert!(tone.contrast > 1.0, "{tone:?}");
+        assert_eq!(tone.saturation, 1.0, "{tone:?}");
         apply(&mut img, &mask, rect, &tone);
         let after = err(&img);
-        assert!(after < 0.5 * before, "log error {before} -> {after}");
+        // Conservative: only the excess beyond the dead zones is corrected.
+        assert!(after < 0.85 * before, "log error {before} -> {after}");
         // The background is untouched.
         assert_eq!(img.at(5, 5, 0), want.at(5, 5, 0));
     }
@@ -534,6 +611,28 @@ mod tests {
         for (a, b) in img.data.iter().zip(&orig.data) {
             assert!((a - b).abs() <= 0.1 * b.abs() + 1e-4);
         }
+    }
+
+    #[test]
+    fn a_correctly_lit_saturated_insert_is_left_alone() {
+        // Regression: harmonization pulled a correctly lit yellow (or red)
+        // object toward its grey surroundings. Same lighting as the floor,
+        // only the albedo differs: the filter must be the identity.
+        for albedo in [[1.3, 1.0, 0.08], [1.2, 0.12, 0.1]] {
+            let (img, mask) = scene(160, 120, |t| albedo.map(|a| a * 0.5 * t));
+            let rect = insert_rect(&mask, 160, 120).unwrap();
+            let tone = estimate(&img, &mask, rect, None, None).unwrap();
+            assert!(tone.is_identity(), "albedo {albedo:?}: {tone:?}");
+        }
+    }
+
+    #[test]
+    fn dead_zone_is_continuous_and_signed() {
+        assert_eq!(beyond_dead_zone(1.0, 1.5, 1.0), 0.0);
+        assert_eq!(beyond_dead_zone(-1.5, 1.5, 1.0), 0.0);
+        assert!((beyond_dead_zone(2.0, 1.5, 1.0) - 0.125).abs() < 1e-6);
+        assert!((beyond_dead_zone(-2.5, 1.5, 1.0) + 0.5).abs() < 1e-6);
+        assert!((beyond_dead_zone(3.5, 1.5, 1.0) - 1.5).abs() < 1e-6);
     }
 
     #[test]
