@@ -40,9 +40,10 @@ pub const DEPTH_TOLERANCE: f32 = 0.1;
 pub fn depth_match(expected: f32, seen: f32) -> bool {
     let far_e = expected >= FAR_DEPTH;
     let far_s = seen >= FAR_DEPTH;
-    // Non-short-circuit operators: no branches in the per-tap test.
-    let near = (expected - seen).abs() <= DEPTH_TOLERANCE * expected.min(seen);
-    (far_e & far_s) | (!far_e & !far_s & near)
+    if far_e || far_s {
+        return far_e && far_s;
+    }
+    (expected - seen).abs() <= DEPTH_TOLERANCE * expected.min(seen)
 }
 
 /// The bilinear taps at one position that passed the frame and depth tests,
@@ -305,29 +306,51 @@ pub(crate) fn hop_color(
 /// `d` (NaN: unknown), validity so far `v`; returns RGBA and validity.
 #[inline(always)]
 fn color_pixel(frame: &HistoryFrame, x: f32, y: f32, d: f32, v: f32) -> ([f32; 4], f32) {
-    if v <= 0.0 {
-        return ([0.0; 4], 0.0);
+    Planes::of(frame).color(x, y, d, v)
+}
+
+/// A history frame's color planes and depth, split once per loop.
+#[derive(Clone, Copy)]
+struct Planes<'a> {
+    p: [&'a [f32]; 4],
+    depth: Option<&'a [f32]>,
+    w: usize,
+    h: usize,
+}
+
+impl<'a> Planes<'a> {
+    #[inline(always)]
+    fn of(frame: &'a HistoryFrame) -> Planes<'a> {
+        let hist = &frame.color;
+        Planes {
+            p: [hist.plane(0), hist.plane(1), hist.plane(2), hist.plane(3)],
+            depth: frame.depth.as_deref(),
+            w: hist.width,
+            h: hist.height,
+        }
     }
-    let hist = &frame.color;
-    let (w, h) = (hist.width, hist.height);
-    let hdepth = if d.is_nan() {
-        None
-    } else {
-        frame.depth.as_deref()
-    };
-    let t = taps(x, y, w, h, hdepth, d);
-    if t.sum <= 0.0 {
-        return ([0.0; 4], 0.0);
+
+    /// See [`color_pixel`].
+    #[inline(always)]
+    fn color(&self, x: f32, y: f32, d: f32, v: f32) -> ([f32; 4], f32) {
+        if v <= 0.0 {
+            return ([0.0; 4], 0.0);
+        }
+        let hdepth = if d.is_nan() { None } else { self.depth };
+        let t = taps(x, y, self.w, self.h, hdepth, d);
+        if t.sum <= 0.0 {
+            return ([0.0; 4], 0.0);
+        }
+        (
+            [
+                t.sample(self.p[0]),
+                t.sample(self.p[1]),
+                t.sample(self.p[2]),
+                t.sample(self.p[3]),
+            ],
+            v * t.sum,
+        )
     }
-    (
-        [
-            t.sample(hist.plane(0)),
-            t.sample(hist.plane(1)),
-            t.sample(hist.plane(2)),
-            t.sample(hist.plane(3)),
-        ],
-        v * t.sum,
-    )
 }
 
 /// The color hop of `src` into `frame` at pixel (row `i`, column `j`) alone;
@@ -362,6 +385,7 @@ impl SourceUser<ReprojectedFrame> for ColorHop<'_> {
         let (w, h) = (frame.color.width, frame.color.height);
         let (mut color, mut valid) = outputs(w, h, self.rec);
         let [c0, c1, c2, c3] = planes4(&mut color);
+        let planes = Planes::of(frame);
         par_rows(
             self.pool,
             [c0, c1, c2, c3, &mut valid],
@@ -369,7 +393,7 @@ impl SourceUser<ReprojectedFrame> for ColorHop<'_> {
             |i, [r0, r1, r2, r3, rv]| {
                 for j in 0..w {
                     let (x, y, d, v) = at(i, j);
-                    let (c, v) = color_pixel(frame, x, y, d, v);
+                    let (c, v) = planes.color(x, y, d, v);
                     r0[j] = c[0];
                     r1[j] = c[1];
                     r2[j] = c[2];
