@@ -350,9 +350,9 @@ fn correct_insert_is_left_alone() {
                 let shade =
                     0.45 + 0.25 * (((x - ins.x0) as f32) * 0.4).sin() * ((y as f32) * 0.3).cos();
                 let noise = 1.0 + 0.02 * (hash(p as u64 + 77) - 0.5);
-                for c in 0..3 {
-                    f.truth[3 * p + c] = albedo[c] * shade;
-                    f.color[3 * p + c] = albedo[c] * shade * noise;
+                for (c, a) in albedo.iter().enumerate() {
+                    f.truth[3 * p + c] = a * shade;
+                    f.color[3 * p + c] = a * shade * noise;
                 }
             }
         }
