@@ -11,7 +11,7 @@
 
 use rayon::prelude::*;
 
-use super::{fmax, fmin, par_bands_mut, BAND_ROWS};
+use super::{fmax, fmin, par_bands_mut, row_max, BAND_ROWS};
 use crate::frame::Image;
 use crate::temporal::ReprojectedFrame;
 
@@ -46,9 +46,53 @@ fn row_ycocg(r: &[f32], g: &[f32], b: &[f32], out: &mut [f32]) {
     }
 }
 
+/// Vertical 3-tap min and max of three YCoCg rows (3 planes of `w`), into
+/// planes of `w + 2` padded by repeating the first and last value, so the
+/// horizontal 3-tap is three shifted slices with edges clamped.
+fn vertical_min_max(rows: [&[f32]; 3], w: usize, lo: &mut [f32], hi: &mut [f32]) {
+    let [a0, a1, a2] = rows;
+    for c in 0..3 {
+        let s = c * w..(c + 1) * w;
+        let (r0, r1, r2) = (&a0[s.clone()], &a1[s.clone()], &a2[s]);
+        let p = c * (w + 2);
+        let (l, hh) = (&mut lo[p + 1..p + w + 1], &mut hi[p + 1..p + w + 1]);
+        for x in 0..w {
+            l[x] = fmin(fmin(r0[x], r1[x]), r2[x]);
+            hh[x] = fmax(fmax(r0[x], r1[x]), r2[x]);
+        }
+        lo[p] = lo[p + 1];
+        hi[p] = hi[p + 1];
+        lo[p + w + 1] = lo[p + w];
+        hi[p + w + 1] = hi[p + w];
+    }
+}
+
+/// Horizontal 3-tap minimum at `x` of a padded plane.
+#[inline(always)]
+fn min3_at(p: (&[f32], &[f32], &[f32]), x: usize) -> f32 {
+    fmin(fmin(p.0[x], p.1[x]), p.2[x])
+}
+
+/// Horizontal 3-tap maximum at `x` of a padded plane.
+#[inline(always)]
+fn max3_at(p: (&[f32], &[f32], &[f32]), x: usize) -> f32 {
+    fmax(fmax(p.0[x], p.1[x]), p.2[x])
+}
+
+/// The three shifted views (`x - 1`, `x`, `x + 1`) of padded plane `c`.
+fn shifted(v: &[f32], c: usize, w: usize) -> (&[f32], &[f32], &[f32]) {
+    let p = c * (w + 2);
+    (&v[p..p + w], &v[p + 1..p + w + 1], &v[p + 2..p + w + 2])
+}
+
 /// Blends `img` (4 planes, premultiplied) with `history` in place: weight
 /// `blend * validity`, history clamped to the 3x3 YCoCg range of `img`.
-/// Alpha is kept; pixels with A = 0 are left alone.
+/// Alpha is kept; pixels with A = 0 or without usable history keep their
+/// color (negative values become 0 in rows that hold some history).
+///
+/// One pass over the image: each band keeps a sliding window of three YCoCg
+/// rows, and the horizontal min/max is taken inside the blend loop. Bands
+/// and rows without valid history are skipped (only the window rolls on).
 pub fn stabilize(img: &mut Image, history: &ReprojectedFrame, blend: f32) {
     let (w, h) = (img.width, img.height);
     let n = w * h;
@@ -56,15 +100,35 @@ pub fn stabilize(img: &mut Image, history: &ReprojectedFrame, blend: f32) {
     if blend <= 0.0 || n == 0 {
         return;
     }
+    let hist = &history.color.data;
+    let valid = &history.valid;
     let bands = h.div_ceil(BAND_ROWS);
-    // YCoCg of the first and last row of every band, taken before any change.
+    let band_rows = |bi: usize| bi * BAND_ROWS..((bi + 1) * BAND_ROWS).min(h);
+    // Bands with any usable history; the others are not touched at all.
+    let active: Vec<bool> = (0..bands)
+        .into_par_iter()
+        .map(|bi| {
+            let rows = band_rows(bi);
+            row_max(&valid[rows.start * w..rows.end * w]) > 0.0
+        })
+        .collect();
+    if !active.iter().any(|&v| v) {
+        return;
+    }
+    // YCoCg of the first and last row of every band a working band borders,
+    // taken before any change.
     let edges: Vec<(Vec<f32>, Vec<f32>)> = {
         let src = &*img;
         (0..bands)
             .into_par_iter()
             .map(|bi| {
-                let first = bi * BAND_ROWS;
-                let last = (first + BAND_ROWS).min(h) - 1;
+                let needed = active[bi.saturating_sub(1)..(bi + 2).min(bands)]
+                    .iter()
+                    .any(|&v| v);
+                if !needed {
+                    return (Vec::new(), Vec::new());
+                }
+                let rows = band_rows(bi);
                 let row = |y: usize| {
                     let mut out = vec![0.0; 3 * w];
                     let s = y * w..(y + 1) * w;
@@ -76,16 +140,17 @@ pub fn stabilize(img: &mut Image, history: &ReprojectedFrame, blend: f32) {
                     );
                     out
                 };
-                (row(first), row(last))
+                (row(rows.start), row(rows.end - 1))
             })
             .collect()
     };
-    let hist = &history.color.data;
-    let valid = &history.valid;
     par_bands_mut(img, 0, h).for_each(|(y0, [r, g, b, a])| {
         let bi = y0 / BAND_ROWS;
+        if !active[bi] {
+            return;
+        }
         let rows = a.len() / w;
-        // Rolling YCoCg rows of the unmodified image: above, centre, below.
+        // Sliding window of YCoCg rows of the unmodified image.
         let mut above = if y0 > 0 {
             edges[bi - 1].1.clone()
         } else {
@@ -93,10 +158,8 @@ pub fn stabilize(img: &mut Image, history: &ReprojectedFrame, blend: f32) {
         };
         let mut centre = edges[bi].0.clone();
         let mut below = vec![0.0; 3 * w];
-        let mut vlo = vec![0.0; 3 * w];
-        let mut vhi = vec![0.0; 3 * w];
-        let mut lo = vec![0.0; 3 * w];
-        let mut hi = vec![0.0; 3 * w];
+        let mut lo = vec![0.0; 3 * (w + 2)];
+        let mut hi = vec![0.0; 3 * (w + 2)];
         for dy in 0..rows {
             let y = y0 + dy;
             if dy + 1 < rows {
@@ -107,84 +170,44 @@ pub fn stabilize(img: &mut Image, history: &ReprojectedFrame, blend: f32) {
             } else {
                 below.copy_from_slice(&centre);
             }
-            // Vertical then horizontal 3-tap min/max.
-            for (((l, hh), (a0, a1)), a2) in vlo
-                .iter_mut()
-                .zip(vhi.iter_mut())
-                .zip(above.iter().zip(centre.iter()))
-                .zip(below.iter())
-            {
-                *l = fmin(fmin(*a0, *a1), *a2);
-                *hh = fmax(fmax(*a0, *a1), *a2);
-            }
-            for c in 0..3 {
-                let span = c * w..(c + 1) * w;
-                min3(&vlo[span.clone()], &mut lo[span.clone()]);
-                max3(&vhi[span.clone()], &mut hi[span]);
-            }
-            let row = dy * w..(dy + 1) * w;
             let prow = y * w;
-            let (rr, gr, br, ar) = (
-                &mut r[row.clone()],
-                &mut g[row.clone()],
-                &mut b[row.clone()],
-                &a[row],
-            );
-            let hr = &hist[prow..prow + w];
-            let hg = &hist[n + prow..n + prow + w];
-            let hb = &hist[2 * n + prow..2 * n + prow + w];
-            let ha = &hist[3 * n + prow..3 * n + prow + w];
             let vv = &valid[prow..prow + w];
-            let (ly, lco, lcg) = (&lo[..w], &lo[w..2 * w], &lo[2 * w..]);
-            let (hy, hco, hcg) = (&hi[..w], &hi[w..2 * w], &hi[2 * w..]);
-            for x in 0..w {
-                let (cov, v, hav) = (ar[x], vv[x], ha[x]);
-                let ok = (cov > 0.0) & (v > 0.0) & (hav > MIN_HISTORY_ALPHA);
-                let k = cov / fmax(hav, MIN_HISTORY_ALPHA);
-                let [ty, tco, tcg] = to_ycocg(hr[x] * k, hg[x] * k, hb[x] * k);
-                let [cr, cg, cb] = from_ycocg(
-                    fmin(fmax(ty, ly[x]), hy[x]),
-                    fmin(fmax(tco, lco[x]), hco[x]),
-                    fmin(fmax(tcg, lcg[x]), hcg[x]),
+            if row_max(vv) > 0.0 {
+                vertical_min_max([&above, &centre, &below], w, &mut lo, &mut hi);
+                let row = dy * w..(dy + 1) * w;
+                let (rr, gr, br, ar) = (
+                    &mut r[row.clone()],
+                    &mut g[row.clone()],
+                    &mut b[row.clone()],
+                    &a[row],
                 );
-                // Branch-free (vectorizable): weight 0 where the history is unusable.
-                let wt = blend * v * fmin(hav, 1.0) * (ok as u32 as f32);
-                rr[x] = fmax(rr[x] + wt * (cr - rr[x]), 0.0);
-                gr[x] = fmax(gr[x] + wt * (cg - gr[x]), 0.0);
-                br[x] = fmax(br[x] + wt * (cb - br[x]), 0.0);
+                let hr = &hist[prow..prow + w];
+                let hg = &hist[n + prow..n + prow + w];
+                let hb = &hist[2 * n + prow..2 * n + prow + w];
+                let ha = &hist[3 * n + prow..3 * n + prow + w];
+                let (ly, lco, lcg) = (shifted(&lo, 0, w), shifted(&lo, 1, w), shifted(&lo, 2, w));
+                let (hy, hco, hcg) = (shifted(&hi, 0, w), shifted(&hi, 1, w), shifted(&hi, 2, w));
+                for x in 0..w {
+                    let (cov, v, hav) = (ar[x], vv[x], ha[x]);
+                    let ok = (cov > 0.0) & (v > 0.0) & (hav > MIN_HISTORY_ALPHA);
+                    let k = cov / fmax(hav, MIN_HISTORY_ALPHA);
+                    let [ty, tco, tcg] = to_ycocg(hr[x] * k, hg[x] * k, hb[x] * k);
+                    let [cr, cg, cb] = from_ycocg(
+                        fmin(fmax(ty, min3_at(ly, x)), max3_at(hy, x)),
+                        fmin(fmax(tco, min3_at(lco, x)), max3_at(hco, x)),
+                        fmin(fmax(tcg, min3_at(lcg, x)), max3_at(hcg, x)),
+                    );
+                    // Branch-free (vectorizable): weight 0 where the history is unusable.
+                    let wt = blend * v * fmin(hav, 1.0) * (ok as u32 as f32);
+                    rr[x] = fmax(rr[x] + wt * (cr - rr[x]), 0.0);
+                    gr[x] = fmax(gr[x] + wt * (cg - gr[x]), 0.0);
+                    br[x] = fmax(br[x] + wt * (cb - br[x]), 0.0);
+                }
             }
             std::mem::swap(&mut above, &mut centre);
             std::mem::swap(&mut centre, &mut below);
         }
     });
-}
-
-/// `dst[x] = min(src[x-1], src[x], src[x+1])`, edges clamped.
-fn min3(src: &[f32], dst: &mut [f32]) {
-    let w = src.len();
-    if w < 2 {
-        dst.copy_from_slice(src);
-        return;
-    }
-    dst[0] = fmin(src[0], src[1]);
-    for (d, s) in dst[1..w - 1].iter_mut().zip(src.windows(3)) {
-        *d = fmin(fmin(s[0], s[1]), s[2]);
-    }
-    dst[w - 1] = fmin(src[w - 2], src[w - 1]);
-}
-
-/// `dst[x] = max(src[x-1], src[x], src[x+1])`, edges clamped.
-fn max3(src: &[f32], dst: &mut [f32]) {
-    let w = src.len();
-    if w < 2 {
-        dst.copy_from_slice(src);
-        return;
-    }
-    dst[0] = fmax(src[0], src[1]);
-    for (d, s) in dst[1..w - 1].iter_mut().zip(src.windows(3)) {
-        *d = fmax(fmax(s[0], s[1]), s[2]);
-    }
-    dst[w - 1] = fmax(src[w - 2], src[w - 1]);
 }
 
 #[cfg(test)]
@@ -252,15 +275,39 @@ mod tests {
         assert_eq!(cur, orig);
     }
 
+    const REF_W: usize = 37;
+    const REF_H: usize = 3 * BAND_ROWS + 5;
+
     #[test]
     fn in_place_bands_match_a_reference() {
-        // Compare with a straightforward out-of-place implementation.
-        let (w, h) = (37, 3 * BAND_ROWS + 5);
+        check_against_reference((0..REF_W * REF_H).map(|i| noise(i, 9)).collect());
+    }
+
+    #[test]
+    fn bands_and_rows_without_history_are_skipped_like_the_reference() {
+        // No valid history in band 1 and in a few single rows elsewhere.
+        let valid = (0..REF_W * REF_H)
+            .map(|i| {
+                let y = i / REF_W;
+                let skip = (BAND_ROWS..2 * BAND_ROWS).contains(&y) || y % 7 == 3;
+                if skip {
+                    0.0
+                } else {
+                    noise(i, 9)
+                }
+            })
+            .collect();
+        check_against_reference(valid);
+    }
+
+    /// Compares with a straightforward out-of-place implementation.
+    fn check_against_reference(valid: Vec<f32>) {
+        let (w, h) = (REF_W, REF_H);
         let n = w * h;
         let cur = gray(w, h, |i| noise(i, 7) * 2.0);
         let hist = ReprojectedFrame {
             color: gray(w, h, |i| noise(i, 8) * 2.0),
-            valid: (0..n).map(|i| noise(i, 9)).collect(),
+            valid,
         };
         let mut fast = cur.clone();
         stabilize(&mut fast, &hist, 0.7);
