@@ -198,6 +198,19 @@ struct Hit {
     normal: DVec3,
 }
 
+/// Sub-pixel offsets of the rays averaged per pixel (a 3x3 box filter).
+const SUBPIXELS: [(f64, f64); 9] = [
+    (-1.0 / 3.0, -1.0 / 3.0),
+    (0.0, -1.0 / 3.0),
+    (1.0 / 3.0, -1.0 / 3.0),
+    (-1.0 / 3.0, 0.0),
+    (0.0, 0.0),
+    (1.0 / 3.0, 0.0),
+    (-1.0 / 3.0, 1.0 / 3.0),
+    (0.0, 1.0 / 3.0),
+    (1.0 / 3.0, 1.0 / 3.0),
+];
+
 fn smoothstep(e0: f64, e1: f64, x: f64) -> f64 {
     let t = ((x - e0) / (e1 - e0)).clamp(0.0, 1.0);
     t * t * (3.0 - 2.0 * t)
@@ -409,18 +422,33 @@ impl Scene {
                             .trace(frame, eye, d)
                             .expect("the wall and ground fill every view");
                         let p = eye + hit.s * d;
-                        let albedo = self.albedo(hit.obj, p);
-                        let lit = self.shade(albedo, hit.normal);
-                        let shadow = if hit.obj == Obj::Ground {
-                            self.contact_shadow(frame, p)
-                        } else {
-                            1.0
-                        };
-                        let truth = lit * shadow;
-                        let mut input = lit;
-                        if hit.obj == Obj::Sphere {
-                            input *= DVec3::from(INSERT_GAIN);
+                        // Radiance is averaged over a 3x3 grid of rays inside
+                        // the pixel (a box-filtered render, as a renderer's
+                        // pixel filter does), so textures do not alias and the
+                        // truth is temporally consistent; geometry and AOVs
+                        // come from the centre ray.
+                        let (mut truth, mut input) = (DVec3::ZERO, DVec3::ZERO);
+                        for (sx, sy) in SUBPIXELS {
+                            let ds = un.world_point(px + DVec2::new(sx, sy), 1.0) - eye;
+                            let Some(hs) = self.trace(frame, eye, ds) else {
+                                continue;
+                            };
+                            let ps = eye + hs.s * ds;
+                            let lit = self.shade(self.albedo(hs.obj, ps), hs.normal);
+                            let shadow = if hs.obj == Obj::Ground {
+                                self.contact_shadow(frame, ps)
+                            } else {
+                                1.0
+                            };
+                            truth += lit * shadow;
+                            input += if hs.obj == Obj::Sphere {
+                                lit * DVec3::from(INSERT_GAIN)
+                            } else {
+                                lit
+                            };
                         }
+                        truth /= SUBPIXELS.len() as f64;
+                        input /= SUBPIXELS.len() as f64;
                         let key = seed ^ ((frame as u64) << 40) ^ ((i as u64) << 20) ^ j as u64;
                         let mut noisy = [0f64; 3];
                         for (c, v) in noisy.iter_mut().enumerate() {
@@ -474,7 +502,7 @@ impl Scene {
                             },
                             coverage: cov as f32,
                             insert: hit.obj == Obj::Sphere,
-                            shadow: hit.obj == Obj::Ground && shadow < 0.95,
+                            shadow: hit.obj == Obj::Ground && self.contact_shadow(frame, p) < 0.95,
                             stable,
                         }
                     })
@@ -801,7 +829,9 @@ mod tests {
     #[test]
     fn exact_motion_aligns_the_truth() {
         // Warping the previous truth with the exact motion matches the current
-        // truth far better than not warping (the camera moves).
+        // truth better than not warping or warping with the y axis flipped.
+        // The textures are low-passed first: at sub-pixel shifts, bilinear
+        // resampling of sharp texture costs as much as the motion itself.
         let s = Sequence::generate(SynthConfig {
             width: 160,
             height: 90,
@@ -810,24 +840,53 @@ mod tests {
         .unwrap();
         let (w, h) = (160, 90);
         let (a, b) = (&s.frames[5], &s.frames[4]);
+        let blur = |img: &[f32]| -> Vec<f32> {
+            let r = 3isize;
+            let mut out = vec![0.0; img.len()];
+            for i in 0..h as isize {
+                for j in 0..w as isize {
+                    for c in 0..3 {
+                        let (mut sum, mut n) = (0.0, 0.0);
+                        for di in -r..=r {
+                            for dj in -r..=r {
+                                let (y, x) = (
+                                    (i + di).clamp(0, h as isize - 1),
+                                    (j + dj).clamp(0, w as isize - 1),
+                                );
+                                sum += img[(y as usize * w + x as usize) * 3 + c];
+                                n += 1.0;
+                            }
+                        }
+                        out[(i as usize * w + j as usize) * 3 + c] = sum / n;
+                    }
+                }
+            }
+            out
+        };
+        let (ta, tb) = (blur(&a.truth), blur(&b.truth));
+        let mask = Some(&a.temporal_mask[..]);
         let zero = vec![0.0; 2 * w * h];
-        let warped = warping_error(
-            &a.truth,
-            &b.truth,
-            3,
-            w,
-            h,
-            &a.truth_motion,
-            Some(&a.temporal_mask),
-        );
-        let unwarped = warping_error(&a.truth, &b.truth, 3, w, h, &zero, Some(&a.temporal_mask));
+        let flipped: Vec<f32> = a
+            .truth_motion
+            .iter()
+            .enumerate()
+            .map(|(i, v)| if i % 2 == 1 { -v } else { *v })
+            .collect();
+        let warped = warping_error(&ta, &tb, 3, w, h, &a.truth_motion, mask);
+        let unwarped = warping_error(&ta, &tb, 3, w, h, &zero, mask);
+        let wrong = warping_error(&ta, &tb, 3, w, h, &flipped, mask);
+        // The camera moves under a pixel per frame, so the margin is modest:
+        // measured 0.0048 warped against 0.0075 unwarped and 0.0080 flipped.
         assert!(
-            warped < 0.35 * unwarped,
-            "warped {warped} vs unwarped {unwarped}"
+            warped < 0.75 * unwarped && warped < 0.75 * wrong,
+            "warped {warped} vs unwarped {unwarped} vs y flipped {wrong}"
         );
         // The input flickers: its warping error is well above the truth's.
         let truths: Vec<Vec<f32>> = s.frames.iter().map(|f| f.truth.clone()).collect();
-        assert!(s.input_warping_error() > 2.0 * s.warping_error(&truths, 3));
+        // (Measured 0.027 against 0.015: bilinear resampling of the truth's
+        // texture at sub-pixel shifts is the truth's own floor.)
+        let (input, truth) = (s.input_warping_error(), s.warping_error(&truths, 3));
+        assert!(input > 1.5 * truth, "input {input} vs truth {truth}");
     }
 
     #[test]
