@@ -92,9 +92,11 @@ fn tiling(c: &mut Criterion) {
     use harmonizer_core::backend::{Backend, BackendInput, Carry, Progress, Stages};
     use harmonizer_core::{Device, DeviceOptions, FrameInput, ImageView, ModelSource, Params};
 
-    let lib = runtime::locate(None)
-        .unwrap_or_else(|e| panic!("the tiling bench needs ONNX Runtime: run scripts/setup-venv.sh ({e})"));
-    let model_path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/models/box3.onnx");
+    let lib = runtime::locate(None).unwrap_or_else(|e| {
+        panic!("the tiling bench needs ONNX Runtime: run scripts/setup-venv.sh ({e})")
+    });
+    let model_path =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/models/box3.onnx");
     let device = Device::new(DeviceOptions {
         threads: THREADS,
         ort_library: Some(lib),
@@ -103,24 +105,46 @@ fn tiling(c: &mut Criterion) {
     })
     .expect("device");
     let model = device.neural_model().expect("box3 model").expect("a model");
-    let backend = Neural { model: model.clone() };
+    let backend = Neural {
+        model: model.clone(),
+    };
     let (w, h) = (1024, 576);
-    let rgb: Vec<f32> = (0..w * h * 3).map(|i| ((i * 7919) % 1000) as f32 / 250.0).collect();
+    let rgb: Vec<f32> = (0..w * h * 3)
+        .map(|i| ((i * 7919) % 1000) as f32 / 250.0)
+        .collect();
     let input = FrameInput::new(ImageView::from_f32("color", &rgb, w, h, 3).unwrap());
     let frame = PreparedFrame::from_input(&input, DepthKind::Planar).unwrap();
     let history = History::default();
 
     let mut g = c.benchmark_group("tiling");
     g.sample_size(10);
-    for (name, tile, overlap) in [("untiled", 2048, 16), ("tiles_256", 256, 16), ("tiles_128", 128, 16)] {
-        let params = Params { tile_size: tile, tile_overlap: overlap, ..Params::default() };
+    for (name, tile, overlap) in [
+        ("untiled", 2048, 16),
+        ("tiles_256", 256, 16),
+        ("tiles_128", 128, 16),
+    ] {
+        let params = Params {
+            tile_size: tile,
+            tile_overlap: overlap,
+            ..Params::default()
+        };
         let tiles = model.tile_plan(w, h, &params).expect("tile plan").len();
         g.bench_function(format!("box3_1024x576_{name}_{tiles}"), |b| {
             b.iter(|| {
                 let view = HistoryView::new(&history, &frame, 4, device.pool());
-                let input = BackendInput { frame: &frame, history: &view, params: &params, pool: device.pool() };
+                let input = BackendInput {
+                    frame: &frame,
+                    history: &view,
+                    params: &params,
+                    pool: device.pool(),
+                };
                 backend
-                    .process(&input, &mut Carry::default(), &mut Progress::new(None), &mut Stages::default())
+                    .process(
+                        &input,
+                        &mut Carry::default(),
+                        &mut Progress::new(None),
+                        &mut Stages::default(),
+                    )
                     .unwrap()
             })
         });
@@ -226,8 +250,13 @@ fn classical(c: &mut Criterion) {
             || rgba.clone(),
             |img| {
                 pool.install(|| {
-                    let tone =
-                        harmonize::estimate(img, mask, rect, current.coverage.as_deref(), Some(depth));
+                    let tone = harmonize::estimate(
+                        img,
+                        mask,
+                        rect,
+                        current.coverage.as_deref(),
+                        Some(depth),
+                    );
                     harmonize::apply(img, mask, rect, &tone.unwrap_or(harmonize::Tone::IDENTITY));
                 })
             },

@@ -45,7 +45,9 @@ pub struct Device {
 
 impl std::fmt::Debug for Device {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Device").field("options", &self.options).finish_non_exhaustive()
+        f.debug_struct("Device")
+            .field("options", &self.options)
+            .finish_non_exhaustive()
     }
 }
 
@@ -53,19 +55,27 @@ impl Device {
     /// Creates a device with its own thread pool (threads are not pinned).
     pub fn new(options: DeviceOptions) -> Result<Arc<Device>> {
         let threads = if options.threads == 0 {
-            std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1)
+            std::thread::available_parallelism()
+                .map(|n| n.get())
+                .unwrap_or(1)
         } else {
             options.threads
         };
         if threads > 1024 {
-            return Err(Error::invalid(format!("threads: {threads} is out of range 0..=1024")));
+            return Err(Error::invalid(format!(
+                "threads: {threads} is out of range 0..=1024"
+            )));
         }
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(threads)
             .thread_name(|i| format!("harmonizer-{i}"))
             .build()
             .map_err(|e| Error::Io(format!("cannot start {threads} worker threads: {e}")))?;
-        Ok(Arc::new(Device { options, pool, neural: Mutex::new(None) }))
+        Ok(Arc::new(Device {
+            options,
+            pool,
+            neural: Mutex::new(None),
+        }))
     }
 
     /// The settings this device was created with.

@@ -148,10 +148,16 @@ pub const PARAM_NAMES: &[&str] = &[
 fn want_int(name: &str, v: &ParamValue, lo: i64, hi: i64) -> Result<i64> {
     let i = match v {
         ParamValue::Int(i) => *i,
-        other => return Err(Error::invalid(format!("parameter {name}: expected an integer, got {other:?}"))),
+        other => {
+            return Err(Error::invalid(format!(
+                "parameter {name}: expected an integer, got {other:?}"
+            )))
+        }
     };
     if i < lo || i > hi {
-        return Err(Error::invalid(format!("parameter {name}: {i} is out of range {lo}..={hi}")));
+        return Err(Error::invalid(format!(
+            "parameter {name}: {i} is out of range {lo}..={hi}"
+        )));
     }
     Ok(i)
 }
@@ -160,10 +166,16 @@ fn want_float(name: &str, v: &ParamValue, lo: f64, hi: f64) -> Result<f32> {
     let f = match v {
         ParamValue::Float(f) => *f,
         ParamValue::Int(i) => *i as f64,
-        other => return Err(Error::invalid(format!("parameter {name}: expected a number, got {other:?}"))),
+        other => {
+            return Err(Error::invalid(format!(
+                "parameter {name}: expected a number, got {other:?}"
+            )))
+        }
     };
     if !f.is_finite() || f < lo || f > hi {
-        return Err(Error::invalid(format!("parameter {name}: {f} is out of range {lo}..={hi}")));
+        return Err(Error::invalid(format!(
+            "parameter {name}: {f} is out of range {lo}..={hi}"
+        )));
     }
     Ok(f as f32)
 }
@@ -173,14 +185,18 @@ fn want_bool(name: &str, v: &ParamValue) -> Result<bool> {
         ParamValue::Bool(b) => Ok(*b),
         ParamValue::Int(0) => Ok(false),
         ParamValue::Int(1) => Ok(true),
-        other => Err(Error::invalid(format!("parameter {name}: expected a boolean, got {other:?}"))),
+        other => Err(Error::invalid(format!(
+            "parameter {name}: expected a boolean, got {other:?}"
+        ))),
     }
 }
 
 fn want_str<'a>(name: &str, v: &'a ParamValue) -> Result<&'a str> {
     match v {
         ParamValue::Str(s) => Ok(s),
-        other => Err(Error::invalid(format!("parameter {name}: expected a string, got {other:?}"))),
+        other => Err(Error::invalid(format!(
+            "parameter {name}: expected a string, got {other:?}"
+        ))),
     }
 }
 
@@ -214,11 +230,9 @@ impl Params {
                 self.depth_kind = match want_str(name, v)? {
                     "planar" => DepthKind::Planar,
                     "euclidean" => DepthKind::Euclidean,
-                    s => {
-                        return Err(Error::invalid(format!(
-                            "parameter depth_kind: unknown value {s:?} (expected planar or euclidean)"
-                        )))
-                    }
+                    s => return Err(Error::invalid(format!(
+                        "parameter depth_kind: unknown value {s:?} (expected planar or euclidean)"
+                    ))),
                 }
             }
             "classical_post" => self.classical_post = want_bool(name, v)?,
@@ -292,11 +306,17 @@ mod tests {
     #[test]
     fn errors_name_the_parameter_and_value() {
         let mut p = Params::default();
-        let e = p.set("context_frames", &ParamValue::Int(9)).unwrap_err().to_string();
+        let e = p
+            .set("context_frames", &ParamValue::Int(9))
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("context_frames") && e.contains('9'), "{e}");
         let e = p.set("nope", &ParamValue::Int(1)).unwrap_err().to_string();
         assert!(e.contains("nope"), "{e}");
-        let e = p.set("backend", &ParamValue::Str("gpu".into())).unwrap_err().to_string();
+        let e = p
+            .set("backend", &ParamValue::Str("gpu".into()))
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("gpu"), "{e}");
     }
 }

@@ -1,13 +1,13 @@
 //! The integration tests of harmonizer-core: one binary, one topic module per
 //! file under `tests/core/` (add yours as `#[path = "core/<topic>.rs"] mod <topic>;`).
 
+#[path = "core/classical.rs"]
+mod classical;
+#[path = "core/io.rs"]
+mod io;
+#[path = "core/neural.rs"]
+mod neural;
 #[path = "core/session.rs"]
 mod session;
 #[path = "core/temporal.rs"]
 mod temporal;
-#[path = "core/io.rs"]
-mod io;
-#[path = "core/classical.rs"]
-mod classical;
-#[path = "core/neural.rs"]
-mod neural;

@@ -32,7 +32,11 @@ pub struct Progress<'a> {
 impl<'a> Progress<'a> {
     /// Wraps an optional host callback.
     pub fn new(callback: Option<&'a mut dyn FnMut(f64) -> bool>) -> Self {
-        Progress { callback, last: 0.0, span: (0.0, 1.0) }
+        Progress {
+            callback,
+            last: 0.0,
+            span: (0.0, 1.0),
+        }
     }
 
     /// Maps later `report` values in [0,1] into [lo,hi] of the overall progress.
@@ -46,7 +50,9 @@ impl<'a> Progress<'a> {
         self.last = v;
         if let Some(cb) = self.callback.as_mut() {
             if !cb(v) {
-                return Err(Error::Cancelled(format!("the progress callback returned false at {v:.3}")));
+                return Err(Error::Cancelled(format!(
+                    "the progress callback returned false at {v:.3}"
+                )));
             }
         }
         Ok(())

@@ -27,7 +27,10 @@ impl Camera {
 
     /// Back to OpenEXR row-vector matrices, row by row.
     pub fn to_exr_rows(&self) -> ([[f32; 4]; 4], [[f32; 4]; 4]) {
-        (self.world_to_camera.to_cols_array_2d(), self.world_to_ndc.to_cols_array_2d())
+        (
+            self.world_to_camera.to_cols_array_2d(),
+            self.world_to_ndc.to_cols_array_2d(),
+        )
     }
 
     /// A pinhole camera looking from `eye` toward `target` (+y up in world),
@@ -52,7 +55,10 @@ impl Camera {
             glam::Vec4::new(0.5, 0.5, 1.0, 1.0),
             glam::Vec4::new(0.0, 0.0, -0.1, 0.0),
         );
-        Camera { world_to_camera, world_to_ndc: cam_to_ndc * world_to_camera }
+        Camera {
+            world_to_camera,
+            world_to_ndc: cam_to_ndc * world_to_camera,
+        }
     }
 
     /// Camera-to-NDC transform (double precision).
@@ -71,7 +77,10 @@ impl Camera {
         if ndc.w.abs() < 1e-12 {
             return None;
         }
-        Some((DVec2::new(ndc.x / ndc.w * width as f64, ndc.y / ndc.w * height as f64), cam.z))
+        Some((
+            DVec2::new(ndc.x / ndc.w * width as f64, ndc.y / ndc.w * height as f64),
+            cam.z,
+        ))
     }
 
     /// A precomputed unprojector for images of `width` x `height`.
