@@ -74,9 +74,9 @@ pub struct SynthInput {
     pub motion: Vec<f32>,
     /// World-space normals (3 channels); 0 in holes.
     pub normal: Vec<f32>,
-    /// Coverage in [0,1]: 0 in holes, soft at their borders.
+    /// Coverage in `[0,1]`: 0 in holes, soft at their borders.
     pub coverage: Vec<f32>,
-    /// Insert mask in [0,1]: 1 on the inserted sphere.
+    /// Insert mask in `[0,1]`: 1 on the inserted sphere.
     pub insert_mask: Vec<f32>,
     /// The camera.
     pub camera: Camera,

@@ -21,11 +21,11 @@ pub struct Carry {
     pub values: BTreeMap<String, Vec<f32>>,
 }
 
-/// Progress reporting with cancellation: monotonic values in [0,1].
+/// Progress reporting with cancellation: monotonic values in `[0,1]`.
 pub struct Progress<'a> {
     callback: Option<&'a mut dyn FnMut(f64) -> bool>,
     last: f64,
-    /// Range of the overall progress this stage maps [0,1] into.
+    /// Range of the overall progress this stage maps `[0,1]` into.
     span: (f64, f64),
 }
 
@@ -39,7 +39,7 @@ impl<'a> Progress<'a> {
         }
     }
 
-    /// Maps later `report` values in [0,1] into [lo,hi] of the overall progress.
+    /// Maps later `report` values in `[0,1]` into `[lo,hi]` of the overall progress.
     pub fn set_span(&mut self, lo: f64, hi: f64) {
         self.span = (lo, hi);
     }

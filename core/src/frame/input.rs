@@ -82,9 +82,9 @@ pub struct FrameInput<'a> {
     pub motion: Option<ImageView<'a>>,
     /// Normals (3 channels), any space.
     pub normal: Option<ImageView<'a>>,
-    /// Coverage in [0,1] (1 channel): 0 where the renderer had no data (a hole).
+    /// Coverage in `[0,1]` (1 channel): 0 where the renderer had no data (a hole).
     pub coverage: Option<ImageView<'a>>,
-    /// Insert mask in [0,1] (1 channel): where an inserted object is.
+    /// Insert mask in `[0,1]` (1 channel): where an inserted object is.
     pub insert_mask: Option<ImageView<'a>>,
     /// The camera of this frame.
     pub camera: Option<Camera>,
@@ -130,7 +130,7 @@ impl<'a> FrameInput<'a> {
 pub struct PreparedFrame {
     /// Premultiplied RGB, sanitized (no NaN, Inf or negative values).
     pub color: Image,
-    /// Coverage in [0,1]; `None` means fully covered.
+    /// Coverage in `[0,1]`; `None` means fully covered.
     pub coverage: Option<Vec<f32>>,
     /// Planar depth; `None` when the host gave none.
     pub depth: Option<Vec<f32>>,
@@ -138,7 +138,7 @@ pub struct PreparedFrame {
     pub motion: Option<Image>,
     /// Normals (3 planes).
     pub normal: Option<Image>,
-    /// Insert mask in [0,1].
+    /// Insert mask in `[0,1]`.
     pub insert_mask: Option<Vec<f32>>,
     /// The frame's camera.
     pub camera: Option<Camera>,

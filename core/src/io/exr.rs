@@ -283,7 +283,7 @@ pub struct LoadedFrame {
     pub motion: Option<Vec<f32>>,
     /// Normals (x, y, z interleaved).
     pub normal: Option<Vec<f32>>,
-    /// Insert mask in [0,1].
+    /// Insert mask in `[0,1]`.
     pub insert_mask: Option<Vec<f32>>,
     /// The camera, from the header.
     pub camera: Option<Camera>,

@@ -82,7 +82,7 @@ impl ChannelRef {
 /// Where the insert mask comes from.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum InsertSource {
-    /// A channel in [0,1].
+    /// A channel in `[0,1]`.
     Channel(ChannelRef),
     /// 1 where an object-index channel equals `index`.
     ObjectIndex {

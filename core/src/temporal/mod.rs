@@ -22,7 +22,7 @@ pub struct ReprojectedFrame {
     /// bilinear taps only (renormalized, so not scaled by `valid`); 0 where
     /// `valid` is 0.
     pub color: Image,
-    /// Validity in [0,1]: 0 for disocclusions and out-of-frame samples, soft
+    /// Validity in `[0,1]`: 0 for disocclusions and out-of-frame samples, soft
     /// at image borders and depth edges.
     pub valid: Vec<f32>,
 }
