@@ -230,9 +230,11 @@ impl Params {
                 self.depth_kind = match want_str(name, v)? {
                     "planar" => DepthKind::Planar,
                     "euclidean" => DepthKind::Euclidean,
-                    s => return Err(Error::invalid(format!(
+                    s => {
+                        return Err(Error::invalid(format!(
                         "parameter depth_kind: unknown value {s:?} (expected planar or euclidean)"
-                    ))),
+                    )))
+                    }
                 }
             }
             "classical_post" => self.classical_post = want_bool(name, v)?,
