@@ -46,7 +46,7 @@ want() {
 if want setup; then
     run_step setup ./scripts/setup-venv.sh
 fi
-ort_lib=$(ls .venv/lib/python3*/site-packages/onnxruntime/capi/libonnxruntime.so.* 2>/dev/null | sort | tail -n 1)
+ort_lib=$(ls "$PWD"/.venv/lib/python3*/site-packages/onnxruntime/capi/libonnxruntime.so.* 2>/dev/null | sort | tail -n 1)
 [ -n "$ort_lib" ] && export HARMONIZER_ORT_LIB="$ort_lib"
 
 want fmt && run_step fmt cargo fmt --all -- --check
