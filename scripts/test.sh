@@ -53,7 +53,7 @@ want fmt && run_step fmt cargo fmt --all -- --check
 want clippy && run_step clippy cargo clippy --workspace --all-targets --locked -- -D warnings
 want doc && run_step doc env RUSTDOCFLAGS="-D warnings" cargo doc --workspace --no-deps --locked
 want header && run_step header ./scripts/check-header.sh
-want rust && run_step rust cargo test --workspace --locked
+want rust && run_step rust cargo test --workspace --locked --no-fail-fast
 want release && run_step release cargo build --release --locked -p harmonizer-ffi -p harmonizer-cli
 export HARMONIZER_LIB="$PWD/target/release/libharmonizer.so"
 want c && run_step c-hosts make -C tests/c PROFILE=release
