@@ -565,6 +565,7 @@ fn bench_one(
     })?;
     let mut totals = Vec::new();
     let mut copies = Vec::new();
+    let mut dst: Vec<Vec<f32>> = Vec::new();
     let mut stages: Vec<(String, Vec<f64>)> = Vec::new();
     for t in 0..(warmup + frames) {
         let f = scene.frame(1 + t as i64);
@@ -579,7 +580,11 @@ fn bench_one(
             &f.input.insert_mask,
             &out.data,
         ];
-        let mut dst: Vec<Vec<f32>> = bufs.iter().map(|b| vec![0.0f32; b.len()]).collect();
+        // Destination buffers are allocated and touched once, so the copy
+        // measures memory bandwidth, not first-touch page faults.
+        if dst.is_empty() {
+            dst = bufs.iter().map(|b| vec![1.0f32; b.len()]).collect();
+        }
         let tc = std::time::Instant::now();
         for (d, s) in dst.iter_mut().zip(bufs) {
             d.copy_from_slice(s);
