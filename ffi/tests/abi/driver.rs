@@ -16,18 +16,22 @@ use libloading::{Library, Symbol};
 
 type Progress = Option<unsafe extern "C" fn(*mut c_void, f64) -> bool>;
 
-/// The shared library next to the test binary's `deps` folder.
+/// The shared library cargo built for this test run: in `deps/` beside the
+/// test binary (`cargo test`), or one level up after a `cargo build`.
 fn lib_path() -> PathBuf {
     let exe = std::env::current_exe().unwrap();
-    let dir = exe.parent().unwrap().parent().unwrap();
+    let deps = exe.parent().unwrap();
     let name = format!(
         "{}harmonizer{}",
         std::env::consts::DLL_PREFIX,
         std::env::consts::DLL_SUFFIX
     );
-    let p = dir.join(name);
-    assert!(p.is_file(), "{} not built", p.display());
-    p
+    let candidates = [deps.join(&name), deps.parent().unwrap().join(&name)];
+    candidates
+        .iter()
+        .find(|p| p.is_file())
+        .unwrap_or_else(|| panic!("libharmonizer not built: looked for {candidates:?}"))
+        .clone()
 }
 
 struct Api {
