@@ -205,6 +205,14 @@ impl Session {
         self.backend.name()
     }
 
+    /// Gives an image returned by [`Session::process`] back once the host is
+    /// done with it, so the next frame reuses its buffer instead of
+    /// allocating (and page-faulting) a new frame-sized one. Optional: an
+    /// image simply dropped costs only that allocation.
+    pub fn recycle(&self, image: Image) {
+        self.recycler.give(image.data);
+    }
+
     /// Enhances one frame. On error (including cancellation) the temporal
     /// state is exactly as before the call. Returns the enhanced frame as 4
     /// planes (RGB premultiplied by A, A coverage after hole filling).
@@ -224,7 +232,13 @@ impl Session {
 
         let pool = self.device.pool();
         let frame = stages.time("prepare", || {
-            PreparedFrame::from_input_recycled(input, self.params.depth_kind, pool, &self.recycler)
+            PreparedFrame::from_input_recycled(
+                input,
+                self.params.depth_kind,
+                pool,
+                &self.recycler,
+                self.backend.uses_normals(),
+            )
         })?;
         if frame.sanitized > 0 {
             report.sanitized = frame.sanitized;
@@ -294,7 +308,7 @@ impl Session {
             history,
             &frame,
             self.params.context_frames,
-            self.device.pool(),
+            pool,
             &self.recycler,
         );
         if reset.is_none() && self.params.scene_cut_detection && !view.is_empty() {
@@ -303,7 +317,7 @@ impl Session {
             });
             if cut {
                 reset = Some(ResetReason::SceneCut);
-                view = HistoryView::empty(&empty, &frame);
+                view = HistoryView::new_recycled(&empty, &frame, 0, pool, &self.recycler);
             }
         }
         report.reset = reset;
@@ -322,7 +336,7 @@ impl Session {
             frame: &frame,
             history: &view,
             params: &self.params,
-            pool: self.device.pool(),
+            pool,
         };
         progress.set_span(0.05, 0.95);
         let out = self

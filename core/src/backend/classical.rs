@@ -37,11 +37,19 @@ pub struct Classical;
 
 /// The frame as a 4-plane RGBA image: RGB premultiplied, A = coverage (1 when absent).
 pub fn rgba_from_frame(frame: &PreparedFrame) -> Image {
+    let mut out = Image::zeros(frame.width(), frame.height(), 4);
+    rgba_into(frame, &mut out);
+    out
+}
+
+/// [`rgba_from_frame`] into `out` (4 planes of the frame's size; every
+/// sample is overwritten).
+fn rgba_into(frame: &PreparedFrame, out: &mut Image) {
     let (w, h) = (frame.width(), frame.height());
-    let mut out = Image::zeros(w, h, 4);
+    debug_assert_eq!((out.width, out.height, out.channels), (w, h, 4));
     let color = &frame.color;
     let coverage = frame.coverage.as_deref();
-    par_bands_mut(&mut out, 0, h).for_each(|(y0, [r, g, b, a])| {
+    par_bands_mut(out, 0, h).for_each(|(y0, [r, g, b, a])| {
         let s = y0 * w..y0 * w + a.len();
         r.copy_from_slice(&color.plane(0)[s.clone()]);
         g.copy_from_slice(&color.plane(1)[s.clone()]);
@@ -51,7 +59,6 @@ pub fn rgba_from_frame(frame: &PreparedFrame) -> Image {
             None => a.fill(1.0),
         }
     });
-    out
 }
 
 /// Runs the four operations on `img` (the frame as [`rgba_from_frame`] makes
@@ -165,6 +172,10 @@ impl Backend for Classical {
         "classical"
     }
 
+    fn uses_normals(&self) -> bool {
+        false
+    }
+
     fn process(
         &self,
         input: &BackendInput<'_>,
@@ -173,7 +184,13 @@ impl Backend for Classical {
         stages: &mut Stages,
     ) -> Result<Image> {
         let mut img = stages.time("prepare", || {
-            input.pool.install(|| rgba_from_frame(input.frame))
+            let f = input.frame;
+            let mut img = match input.history.recycler() {
+                Some(r) => r.image(f.width(), f.height(), 4),
+                None => Image::zeros(f.width(), f.height(), 4),
+            };
+            input.pool.install(|| rgba_into(f, &mut img));
+            img
         });
         progress.report(0.05)?;
         run_ops(&mut img, input, carry, progress, stages)?;

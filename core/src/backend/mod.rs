@@ -95,6 +95,12 @@ pub trait Backend: Send + Sync {
     /// Name for reports ("neural", "classical", "bypass").
     fn name(&self) -> &str;
 
+    /// Whether the backend reads the normal AOV; when not, the session does
+    /// not prepare it (a frame-sized read and conversion saved).
+    fn uses_normals(&self) -> bool {
+        true
+    }
+
     /// Produces the enhanced frame: 4 planes, RGB premultiplied by A, A the
     /// output coverage (1 where holes were filled).
     fn process(

@@ -162,7 +162,7 @@ impl PreparedFrame {
 
     /// Validates `input` and converts it to the planar form (on the calling thread).
     pub fn from_input(input: &FrameInput<'_>, depth_kind: DepthKind) -> Result<PreparedFrame> {
-        Self::prepare(input, depth_kind, None, None)
+        Self::prepare(input, depth_kind, None, None, true)
     }
 
     /// Like [`PreparedFrame::from_input`], row-parallel on `pool`; the result
@@ -172,18 +172,21 @@ impl PreparedFrame {
         depth_kind: DepthKind,
         pool: &rayon::ThreadPool,
     ) -> Result<PreparedFrame> {
-        Self::prepare(input, depth_kind, Some(pool), None)
+        Self::prepare(input, depth_kind, Some(pool), None, true)
     }
 
     /// Like [`PreparedFrame::from_input_on`], with its buffers taken from
-    /// `recycler` (give them back with [`PreparedFrame::recycle`]).
+    /// `recycler` (give them back with [`PreparedFrame::recycle`]); the
+    /// normals are prepared only when `normals` is true (else `normal` is
+    /// `None`, their size is still checked).
     pub fn from_input_recycled(
         input: &FrameInput<'_>,
         depth_kind: DepthKind,
         pool: &rayon::ThreadPool,
         recycler: &Recycler,
+        normals: bool,
     ) -> Result<PreparedFrame> {
-        Self::prepare(input, depth_kind, Some(pool), Some(recycler))
+        Self::prepare(input, depth_kind, Some(pool), Some(recycler), normals)
     }
 
     /// Gives the frame's buffers to `recycler`.
@@ -205,6 +208,7 @@ impl PreparedFrame {
         depth_kind: DepthKind,
         pool: Option<&rayon::ThreadPool>,
         recycler: Option<&Recycler>,
+        normals: bool,
     ) -> Result<PreparedFrame> {
         let (w, h) = (input.width(), input.height());
         if input.color.channels() < 3 {
@@ -281,7 +285,11 @@ impl PreparedFrame {
         let coverage = read_planes(&input.coverage, 1, 0.0, 1.0, 0.0).map(|i| i.data);
         let insert_mask = read_planes(&input.insert_mask, 1, 0.0, 1.0, 0.0).map(|i| i.data);
         let mut depth = read_planes(&input.depth, 1, 0.0, f32::MAX, f32::MAX).map(|i| i.data);
-        let normal = read_planes(&input.normal, 3, -f32::MAX, f32::MAX, 0.0);
+        let normal = if normals {
+            read_planes(&input.normal, 3, -f32::MAX, f32::MAX, 0.0)
+        } else {
+            None
+        };
         let limit = 4.0 * (w.max(h) as f32);
         let motion = input.motion.as_ref().map(|v| {
             let mut img = take(2);

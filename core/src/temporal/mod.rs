@@ -173,6 +173,12 @@ impl<'a> HistoryView<'a> {
         self.history.get(k).expect("history index in range")
     }
 
+    /// Where the session's frame-sized buffers come from (`None` when the
+    /// view was made without one): a backend may take its output from it.
+    pub fn recycler(&self) -> Option<&'a Recycler> {
+        self.recycler
+    }
+
     /// The pool reprojection runs on (`None` for an empty view).
     pub fn pool(&self) -> Option<&'a rayon::ThreadPool> {
         self.pool
