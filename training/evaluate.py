@@ -13,11 +13,13 @@ with the clean render:
 - ``neural_k0``: the same network with ``--context 0`` (no temporal context).
 
 Metrics (on sRGB-encoded color clipped to [0,1]): PSNR and SSIM over the
-frame, PSNR in holes (input coverage < 0.5), on the insert (mask > 0.5) and
-in its shadow region (shadow mask > 0.5); temporal warping error: mean
-absolute difference between a frame and the previous output aligned with the
+frame, in holes (input coverage < 0.5), on the insert (mask > 0.5) and in its
+shadow region (shadow mask > 0.5); temporal warping error: mean absolute
+difference between a frame and the previous output aligned with the
 renderer's motion vectors, over pixels whose depth agrees within 10%.
-Writes ``metrics.json``, ``metrics.md`` and ``per_frame.json`` to ``--out``.
+Writes ``metrics.json``, ``metrics.md`` and ``per_frame.json`` to ``--out``;
+with ``--figures DIR`` also ``per_frame.png`` (PSNR and warping error per
+frame) and ``before_after_<stream>.png`` (one held-out sequence per stream).
 """
 
 from __future__ import annotations
@@ -58,9 +60,13 @@ def psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None) -> float 
     return float(10 * np.log10(1.0 / max(mse, 1e-12)))
 
 
-def ssim(a: np.ndarray, b: np.ndarray, win: int = 7) -> float:
+def ssim(a: np.ndarray, b: np.ndarray, win: int = 7, mask: np.ndarray | None = None) -> float | None:
+    """Mean SSIM (box window ``win``) over the frame, or over ``mask`` (None when
+    the mask has fewer than 16 pixels)."""
     from training.synth.degrade import box_blur
 
+    if mask is not None and mask.sum() < 16:
+        return None
     r = win // 2
     c1, c2 = 0.01**2, 0.03**2
     mu_a, mu_b = box_blur(a, r), box_blur(b, r)
@@ -68,7 +74,7 @@ def ssim(a: np.ndarray, b: np.ndarray, win: int = 7) -> float:
     sbb = box_blur(b * b, r) - mu_b**2
     sab = box_blur(a * b, r) - mu_a * mu_b
     s = ((2 * mu_a * mu_b + c1) * (2 * sab + c2)) / ((mu_a**2 + mu_b**2 + c1) * (saa + sbb + c2))
-    return float(s.mean())
+    return float(s[mask].mean()) if mask is not None else float(s.mean())
 
 
 def read_rgb(path: Path) -> np.ndarray:
@@ -105,13 +111,11 @@ def sequence_metrics(outs: list[np.ndarray], s: dict) -> dict:
     per = []
     for t in range(T):
         o = srgb(outs[t])
-        m = {
-            "psnr": psnr(o, tgt[t]),
-            "ssim": ssim(o, tgt[t]),
-            "psnr_hole": psnr(o, tgt[t], cov[t] < 0.5),
-            "psnr_insert": psnr(o, tgt[t], s["mask_insert"][t] > 0.5),
-            "psnr_shadow": psnr(o, tgt[t], s["mask_shadow"][t] > 0.5),
-        }
+        regions = {"hole": cov[t] < 0.5, "insert": s["mask_insert"][t] > 0.5, "shadow": s["mask_shadow"][t] > 0.5}
+        m = {"psnr": psnr(o, tgt[t]), "ssim": ssim(o, tgt[t])}
+        for name, mask in regions.items():
+            m[f"psnr_{name}"] = psnr(o, tgt[t], mask)
+            m[f"ssim_{name}"] = ssim(o, tgt[t], mask=mask)
         if t > 0:
             aligned, valid = warp_bilinear(srgb(outs[t - 1]), s["motion"][t])
             dprev, _ = warp_bilinear(s["depth"][t - 1][..., None], s["motion"][t])
@@ -138,6 +142,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--max-scenes", type=int, default=0)
+    ap.add_argument("--figures", type=Path, help="also write a per-frame plot and before/after sheets (PNG) here")
     args = ap.parse_args(argv)
     if not args.harmonize.exists():
         print(
@@ -156,6 +161,8 @@ def main(argv: list[str] | None = None) -> int:
         methods["neural"] = ["--backend", "neural", "--model", str(args.model)]
         methods["neural_k0"] = ["--backend", "neural", "--model", str(args.model), "--context", "0"]
     rows: list[dict] = []
+    # Last frame of the first scene of each stream, per method, for the before/after sheets.
+    shown: dict[str, dict[str, np.ndarray]] = {}
     work = Path(tempfile.mkdtemp(prefix="hz-eval."))
     try:
         for scene in scenes:
@@ -174,10 +181,13 @@ def main(argv: list[str] | None = None) -> int:
                         outs = [read_rgb(out_dir / f"out.{t + 1:04d}.exr") for t in range(T)]
                     for t, m in enumerate(sequence_metrics(outs, s)):
                         rows.append({"scene": scene.name, "stream": stream, "method": name, "frame": t, **m})
+                    if stream not in shown or shown[stream]["scene"] == scene.name:
+                        shown.setdefault(stream, {"scene": scene.name, "truth": s["target"][-1]})[name] = outs[-1]
                 print(f"evaluate: {scene.name} {stream} done", flush=True)
     finally:
         shutil.rmtree(work, ignore_errors=True)
-    keys = ["psnr", "ssim", "psnr_hole", "psnr_insert", "psnr_shadow", "warp_err"]
+    keys = ["psnr", "ssim"] + [f"{m}_{r}" for r in ("hole", "insert", "shadow") for m in ("psnr", "ssim")]
+    keys.append("warp_err")
     summary: dict = {}
     for method in methods:
         mrows = [r for r in rows if r["method"] == method]
@@ -200,7 +210,46 @@ def main(argv: list[str] | None = None) -> int:
             lines.append(f"| {method} | {sub} | " + " | ".join(cells) + " |")
     (args.out / "metrics.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
+    if args.figures:
+        write_figures(args.figures, rows, list(methods), shown)
     return 0
+
+
+def write_figures(out: Path, rows: list[dict], methods: list[str], shown: dict) -> None:
+    """``per_frame.png``: PSNR and warping error against the frame index (mean over
+    the split's sequences); ``before_after_<stream>.png``: the last frame of one
+    held-out sequence per stream, each method beside the clean render."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out.mkdir(parents=True, exist_ok=True)
+    frames = sorted({r["frame"] for r in rows})
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
+    for method in methods:
+        for ax, key in zip(axes, ("psnr", "warp_err")):
+            ys = [mean_of([r for r in rows if r["method"] == method and r["frame"] == f], key) for f in frames]
+            xs = [f for f, y in zip(frames, ys) if y is not None]
+            ax.plot(xs, [y for y in ys if y is not None], marker="o", label=method)
+    axes[0].set(xlabel="frame", ylabel="PSNR (dB, sRGB)", title="PSNR per frame (held-out)")
+    axes[1].set(xlabel="frame", ylabel="mean |frame - warped previous|", title="temporal warping error")
+    axes[0].legend()
+    fig.tight_layout()
+    fig.savefig(out / "per_frame.png", dpi=110)
+    plt.close(fig)
+    for stream, imgs in shown.items():
+        cols = [m for m in methods if m in imgs] + ["truth"]
+        tiles = [np.clip(srgb(imgs[c]), 0, 1) for c in cols]
+        fig, axes = plt.subplots(1, len(cols), figsize=(3.2 * len(cols), 2.2))
+        for ax, c, im in zip(np.atleast_1d(axes), cols, tiles):
+            ax.imshow(im)
+            ax.set_title(c, fontsize=9)
+            ax.axis("off")
+        fig.suptitle(f"{stream} ({imgs['scene']}, last frame)", fontsize=9)
+        fig.tight_layout()
+        fig.savefig(out / f"before_after_{stream}.png", dpi=110)
+        plt.close(fig)
 
 
 if __name__ == "__main__":

@@ -30,8 +30,12 @@ def effective_radius(model: Enhancer, size: int = 256, mass: float = 0.99) -> in
     magnitude, on a random input in [0, 0.3]: the effective receptive field."""
     cin = len(model.cfg.input_channels())
     gen = torch.Generator().manual_seed(0)
-    x = (torch.rand((1, cin, size, size), generator=gen) * 0.3).requires_grad_(True)
-    y = model.correction(x)
+    x = torch.rand((1, cin, size, size), generator=gen) * 0.3
+    # Full coverage: the prior is then the input color and its push-pull (global
+    # in holes, by design) does not count; the network's own reach remains.
+    x[:, 3] = 1.0
+    x.requires_grad_(True)
+    y = graph_of(model)(x)
     c = size // 2
     y[0, :, c, c].sum().backward()
     g = x.grad[0].abs().sum(0)
@@ -58,10 +62,12 @@ def manifest_for(model: Enhancer, name: str, version: str) -> dict:
         "context_frames": cfg.context_frames,
         "input": {"name": "input", "channels": cfg.input_channels()},
         "output": {"name": "output", "channels": ["color.r", "color.g", "color.b"]},
-        "residual": True,
+        "residual": not cfg.prior,
         "premultiplied": True,
         "encoding": {"kind": "log", "key": cfg.key, "exposure": "frame", "log_range": cfg.log_range},
-        "tile_size": 256,
+        # With the prior a 1024x576 frame is one window (push-pull reaches across
+        # the whole window) and 1920x1080 two; the memory limit may shrink tiles.
+        "tile_size": 1280 if cfg.prior else 256,
         "tile_overlap": overlap,
         "spatial_multiple": cfg.spatial_multiple,
         "bytes_per_pixel": activation_bytes_per_pixel(model),
@@ -69,8 +75,9 @@ def manifest_for(model: Enhancer, name: str, version: str) -> dict:
 
 
 class _ResidualFree(torch.nn.Module):
-    """The graph the runtime runs: ``residual: true`` means the runtime adds the
-    encoded input color itself, so the exported network returns only the correction."""
+    """The graph of a model without the prior: ``residual: true`` means the runtime
+    adds the encoded input color itself, so the exported network returns only the
+    correction."""
 
     def __init__(self, model: Enhancer):
         super().__init__()
@@ -80,11 +87,17 @@ class _ResidualFree(torch.nn.Module):
         return self.model.correction(x)
 
 
+def graph_of(model: Enhancer) -> torch.nn.Module:
+    """The module exported: the complete model with the prior (``residual: false``),
+    else the correction alone (``residual: true``)."""
+    return model if model.cfg.prior else _ResidualFree(model)
+
+
 def export(model: Enhancer, out_stem: Path, name: str = "harmonizer-small", version: str = "0.1.0") -> dict:
     import onnx
 
     model.eval()
-    net = _ResidualFree(model).eval()
+    net = graph_of(model).eval()
     cin = len(model.cfg.input_channels())
     m = model.cfg.spatial_multiple
     dummy = torch.zeros(1, cin, 4 * m, 4 * m)
@@ -124,7 +137,7 @@ def verify(model: Enhancer, onnx_path: Path, sizes=((144, 256), (96, 160))) -> f
     for h, w in sizes:
         x = rng.random((1, cin, h, w), dtype=np.float32) * 0.3
         with torch.no_grad():
-            ref = model.correction(torch.from_numpy(x)).numpy()
+            ref = graph_of(model)(torch.from_numpy(x)).numpy()
         got = sess.run(["output"], {"input": x})[0]
         if got.shape != ref.shape:
             raise RuntimeError(f"ONNX output shape {got.shape} != PyTorch {ref.shape} at {h}x{w}")

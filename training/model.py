@@ -37,6 +37,21 @@ class ModelConfig:
     unshuffle: int = 2
     key: float = 2.0
     log_range: float = 4.0
+    # In-graph prior: holes filled from the reprojected history, then by push-pull;
+    # the network adds a correction to it and the graph returns the complete frame
+    # (manifest `residual: false`). Without it the graph returns a correction to
+    # the input color (`residual: true`).
+    prior: bool = True
+    pushpull_levels: int = 8
+    # Width of a 1x1 convolution on the unshuffled input (0: none); it replaces the
+    # first 3x3 layer's many input channels with a cheap mix.
+    stem: int = 32
+    # 3x3 convolutions per encoder level and per decoder level.
+    enc_convs: int = 2
+    dec_convs: int = 2
+    # Decoder skips: "add" (1x1 projection of the coarser level, upsampled and
+    # added: cheap) or "cat" (concatenated before the first decoder convolution).
+    skip: str = "add"
 
     def input_channels(self) -> list[str]:
         ch = ["color.r", "color.g", "color.b", "coverage", "insert"]
@@ -57,6 +72,9 @@ class ModelConfig:
     def from_dict(d: dict) -> ModelConfig:
         d = dict(d)
         d["widths"] = tuple(d["widths"])
+        # Configurations saved before the prior existed describe the plain residual UNet.
+        for k, v in (("prior", False), ("stem", 0), ("skip", "cat")):
+            d.setdefault(k, v)
         return ModelConfig(**d)
 
 
@@ -73,45 +91,105 @@ def conv(cin: int, cout: int) -> nn.Module:
     return nn.Sequential(nn.Conv2d(cin, cout, 3, padding=1), act())
 
 
+def push_pull(c: torch.Tensor, w: torch.Tensor, levels: int) -> torch.Tensor:
+    """Fills ``c`` (premultiplied by the weight ``w`` in [0, 1]) everywhere.
+
+    Push: ``levels`` halvings of ``(c, w)`` by 2x2 averages (zero-padded to even
+    sizes, so any size works and padding carries no weight). Pull: from the
+    coarsest level up, each level's normalized color ``c / w`` is blended over
+    the bilinear upsampling of the level below with opacity ``min(1, 2 w)``."""
+    cs, ws = [c], [w]
+    for _ in range(levels):
+        c = F.avg_pool2d(F.pad(c, (0, 1, 0, 1)), 2)
+        w = F.avg_pool2d(F.pad(w, (0, 1, 0, 1)), 2)
+        cs.append(c)
+        ws.append(w)
+    f = cs[-1] / ws[-1].clamp(min=1e-4)
+    for lv in range(levels - 1, -1, -1):
+        up = F.interpolate(f, size=cs[lv].shape[-2:], mode="bilinear", align_corners=False)
+        a = (2 * ws[lv]).clamp(0, 1)
+        f = cs[lv] / ws[lv].clamp(min=1e-4) * a + up * (1 - a)
+    return f
+
+
 class Enhancer(nn.Module):
-    """UNet on pixel-unshuffled input with a residual color output.
+    """UNet on pixel-unshuffled input.
 
     ``forward(x)`` takes ``[N, C_in, H, W]`` (channels in
     ``ModelConfig.input_channels()`` order, H and W multiples of
-    ``spatial_multiple``) and returns the encoded complete frame ``[N, 3, H, W]``.
+    ``spatial_multiple``) and returns the encoded complete frame ``[N, 3, H, W]``:
+    the prior (``cfg.prior``: holes filled from history, then push-pull; else the
+    input color) plus the network's correction.
     """
 
     def __init__(self, cfg: ModelConfig):
         super().__init__()
         self.cfg = cfg
         r = cfg.unshuffle
-        cin = len(cfg.input_channels()) * r * r
+        cin = (len(cfg.input_channels()) + (3 if cfg.prior else 0)) * r * r
         w = list(cfg.widths)
+        prev = cin
+        self.stem = None
+        if cfg.stem > 0:
+            self.stem = nn.Sequential(nn.Conv2d(cin, cfg.stem, 1), act())
+            prev = cfg.stem
         self.enc = nn.ModuleList()
         self.down = nn.ModuleList()
-        prev = cin
         for i, c in enumerate(w):
             if i > 0:
                 self.down.append(nn.Sequential(nn.Conv2d(prev, c, 3, stride=2, padding=1), act()))
                 prev = c
-            self.enc.append(nn.Sequential(conv(prev, c), conv(c, c)))
+            layers = [conv(prev, c)] + [conv(c, c) for _ in range(cfg.enc_convs - 1)]
+            self.enc.append(nn.Sequential(*layers))
             prev = c
         self.dec = nn.ModuleList()
+        self.proj = nn.ModuleList()
         for i in range(len(w) - 2, -1, -1):
-            self.dec.append(nn.Sequential(conv(w[i + 1] + w[i], w[i]), conv(w[i], w[i])))
+            if cfg.skip == "add":
+                self.proj.append(nn.Conv2d(w[i + 1], w[i], 1))
+                layers = [conv(w[i], w[i]) for _ in range(cfg.dec_convs)]
+            else:
+                layers = [conv(w[i + 1] + w[i], w[i])] + [conv(w[i], w[i]) for _ in range(cfg.dec_convs - 1)]
+            self.dec.append(nn.Sequential(*layers))
         self.head = nn.Conv2d(w[0], 3 * r * r, 3, padding=1)
         # Small (not zero) so gradients reach every layer from the first step.
         nn.init.normal_(self.head.weight, std=1e-3)
         nn.init.zeros_(self.head.bias)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if self.cfg.prior:
+            p = self.prior(x)
+            return p + self.correction(torch.cat([x, p], 1))
         return x[:, 0:3] + self.correction(x)
 
+    def prior(self, x: torch.Tensor) -> torch.Tensor:
+        """The input color with its holes filled: reprojected history first
+        (newer frames weigh more), then push-pull of what is known."""
+        color = x[:, 0:3]
+        cov = x[:, 3:4].clamp(0, 1)
+        hsum = torch.zeros_like(color)
+        wsum = torch.zeros_like(cov)
+        vsum = torch.zeros_like(cov)
+        for k in range(self.cfg.context_frames):
+            b = 5 + 4 * k
+            v = x[:, b + 3 : b + 4].clamp(0, 1)
+            wk = v * 0.5**k
+            hsum = hsum + x[:, b : b + 3] * wk
+            wsum = wsum + wk
+            vsum = vsum + v
+        hist = hsum / wsum.clamp(min=1e-4)
+        avail = (1 - cov) * vsum.clamp(0, 1)
+        known = cov * color + avail * hist
+        weight = cov + avail
+        return known + (1 - weight) * push_pull(known, weight, self.cfg.pushpull_levels)
+
     def correction(self, x: torch.Tensor) -> torch.Tensor:
-        """The residual alone (what the exported graph returns: the runtime adds it
-        to the encoded input color, ``residual: true``)."""
+        """The network's output before the prior or input color is added (with
+        ``cfg.prior`` its input also holds the prior's three channels)."""
         r = self.cfg.unshuffle
         h = F.pixel_unshuffle(x, r) if r > 1 else x
+        if self.stem is not None:
+            h = self.stem(h)
         skips = []
         for i, block in enumerate(self.enc):
             if i > 0:
@@ -120,8 +198,11 @@ class Enhancer(nn.Module):
             skips.append(h)
         for j, block in enumerate(self.dec):
             skip = skips[len(skips) - 2 - j]
-            h = F.interpolate(h, scale_factor=2.0, mode="nearest")
-            h = block(torch.cat([h, skip], 1))
+            if self.cfg.skip == "add":
+                h = block(F.interpolate(self.proj[j](h), scale_factor=2.0, mode="nearest") + skip)
+            else:
+                h = F.interpolate(h, scale_factor=2.0, mode="nearest")
+                h = block(torch.cat([h, skip], 1))
         out = self.head(h)
         if r > 1:
             out = F.pixel_shuffle(out, r)
@@ -153,6 +234,11 @@ def activation_bytes_per_pixel(model: Enhancer) -> int:
     cfg = model.cfg
     r2 = cfg.unshuffle**2
     total = len(cfg.input_channels()) + 3
+    if cfg.prior:
+        # The prior, its push-pull pyramid (color and weight, 4/3 of a level) and
+        # the concatenated network input.
+        total += 3 + 2 * 4 * 4 / 3 + len(cfg.input_channels()) + 3
+    total += cfg.stem / r2
     for i, c in enumerate(cfg.widths):
         area = r2 * 4**i
         total += 3 * c / area * (2 if i < len(cfg.widths) - 1 else 1)

@@ -4,7 +4,9 @@
 
 Resumable and seeded: ``--run`` keeps ``ckpt_last.pt`` (model, optimizer,
 step, config); rerunning the same command continues from it, and the data
-drawn at step ``i`` depends only on ``(seed, i)``. Each step unrolls the
+drawn at step ``i`` depends only on ``(seed, i)`` and the scenes rendered so
+far (the scene list is re-read every ``--rescan-every`` steps, so training can
+start while the generator still renders). Each step unrolls the
 network over a few consecutive frames of one window per batch item: the
 history fed to frame t is the reprojection (runtime's motion-vector hop with
 the depth test) of the network's own previous outputs, prefilled with
@@ -264,7 +266,13 @@ def add_args(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--lr", type=float, default=4e-4)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--widths", type=int, nargs="+", default=[24, 32, 48, 64])
+    ap.add_argument("--widths", type=int, nargs="+", default=[16, 32, 48, 64])
+    ap.add_argument("--stem", type=int, default=24, help="1x1 stem width (0: none)")
+    ap.add_argument("--enc-convs", type=int, default=2)
+    ap.add_argument("--dec-convs", type=int, default=2)
+    ap.add_argument("--skip", choices=("add", "cat"), default="add")
+    ap.add_argument("--no-prior", action="store_true", help="plain residual UNet without the in-graph hole-filling prior")
+    ap.add_argument("--rescan-every", type=int, default=200, help="pick up newly rendered scenes every N steps")
     ap.add_argument("--context-frames", type=int, default=4)
     ap.add_argument("--p-no-history", type=float, default=0.3, help="share of non-temporal batches")
     ap.add_argument("--p-drop-insert", type=float, default=0.2)
@@ -319,7 +327,15 @@ def main(argv: list[str] | None = None) -> int:
         cfg = {**ck["cfg"], **{k: cfg[k] for k in ("lr",)}}
         print(f"train: resumed {ckpt_path} at step {step}", flush=True)
     else:
-        mcfg = ModelConfig(context_frames=args.context_frames, widths=tuple(args.widths))
+        mcfg = ModelConfig(
+            context_frames=args.context_frames,
+            widths=tuple(args.widths),
+            stem=args.stem,
+            enc_convs=args.enc_convs,
+            dec_convs=args.dec_convs,
+            skip=args.skip,
+            prior=not args.no_prior,
+        )
         model = Enhancer(mcfg)
         opt = torch.optim.Adam(model.parameters(), lr=args.lr)
     cache = SampleCache(scenes)
@@ -327,6 +343,12 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.time()
     model.train()
     while step < args.steps:
+        if args.rescan_every > 0 and step % args.rescan_every == 0:
+            found = list_scenes(args.data, "train")
+            if len(found) != len(cache.scenes):
+                print(f"train: {len(found)} training scenes", flush=True)
+                cache.scenes = found
+                cache.streams = {str(p): scene_streams(p) for p in found}
         rng = np.random.default_rng([cfg["seed"], step])
         torch.manual_seed(cfg["seed"] * 1_000_003 + step)
         batch = make_batch(cache, rng, cfg, mcfg.key)

@@ -78,13 +78,38 @@ def test_network_shapes_cost_and_history_dropout():
     assert m(x).shape == (2, 3, 32, 48)
 
 
-def test_export_matches_pytorch_in_onnx_runtime(tmp_path):
+def test_prior_fills_holes_from_history_then_push_pull():
+    cfg = ModelConfig(widths=(8, 8, 12, 16))
+    m = Enhancer(cfg)
+    h, w = 48, 64
+    x = torch.zeros(1, len(cfg.input_channels()), h, w)
+    x[:, 0:3] = 0.4
+    x[:, 3] = 1.0
+    x[:, 3, 10:30, 20:50] = 0.0  # a hole
+    x[:, 0:3, 10:30, 20:50] = 0.0
+    p = m.prior(x)
+    # Covered pixels keep the input; a hole in a flat image is filled with its colour.
+    assert torch.allclose(p, torch.full_like(p, 0.4), atol=1e-5)
+    # Valid history wins over push-pull inside the hole, and only there.
+    x[:, 5:8] = 0.9
+    x[:, 8, 10:20] = 1.0
+    p = m.prior(x)
+    assert torch.allclose(p[:, :, 10:20, 20:50], torch.full((1, 3, 10, 30), 0.9), atol=1e-5)
+    assert torch.allclose(p[:, :, 30:, :], torch.full((1, 3, h - 30, w), 0.4), atol=1e-5)
+    # A hole reaching the window's edge, and odd sizes, still fill without NaN.
+    y = torch.rand(1, len(cfg.input_channels()), 37, 53)
+    y[:, 3, :, :40] = 0.0
+    assert torch.isfinite(m.prior(y)).all()
+
+
+@pytest.mark.parametrize("prior", [True, False])
+def test_export_matches_pytorch_in_onnx_runtime(tmp_path, prior):
     pytest.importorskip("onnxruntime")
     torch.manual_seed(0)
-    m = Enhancer(ModelConfig(widths=(8, 8, 12, 16)))
+    m = Enhancer(ModelConfig(widths=(8, 8, 12, 16), prior=prior))
     torch.nn.init.normal_(m.head.weight, std=0.05)  # a non-trivial residual
     manifest = hz_export.export(m, tmp_path / "model")
-    diff = hz_export.verify(m, tmp_path / "model.onnx", sizes=((48, 64), (32, 96)))
+    diff = hz_export.verify(m, tmp_path / "model.onnx", sizes=((48, 64), (32, 96), (144, 256)))
     assert diff < 1e-4
     import onnx
 
@@ -92,7 +117,7 @@ def test_export_matches_pytorch_in_onnx_runtime(tmp_path):
     assert proto.ir_version <= 13
     assert [i.name for i in proto.graph.input] == ["input"]
     on_disk = json.loads((tmp_path / "model.json").read_text())
-    assert on_disk == manifest and on_disk["residual"] is True
+    assert on_disk == manifest and on_disk["residual"] is (not prior)
     assert 16 <= on_disk["tile_overlap"] <= 62 and on_disk["tile_size"] >= 4 * on_disk["tile_overlap"] + 2
     assert on_disk["input"]["channels"][:5] == ["color.r", "color.g", "color.b", "coverage", "insert"]
 
@@ -122,7 +147,7 @@ def test_training_steps_reduce_the_loss_on_a_fixed_window():
     model = Enhancer(ModelConfig(widths=(8, 8, 12, 16)))
     opt = torch.optim.Adam(model.parameters(), lr=3e-3)
     losses = []
-    for step in range(60):
+    for step in range(100):
         loss, parts, outs = run_window(model, batch, cfg, np.random.default_rng([0, step]))
         opt.zero_grad()
         loss.backward()
