@@ -228,9 +228,9 @@ def write_figures(out: Path, rows: list[dict], methods: list[str], shown: dict) 
     frames = sorted({r["frame"] for r in rows})
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
     for method in methods:
-        for ax, key in zip(axes, ("psnr", "warp_err")):
+        for ax, key in zip(axes, ("psnr", "warp_err"), strict=True):
             ys = [mean_of([r for r in rows if r["method"] == method and r["frame"] == f], key) for f in frames]
-            xs = [f for f, y in zip(frames, ys) if y is not None]
+            xs = [f for f, y in zip(frames, ys, strict=True) if y is not None]
             ax.plot(xs, [y for y in ys if y is not None], marker="o", label=method)
     axes[0].set(xlabel="frame", ylabel="PSNR (dB, sRGB)", title="PSNR per frame (held-out)")
     axes[1].set(xlabel="frame", ylabel="mean |frame - warped previous|", title="temporal warping error")
@@ -242,7 +242,7 @@ def write_figures(out: Path, rows: list[dict], methods: list[str], shown: dict) 
         cols = [m for m in methods if m in imgs] + ["truth"]
         tiles = [np.clip(srgb(imgs[c]), 0, 1) for c in cols]
         fig, axes = plt.subplots(1, len(cols), figsize=(3.2 * len(cols), 2.2))
-        for ax, c, im in zip(np.atleast_1d(axes), cols, tiles):
+        for ax, c, im in zip(np.atleast_1d(axes), cols, tiles, strict=True):
             ax.imshow(im)
             ax.set_title(c, fontsize=9)
             ax.axis("off")

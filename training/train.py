@@ -271,7 +271,7 @@ def add_args(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--enc-convs", type=int, default=2)
     ap.add_argument("--dec-convs", type=int, default=2)
     ap.add_argument("--skip", choices=("add", "cat"), default="add")
-    ap.add_argument("--no-prior", action="store_true", help="plain residual UNet without the in-graph hole-filling prior")
+    ap.add_argument("--no-prior", action="store_true", help="plain residual UNet, no in-graph prior")
     ap.add_argument("--rescan-every", type=int, default=200, help="pick up newly rendered scenes every N steps")
     ap.add_argument("--context-frames", type=int, default=4)
     ap.add_argument("--p-no-history", type=float, default=0.3, help="share of non-temporal batches")
