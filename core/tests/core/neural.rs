@@ -379,8 +379,17 @@ fn channel_probe_proves_the_tensor_layout() {
     assert!(out.plane(2).iter().chain(out.plane(1)).all(|&v| v == 0.0));
 }
 
-/// The box filter in the encoded domain with reflected borders (the reference).
-fn box3_reference(rgb: &[f32], w: usize, h: usize, codec: &ColorCodec) -> Vec<Vec<f32>> {
+/// The box filter in the encoded domain with reflected borders; on an axis
+/// whose `zero_near` is set, zeros before the first pixel instead (a window
+/// that starts at the frame edge sees the graph's own zero padding there) and
+/// reflection after the last.
+fn box3_reference(
+    rgb: &[f32],
+    w: usize,
+    h: usize,
+    codec: &ColorCodec,
+    zero_near: (bool, bool),
+) -> Vec<Vec<f32>> {
     let refl = |i: isize, n: usize| harmonizer_core::backend::neural::tiling::reflect(i, n);
     (0..3)
         .map(|c| {
@@ -394,7 +403,11 @@ fn box3_reference(rgb: &[f32], w: usize, h: usize, codec: &ColorCodec) -> Vec<Ve
                     let mut s = 0.0f32;
                     for dy in -1..=1isize {
                         for dx in -1..=1isize {
-                            s += enc[refl(y as isize + dy, h) * w + refl(x as isize + dx, w)];
+                            let (yy, xx) = (y as isize + dy, x as isize + dx);
+                            if (zero_near.0 && xx < 0) || (zero_near.1 && yy < 0) {
+                                continue;
+                            }
+                            s += enc[refl(yy, h) * w + refl(xx, w)];
                         }
                     }
                     out[y * w + x] = codec.decode(s / 9.0);
@@ -420,33 +433,62 @@ fn tiled_box3_equals_untiled_and_the_reference() {
                 ("tile_overlap", ParamValue::Int(overlap)),
             ],
         );
-        let n = model.tile_plan(w, h, s.params()).unwrap().len();
-        (s.process(&input, None).unwrap().0, n)
+        let plan = model.tile_plan(w, h, s.params()).unwrap();
+        (s.process(&input, None).unwrap().0, plan)
     };
-    let (untiled, n) = run(1024, 2);
-    assert_eq!(n, 1);
     let frame = PreparedFrame::from_input(&input, Default::default()).unwrap();
     let codec = ColorCodec::for_frame(&model.manifest.encoding, &frame.color, None);
-    let reference = box3_reference(&rgb, w, h, &codec);
-    for (c, want) in reference.iter().enumerate().take(3) {
+
+    // One window over the whole frame, starting at its edge: the frame as the
+    // network sees a whole frame (zero padding before, reflection up to the
+    // multiple of 16 after, 333x187 -> 336x192).
+    let (single, plan) = run(1024, 2);
+    assert_eq!(plan.len(), 1);
+    assert_eq!((plan.x.window, plan.y.window), (336, 192));
+    let whole = box3_reference(&rgb, w, h, &codec, (true, true));
+    for (c, want) in whole.iter().enumerate() {
         assert_close(
-            untiled.plane(c),
+            single.plane(c),
             want,
             1e-5,
-            &format!("untiled vs reference, channel {c}"),
+            &format!("one window vs reference, channel {c}"),
         );
     }
+    assert!(single.plane(3).iter().all(|&a| a == 1.0));
+    // A frame exactly one tile_size wide is one window too.
+    assert_eq!(
+        model
+            .tile_plan(
+                333,
+                187,
+                &Params {
+                    tile_size: 336,
+                    ..Params::default()
+                }
+            )
+            .unwrap()
+            .len(),
+        1
+    );
+
+    // Several tiles equal one window over the frame widened by reflection on
+    // the sides of each axis cut into tiles (the overlap context of the border
+    // tiles); an axis that fits one window starts at the frame edge.
     for (tile, overlap) in [(34, 8), (48, 2), (64, 4), (100, 6), (128, 8), (200, 3)] {
-        let (tiled, n) = run(tile, overlap);
-        assert!(n > 1, "tile {tile}: one tile");
-        for c in 0..4 {
+        let (tiled, plan) = run(tile, overlap);
+        assert!(plan.len() > 1, "tile {tile}: one tile");
+        let single = (plan.x.cores.len() == 1, plan.y.cores.len() == 1);
+        assert_eq!(single, (false, tile == 200), "tile {tile}");
+        let untiled = box3_reference(&rgb, w, h, &codec, single);
+        for (c, want) in untiled.iter().enumerate() {
             assert_close(
                 tiled.plane(c),
-                untiled.plane(c),
+                want,
                 1e-5,
                 &format!("tile {tile} overlap {overlap} channel {c}"),
             );
         }
+        assert!(tiled.plane(3).iter().all(|&a| (a - 1.0).abs() < 1e-6));
     }
     // Deterministic: the same frame twice gives the same bits.
     assert_eq!(run(64, 4).0, run(64, 4).0);

@@ -2,11 +2,14 @@
 //! loaded dynamically), described by a JSON [`Manifest`].
 //!
 //! Per frame: one exposure scale for the whole frame ([`encoding`]), the
-//! frame cut into overlapping tiles ([`tiling`]), each tile's NCHW input built
-//! from the frame, its guides and the K reprojected history frames in the
-//! manifest's channel order, the model run, its output decoded and blended
-//! into the frame with feathered weights. Progress is reported per tile and
-//! cancellation is honoured between tiles.
+//! frame cut into tiles ([`tiling`]; one tile when the frame fits a window),
+//! each tile's NCHW input built from the frame, its guides and the K
+//! reprojected history frames in the manifest's channel order, the model run,
+//! its output decoded and (with several tiles) blended into the frame with
+//! feathered weights. The per-pixel work (encoding, copies, decoding) runs
+//! over rows on the device's thread pool, each pixel computed once per frame
+//! and the same way whatever the thread count. Progress is reported per tile
+//! and cancellation is honoured between tiles.
 
 pub mod encoding;
 pub mod runtime;
@@ -24,7 +27,7 @@ use crate::frame::Image;
 use crate::model::{InputChannel, Manifest};
 use crate::params::Params;
 use crate::temporal::ReprojectedFrame;
-use encoding::{ColorCodec, COVERAGE_EPSILON};
+use encoding::ColorCodec;
 use tiling::{reflect, TilePlan};
 
 /// A loaded model, shared by the sessions of a device.
@@ -184,9 +187,26 @@ impl NeuralModel {
     }
 
     /// Estimated working memory in bytes of a frame run with `plan`: the
-    /// frame's output (4 planes) plus one tile's network working set.
+    /// frame's output (4 planes), with several tiles the frame-sized planes of
+    /// the computed input channels (encoded color and history, disparity),
+    /// plus one tile's network working set.
     pub fn working_bytes(&self, plan: &TilePlan) -> usize {
-        4 * 4 * plan.width * plan.height
+        let computed = if plan.len() > 1 {
+            self.channels
+                .iter()
+                .filter(|ch| {
+                    matches!(
+                        ch,
+                        InputChannel::Color(_)
+                            | InputChannel::History(..)
+                            | InputChannel::Disparity
+                    )
+                })
+                .count()
+        } else {
+            0
+        };
+        4 * (4 + computed) * plan.width * plan.height
             + plan.window_pixels() * self.manifest.tile_bytes_per_pixel()
     }
 
@@ -377,102 +397,136 @@ pub struct Neural {
     pub model: Arc<NeuralModel>,
 }
 
-/// Per-frame sources the tile builder reads.
-struct Sources<'a> {
-    width: usize,
-    color: &'a Image,
-    coverage: Option<&'a [f32]>,
-    insert: Option<&'a [f32]>,
-    depth: Option<&'a [f32]>,
-    normal: Option<&'a Image>,
-    motion: Option<&'a Image>,
-    history: Vec<&'a ReprojectedFrame>,
-    codec: ColorCodec,
-    premultiplied: bool,
+/// Where one input channel's rows come from.
+#[derive(Clone, Copy)]
+enum Src<'a> {
+    /// The same value everywhere (absent inputs).
+    Const(f32),
+    /// A frame-sized plane, copied as is.
+    Copy(&'a [f32]),
+    /// Color encoded with the frame's codec (premultiplied as stored).
+    Encode(&'a [f32]),
+    /// Premultiplied color divided by `alpha` (0 in holes), then encoded.
+    EncodeStraight(&'a [f32], &'a [f32]),
+    /// Planar depth as `1 / (1 + max(d, 0))`.
+    Disparity(&'a [f32]),
 }
 
-/// Writes `f(frame index)` for every window pixel (`xs`, `ys`: frame columns and rows).
-#[inline]
-fn each(out: &mut [f32], xs: &[usize], ys: &[usize], w: usize, f: impl Fn(usize) -> f32) {
-    for (row, &sy) in out.chunks_mut(xs.len()).zip(ys) {
-        let base = sy * w;
-        for (o, &sx) in row.iter_mut().zip(xs) {
-            *o = f(base + sx);
+impl Src<'_> {
+    /// True for sources computed per pixel (worth computing once per frame).
+    fn computed(&self) -> bool {
+        matches!(
+            self,
+            Src::Encode(_) | Src::EncodeStraight(..) | Src::Disparity(_)
+        )
+    }
+
+    /// Writes frame row `y`, columns `x0..x0 + dst.len()`, into `dst`.
+    #[inline]
+    fn row(&self, codec: &ColorCodec, width: usize, y: usize, x0: usize, dst: &mut [f32]) {
+        let r = y * width + x0..y * width + x0 + dst.len();
+        match *self {
+            Src::Const(v) => dst.fill(v),
+            Src::Copy(p) => dst.copy_from_slice(&p[r]),
+            Src::Encode(p) => codec.encode_row(&p[r], dst),
+            Src::EncodeStraight(p, a) => codec.encode_straight_row(&p[r.clone()], &a[r], dst),
+            Src::Disparity(p) => dst
+                .iter_mut()
+                .zip(&p[r])
+                .for_each(|(o, &d)| *o = 1.0 / (1.0 + d.max(0.0))),
         }
     }
 }
 
-impl Sources<'_> {
-    /// Fills one input channel of a tile window.
-    fn fill(&self, ch: InputChannel, xs: &[usize], ys: &[usize], out: &mut [f32]) {
-        let w = self.width;
-        let straight = |v: f32, a: f32| -> f32 {
-            if a >= COVERAGE_EPSILON {
-                v / a
-            } else {
-                0.0
-            }
-        };
-        match ch {
+/// The sources of the model's input channels, in the manifest's order.
+fn channel_sources<'a>(
+    channels: &[InputChannel],
+    frame: &'a crate::frame::PreparedFrame,
+    history: &[&'a ReprojectedFrame],
+    premultiplied: bool,
+) -> Vec<Src<'a>> {
+    let coverage = frame.coverage.as_deref();
+    channels
+        .iter()
+        .map(|&ch| match ch {
             InputChannel::Color(c) => {
-                let p = self.color.plane(c);
-                match (self.premultiplied, self.coverage) {
-                    (false, Some(cov)) => each(out, xs, ys, w, |i| {
-                        self.codec.encode(straight(p[i], cov[i]))
-                    }),
-                    _ => each(out, xs, ys, w, |i| self.codec.encode(p[i])),
+                let p = frame.color.plane(c);
+                match (premultiplied, coverage) {
+                    (false, Some(a)) => Src::EncodeStraight(p, a),
+                    _ => Src::Encode(p),
                 }
             }
-            InputChannel::Coverage => match self.coverage {
-                Some(cov) => each(out, xs, ys, w, |i| cov[i]),
-                None => out.fill(1.0),
+            InputChannel::Coverage => coverage.map_or(Src::Const(1.0), Src::Copy),
+            InputChannel::Insert => frame
+                .insert_mask
+                .as_deref()
+                .map_or(Src::Const(0.0), Src::Copy),
+            InputChannel::Disparity => frame
+                .depth
+                .as_deref()
+                .map_or(Src::Const(0.0), Src::Disparity),
+            InputChannel::Normal(c) => frame
+                .normal
+                .as_ref()
+                .map_or(Src::Const(0.0), |n| Src::Copy(n.plane(c))),
+            InputChannel::Motion(c) => frame
+                .motion
+                .as_ref()
+                .map_or(Src::Const(0.0), |m| Src::Copy(m.plane(c))),
+            InputChannel::History(k, c) => match history.get(k) {
+                Some(h) if premultiplied => Src::Encode(h.color.plane(c)),
+                Some(h) => Src::EncodeStraight(h.color.plane(c), h.color.plane(3)),
+                None => Src::Const(0.0),
             },
-            InputChannel::Insert => match self.insert {
-                Some(m) => each(out, xs, ys, w, |i| m[i]),
-                None => out.fill(0.0),
-            },
-            InputChannel::Disparity => match self.depth {
-                Some(d) => each(out, xs, ys, w, |i| 1.0 / (1.0 + d[i].max(0.0))),
-                None => out.fill(0.0),
-            },
-            InputChannel::Normal(c) => match self.normal {
-                Some(n) => {
-                    let p = n.plane(c);
-                    each(out, xs, ys, w, |i| p[i])
-                }
-                None => out.fill(0.0),
-            },
-            InputChannel::Motion(c) => match self.motion {
-                Some(m) => {
-                    let p = m.plane(c);
-                    each(out, xs, ys, w, |i| p[i])
-                }
-                None => out.fill(0.0),
-            },
-            InputChannel::History(k, c) => match self.history.get(k) {
-                Some(h) => {
-                    let (p, a) = (h.color.plane(c), h.color.plane(3));
-                    if self.premultiplied {
-                        each(out, xs, ys, w, |i| self.codec.encode(p[i]))
+            InputChannel::HistoryAlpha(k) => history
+                .get(k)
+                .map_or(Src::Const(0.0), |h| Src::Copy(h.color.plane(3))),
+            InputChannel::Valid(k) => history
+                .get(k)
+                .map_or(Src::Const(0.0), |h| Src::Copy(&h.valid)),
+        })
+        .collect()
+}
+
+/// Fills a tile's NCHW input tensor, one window row per task: frame rows and
+/// columns outside the frame are mirror reflections; each window row is
+/// written once from its frame row (plain copies for precomputed planes), and
+/// its reflected columns are copied from the row itself.
+fn fill_window(
+    tensor: &mut [f32],
+    sources: &[Src<'_>],
+    codec: &ColorCodec,
+    (width, height): (usize, usize),
+    tile: tiling::Tile,
+    pool: &rayon::ThreadPool,
+) {
+    let (ww, wh) = tile.size;
+    let (ox, oy) = tile.origin;
+    // Window columns [c0, c1) lie inside the frame, at frame columns [c0 + ox, c1 + ox).
+    let c0 = (-ox).max(0) as usize;
+    let c1 = ((width as isize - ox).min(ww as isize)).max(c0 as isize) as usize;
+    let fx0 = (c0 as isize + ox) as usize;
+    pool.install(|| {
+        tensor
+            .par_chunks_mut(ww)
+            .with_min_len(4)
+            .enumerate()
+            .for_each(|(r, row)| {
+                let (ch, wy) = (r / wh, r % wh);
+                let src = &sources[ch];
+                let fy = reflect(oy + wy as isize, height);
+                src.row(codec, width, fy, fx0, &mut row[c0..c1]);
+                for wx in (0..c0).chain(c1..ww) {
+                    let fx = reflect(ox + wx as isize, width);
+                    let inside = fx as isize - ox;
+                    if inside >= c0 as isize && inside < c1 as isize {
+                        row[wx] = row[inside as usize];
                     } else {
-                        each(out, xs, ys, w, |i| self.codec.encode(straight(p[i], a[i])))
+                        src.row(codec, width, fy, fx, &mut row[wx..wx + 1]);
                     }
                 }
-                None => out.fill(0.0),
-            },
-            InputChannel::HistoryAlpha(k) => match self.history.get(k) {
-                Some(h) => {
-                    let a = h.color.plane(3);
-                    each(out, xs, ys, w, |i| a[i])
-                }
-                None => out.fill(0.0),
-            },
-            InputChannel::Valid(k) => match self.history.get(k) {
-                Some(h) => each(out, xs, ys, w, |i| h.valid[i]),
-                None => out.fill(0.0),
-            },
-        }
-    }
+            });
+    });
 }
 
 impl Neural {
@@ -486,6 +540,7 @@ impl Neural {
         let model = &self.model;
         let m = &model.manifest;
         let frame = input.frame;
+        let pool = input.pool;
         let (w, h) = (frame.width(), frame.height());
         let plan = model.tile_plan(w, h, input.params)?;
         let codec = stages.time("encode_stats", || {
@@ -495,85 +550,167 @@ impl Neural {
         let history: Vec<&ReprojectedFrame> = stages.time("reproject", || {
             (0..used).map(|k| input.history.reproject(k)).collect()
         });
-        let src = Sources {
-            width: w,
-            color: &frame.color,
-            coverage: frame.coverage.as_deref(),
-            insert: frame.insert_mask.as_deref(),
-            depth: frame.depth.as_deref(),
-            normal: frame.normal.as_ref(),
-            motion: frame.motion.as_ref(),
-            history,
-            codec,
-            premultiplied: m.premultiplied,
-        };
+        let mut sources = channel_sources(&model.channels, frame, &history, m.premultiplied);
 
-        // Accumulators: weighted RGB in planes 0..3, weight sum in plane 3.
-        let mut out = Image::zeros(w, h, 4);
+        // With several tiles, computed channels are computed once for the
+        // whole frame, so the tiles' overlaps only copy.
+        let computed: Vec<Vec<f32>>;
+        if plan.len() > 1 {
+            computed = stages.time("encode", || {
+                let wanted: Vec<Src<'_>> = sources.iter().copied().filter(Src::computed).collect();
+                let mut planes = vec![vec![0.0f32; w * h]; wanted.len()];
+                pool.install(|| {
+                    planes
+                        .par_iter_mut()
+                        .zip(&wanted)
+                        .flat_map(|(p, src)| p.par_chunks_mut(w).enumerate().map(move |r| (r, src)))
+                        .for_each(|((y, row), src)| src.row(&codec, w, y, 0, row));
+                });
+                planes
+            });
+            let mut next = computed.iter();
+            for s in sources.iter_mut().filter(|s| s.computed()) {
+                *s = Src::Copy(next.next().expect("one plane per computed channel"));
+            }
+        }
+
         let n_tiles = plan.len();
         let cin = model.channels.len();
+        let (ww, wh) = (plan.x.window, plan.y.window);
+        let np = ww * wh;
         let color_slots: [Option<usize>; 3] = std::array::from_fn(|c| {
             model
                 .channels
                 .iter()
                 .position(|&ch| ch == InputChannel::Color(c))
         });
+        // Per output color channel: its plane in the model's output and, for
+        // residual models, the input plane holding the encoded color.
+        let planes: [(usize, Option<usize>); 3] = std::array::from_fn(|c| {
+            let o = model
+                .output_order
+                .iter()
+                .position(|&oc| oc == c)
+                .expect("validated output channels");
+            let slot = m
+                .residual
+                .then(|| color_slots[c].expect("validated: residual models read color"));
+            (o, slot)
+        });
+        let coverage = if input.params.fill_holes {
+            None
+        } else {
+            frame.coverage.as_deref()
+        };
+        let mut tensor = vec![0.0f32; cin * np];
+        let mut out = Image::zeros(w, h, 4);
         for (t, tile) in plan.tiles().enumerate() {
-            let (ww, wh) = tile.size;
-            let xs: Vec<usize> = (0..ww)
-                .map(|x| reflect(tile.origin.0 + x as isize, w))
-                .collect();
-            let ys: Vec<usize> = (0..wh)
-                .map(|y| reflect(tile.origin.1 + y as isize, h))
-                .collect();
-            let mut tensor = vec![0.0f32; cin * ww * wh];
             stages.time("tile_input", || {
-                input.pool.install(|| {
-                    tensor
-                        .par_chunks_mut(ww * wh)
-                        .zip(model.channels.par_iter())
-                        .for_each(|(plane, &ch)| src.fill(ch, &xs, &ys, plane));
-                })
+                fill_window(&mut tensor, &sources, &codec, (w, h), tile, pool)
             });
-            let mut result = stages.time("inference", || model.run(&tensor, ww, wh))?;
-            stages.time("tile_blend", || {
-                let np = ww * wh;
-                if m.residual {
-                    for (o, &c) in model.output_order.iter().enumerate() {
-                        let slot = color_slots[c].expect("validated: residual models read color");
-                        let (res, inp) = (
-                            &mut result[o * np..(o + 1) * np],
-                            &tensor[slot * np..(slot + 1) * np],
-                        );
-                        res.iter_mut().zip(inp).for_each(|(r, i)| *r += i);
-                    }
-                }
-                blend_tile(
-                    &mut out,
-                    &plan,
-                    tile,
-                    &result,
-                    &model.output_order,
-                    &codec,
-                    input.pool,
-                );
-            });
+            let result = stages.time("inference", || model.run(&tensor, ww, wh))?;
+            let view = TileOutput {
+                result: &result,
+                tensor: &tensor,
+                planes,
+                size: tile.size,
+                origin: tile.origin,
+            };
+            if n_tiles == 1 {
+                stages.time("tile_blend", || {
+                    write_single(&mut out, &view, &codec, coverage, pool)
+                });
+            } else {
+                stages.time("tile_blend", || {
+                    blend_tile(&mut out, &plan, tile, &view, &codec, pool)
+                });
+            }
             progress.report((t + 1) as f64 / n_tiles as f64)?;
         }
-        stages.time("finish", || {
-            finish(&mut out, frame.coverage.as_deref(), input.params.fill_holes)
-        });
+        if n_tiles > 1 {
+            stages.time("finish", || {
+                finish(&mut out, frame.coverage.as_deref(), input.params.fill_holes)
+            });
+        }
         Ok(out)
     }
 }
 
-/// Decodes one tile's output and adds it, weighted, into the accumulators.
+/// One tile's network output and the input it was computed from.
+struct TileOutput<'a> {
+    result: &'a [f32],
+    tensor: &'a [f32],
+    /// Per color channel: output plane, residual input plane.
+    planes: [(usize, Option<usize>); 3],
+    size: (usize, usize),
+    origin: (isize, isize),
+}
+
+impl TileOutput<'_> {
+    /// Decodes window row `wy`, columns `wx0..wx0 + dst.len()`, of color channel `c`.
+    #[inline]
+    fn decode_row(&self, codec: &ColorCodec, c: usize, wy: usize, wx0: usize, dst: &mut [f32]) {
+        let np = self.size.0 * self.size.1;
+        let at = wy * self.size.0 + wx0;
+        let (o, slot) = self.planes[c];
+        let net = &self.result[o * np + at..o * np + at + dst.len()];
+        match slot {
+            Some(s) => {
+                let inp = &self.tensor[s * np + at..s * np + at + dst.len()];
+                dst.iter_mut()
+                    .zip(net.iter().zip(inp))
+                    .for_each(|(d, (&r, &i))| *d = r + i);
+                // Decode in place.
+                for d in dst.iter_mut() {
+                    *d = codec.decode(*d);
+                }
+            }
+            None => codec.decode_row(net, dst),
+        }
+    }
+}
+
+/// The whole frame in one tile: decode straight into the output, RGB
+/// premultiplied by the output coverage (`coverage`, 1 where `None`).
+fn write_single(
+    out: &mut Image,
+    view: &TileOutput<'_>,
+    codec: &ColorCodec,
+    coverage: Option<&[f32]>,
+    pool: &rayon::ThreadPool,
+) {
+    let (w, h) = (out.width, out.height);
+    debug_assert_eq!(view.origin, (0, 0));
+    pool.install(|| {
+        out.data
+            .par_chunks_mut(w)
+            .with_min_len(4)
+            .enumerate()
+            .for_each(|(r, row)| {
+                let (c, y) = (r / h, r % h);
+                let alpha = coverage.map(|a| &a[y * w..(y + 1) * w]);
+                if c == 3 {
+                    match alpha {
+                        Some(a) => row.copy_from_slice(a),
+                        None => row.fill(1.0),
+                    }
+                    return;
+                }
+                view.decode_row(codec, c, y, 0, row);
+                if let Some(a) = alpha {
+                    row.iter_mut().zip(a).for_each(|(v, &a)| *v *= a);
+                }
+            });
+    });
+}
+
+/// Decodes one tile's kept region and adds it, weighted, into the
+/// accumulators (weighted RGB in planes 0..3, weight sum in plane 3).
 fn blend_tile(
     out: &mut Image,
     plan: &TilePlan,
     tile: tiling::Tile,
-    result: &[f32],
-    order: &[usize],
+    view: &TileOutput<'_>,
     codec: &ColorCodec,
     pool: &rayon::ThreadPool,
 ) {
@@ -582,47 +719,35 @@ fn blend_tile(
     let (x0, x1) = plan.x.kept(tile.ix, o, w);
     let (y0, y1) = plan.y.kept(tile.iy, o, h);
     let wx: Vec<f32> = (x0..x1).map(|x| plan.x.weight(tile.ix, x, o)).collect();
-    let (ww, wh) = tile.size;
-    let np = ww * wh;
-    // Window coordinates of frame pixel (x, y).
     let (ox, oy) = tile.origin;
-    let mut planes = out.planes_mut();
+    let wx0 = (x0 as isize - ox) as usize;
     pool.install(|| {
-        planes.par_iter_mut().enumerate().for_each(|(c, plane)| {
-            let src = (c < 3).then(|| {
-                let slot = order
-                    .iter()
-                    .position(|&oc| oc == c)
-                    .expect("validated output channels");
-                &result[slot * np..(slot + 1) * np]
-            });
-            for y in y0..y1 {
-                let wy = plan.y.weight(tile.iy, y, o);
-                if wy == 0.0 {
-                    continue;
-                }
-                let row = &mut plane[y * w + x0..y * w + x1];
-                let wyi = (y as isize - oy) as usize;
-                debug_assert!(wyi < wh);
-                match src {
-                    Some(s) => {
-                        let srow = &s[wyi * ww..(wyi + 1) * ww];
-                        for (i, (acc, &wxv)) in row.iter_mut().zip(&wx).enumerate() {
-                            let wt = wxv * wy;
-                            if wt > 0.0 {
-                                let wxi = ((x0 + i) as isize - ox) as usize;
-                                *acc += wt * codec.decode(srow[wxi]);
-                            }
-                        }
+        out.data
+            .par_chunks_mut(w)
+            .with_min_len(4)
+            .enumerate()
+            .filter(|(r, _)| (y0..y1).contains(&(r % h)))
+            .for_each_init(
+                || vec![0.0f32; x1 - x0],
+                |dec, (r, row)| {
+                    let (c, y) = (r / h, r % h);
+                    let wy = plan.y.weight(tile.iy, y, o);
+                    if wy == 0.0 {
+                        return;
                     }
-                    None => {
-                        for (acc, &wxv) in row.iter_mut().zip(&wx) {
-                            *acc += wxv * wy;
-                        }
+                    let acc = &mut row[x0..x1];
+                    if c == 3 {
+                        acc.iter_mut().zip(&wx).for_each(|(a, &wxv)| *a += wxv * wy);
+                        return;
                     }
-                }
-            }
-        });
+                    let wyi = (y as isize - oy) as usize;
+                    view.decode_row(codec, c, wyi, wx0, dec);
+                    acc.iter_mut()
+                        .zip(&wx)
+                        .zip(dec.iter())
+                        .for_each(|((a, &wxv), &d)| *a += wxv * wy * d);
+                },
+            );
     });
 }
 

@@ -1,15 +1,22 @@
 //! Overlapping tiles with feathered blending.
 //!
-//! Each axis is cut into `n` cores (consecutive, nearly equal, non-overlapping
-//! ranges). A tile's network window is its core widened by `overlap` on both
-//! sides (reflected at the image border, so border pixels see the same context
-//! tiled or not) and then padded on the far side, again by reflection, up to
-//! the window size (a multiple of the model's `spatial_multiple`). A tile's
-//! output is kept over its core widened by `f = overlap / 2`, with linear
-//! ramps across `[edge - f, edge + f)` at interior edges so the weights of
-//! neighbours sum to 1. The outer `overlap - f` pixels of every window are
-//! never kept: when that is at least the model's receptive radius, tiled
-//! output equals untiled output.
+//! A frame axis that fits one window (`n <= round_up(tile, multiple)`, or
+//! `n <= ` the model's static size) is one tile: its window starts at the
+//! frame edge and is the axis padded on the far side by mirror reflection up
+//! to a multiple of the model's `spatial_multiple` (or to the static size).
+//! There are no seams, so no overlap context is added: the network sees the
+//! frame as it saw whole frames in training.
+//!
+//! Otherwise the axis is cut into `n` cores (consecutive, nearly equal,
+//! non-overlapping ranges). A tile's network window is its core widened by
+//! `overlap` on both sides (reflected at the image border) and then padded on
+//! the far side, again by reflection, up to the window size (a multiple of
+//! `spatial_multiple`). A tile's output is kept over its core widened by
+//! `f = overlap / 2`, with linear ramps across `[edge - f, edge + f)` at
+//! interior edges so the weights of neighbours sum to 1. The outer
+//! `overlap - f` pixels of every window are never kept: when that is at least
+//! the model's receptive radius, tiled output equals the output of one window
+//! over the whole frame widened by `overlap` on every side by reflection.
 
 use crate::error::{Error, Result};
 
@@ -20,6 +27,9 @@ pub struct AxisPlan {
     pub cores: Vec<(usize, usize)>,
     /// Network window length (the same for every tile on this axis).
     pub window: usize,
+    /// Context pixels before each core in its window: the overlap, or 0 for a
+    /// single tile (whose window starts at the frame edge).
+    pub lead: usize,
 }
 
 /// Rounds `v` up to a multiple of `m`.
@@ -39,13 +49,13 @@ impl AxisPlan {
     ) -> Result<AxisPlan> {
         let multiple = multiple.max(1);
         let tile = fixed.unwrap_or(tile);
-        if n + 2 * overlap <= tile
-            || (fixed.is_none() && n + 2 * overlap <= round_up(tile, multiple))
-        {
-            let window = fixed.unwrap_or_else(|| round_up(n + 2 * overlap, multiple));
+        let largest = fixed.unwrap_or_else(|| round_up(tile, multiple));
+        if n <= largest {
+            let window = fixed.unwrap_or_else(|| round_up(n, multiple));
             return Ok(AxisPlan {
                 cores: vec![(0, n)],
                 window,
+                lead: 0,
             });
         }
         let f = overlap / 2;
@@ -71,7 +81,11 @@ impl AxisPlan {
         let widest = cores.iter().map(|c| c.1 - c.0).max().unwrap_or(0);
         let window = fixed.unwrap_or_else(|| round_up(widest + 2 * overlap, multiple));
         debug_assert!(window >= widest + 2 * overlap);
-        Ok(AxisPlan { cores, window })
+        Ok(AxisPlan {
+            cores,
+            window,
+            lead: overlap,
+        })
     }
 
     /// Blending weight of tile `i` at pixel `p` (0 outside its kept range).
@@ -182,14 +196,14 @@ impl TilePlan {
 
     /// The tiles in row-major order.
     pub fn tiles(&self) -> impl Iterator<Item = Tile> + '_ {
-        let o = self.overlap as isize;
+        let (lx, ly) = (self.x.lead as isize, self.y.lead as isize);
         (0..self.y.cores.len()).flat_map(move |iy| {
             (0..self.x.cores.len()).map(move |ix| Tile {
                 ix,
                 iy,
                 origin: (
-                    self.x.cores[ix].0 as isize - o,
-                    self.y.cores[iy].0 as isize - o,
+                    self.x.cores[ix].0 as isize - lx,
+                    self.y.cores[iy].0 as isize - ly,
                 ),
                 size: (self.x.window, self.y.window),
             })
@@ -209,6 +223,31 @@ mod tests {
     }
 
     #[test]
+    fn one_window_when_the_axis_fits() {
+        let p = AxisPlan::new(576, 1280, 62, 16, None).unwrap();
+        assert_eq!(
+            (p.cores.clone(), p.window, p.lead),
+            (vec![(0, 576)], 576, 0)
+        );
+        let p = AxisPlan::new(570, 576, 62, 16, None).unwrap();
+        assert_eq!(
+            (p.cores.clone(), p.window, p.lead),
+            (vec![(0, 570)], 576, 0)
+        );
+        let p = AxisPlan::new(200, 64, 8, 16, Some(256)).unwrap();
+        assert_eq!(
+            (p.cores.clone(), p.window, p.lead),
+            (vec![(0, 200)], 256, 0)
+        );
+        let p = AxisPlan::new(577, 576, 62, 16, None).unwrap();
+        assert_eq!((p.cores.len(), p.lead), (2, 62));
+        let plan = TilePlan::new(1024, 576, 1024, 62, 16, (None, None)).unwrap();
+        let tiles: Vec<Tile> = plan.tiles().collect();
+        assert_eq!(tiles.len(), 1);
+        assert_eq!((tiles[0].origin, tiles[0].size), ((0, 0), (1024, 576)));
+    }
+
+    #[test]
     fn weights_partition_unity() {
         for (n, tile, overlap) in [
             (333, 64, 8),
@@ -216,16 +255,23 @@ mod tests {
             (100, 40, 9),
             (50, 256, 8),
             (77, 20, 0),
+            (64, 64, 8),
+            (65, 64, 8),
+            (80, 64, 8),
+            (81, 64, 8),
         ] {
             let p = AxisPlan::new(n, tile, overlap, 16, None).unwrap();
-            assert!(p.window <= round_up(tile, 16).max(round_up(n + 2 * overlap, 16)));
+            assert!(p.window <= round_up(tile, 16));
             assert_eq!(p.window % 16, 0);
+            let single = p.cores.len() == 1;
+            assert_eq!(single, n <= round_up(tile, 16), "n {n} tile {tile}");
+            assert_eq!(p.lead, if single { 0 } else { overlap });
             for x in 0..n {
                 let s: f32 = (0..p.cores.len()).map(|i| p.weight(i, x, overlap)).sum();
                 assert!((s - 1.0).abs() < 1e-6, "n {n} tile {tile} x {x}: {s}");
                 for i in 0..p.cores.len() {
                     let (a, b) = p.kept(i, overlap, n);
-                    if p.weight(i, x, overlap) > 0.0 {
+                    if p.weight(i, x, overlap) > 0.0 && !single {
                         assert!(x >= a && x < b);
                         let (c0, c1) = p.cores[i];
                         // Guard: kept pixels are at least overlap - f from the window edge.
