@@ -6,9 +6,79 @@
 //! (defaults: 1920x1080, 6 frames, 2 threads, classical, 1 pass). The first
 //! two frames of each pass are warm-up (a cold start, then the first frame
 //! with history) and are not counted.
+//!
+//! With backend `parts`, times the shared parts alone instead, many times
+//! each on the same data, and prints the minimum and the median (the
+//! minimum is the figure least disturbed by other work on the machine):
+//! preparing a frame, reprojecting history frame 0 and frame 3 (chained).
 
-use harmonizer_core::synth::{Scene, SynthConfig};
+use harmonizer_core::frame::{DepthKind, Image, PreparedFrame, Recycler};
+use harmonizer_core::synth::{Scene, SynthConfig, SynthFrame};
+use harmonizer_core::temporal::{History, HistoryFrame, HistoryView};
 use harmonizer_core::{Device, DeviceOptions, ParamValue, Params, Session};
+
+/// Runs `f` `n` times; prints the minimum and median time in ms.
+fn time(name: &str, n: usize, mut f: impl FnMut()) {
+    let mut t = Vec::with_capacity(n);
+    for _ in 0..n {
+        let t0 = std::time::Instant::now();
+        f();
+        t.push(t0.elapsed().as_secs_f64() * 1e3);
+    }
+    let min = t.iter().copied().fold(f64::INFINITY, f64::min);
+    println!("{name:<28} min {min:8.2} ms  median {:8.2} ms", median(t));
+}
+
+/// The shared parts alone (see the module docs).
+fn parts(made: &[SynthFrame], threads: usize, runs: usize) {
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .expect("pool");
+    let rec = Recycler::new();
+    let prep = |f: &SynthFrame| {
+        PreparedFrame::from_input_recycled(
+            &f.input.frame_input(),
+            DepthKind::Planar,
+            &pool,
+            &rec,
+            false,
+        )
+        .expect("frame prepared")
+    };
+    let (last, older) = made.split_last().expect("frames");
+    let mut history = History::default();
+    for f in older {
+        let p = prep(f);
+        let (w, h) = (p.width(), p.height());
+        let mut color = Image::zeros(w, h, 4);
+        let n = w * h;
+        color.data[..3 * n].copy_from_slice(&p.color.data);
+        color.data[3 * n..].copy_from_slice(p.coverage.as_deref().expect("coverage"));
+        history.push(
+            HistoryFrame {
+                color,
+                depth: p.depth,
+                motion: p.motion,
+                camera: p.camera,
+                frame_index: p.frame_index,
+            },
+            4,
+        );
+    }
+    time("prepare", runs, || prep(last).recycle(&rec));
+    let current = prep(last);
+    time("reproject k=0", runs, || {
+        let view = HistoryView::new_recycled(&history, &current, 4, &pool, &rec);
+        std::hint::black_box(view.reproject(0));
+    });
+    if history.len() >= 4 {
+        time("reproject k=3 (chained)", runs, || {
+            let view = HistoryView::new_recycled(&history, &current, 4, &pool, &rec);
+            std::hint::black_box(view.reproject(3));
+        });
+    }
+}
 
 fn median(mut v: Vec<f64>) -> f64 {
     if v.is_empty() {
@@ -49,6 +119,10 @@ fn main() {
     })
     .expect("synthetic scene");
     let made: Vec<_> = (0..frames).map(|t| scene.frame(1 + t as i64)).collect();
+    if backend == "parts" {
+        parts(&made, threads, 10 * passes);
+        return;
+    }
     let device = Device::new(DeviceOptions {
         threads,
         ..DeviceOptions::default()

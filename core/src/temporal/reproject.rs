@@ -163,6 +163,71 @@ fn taps(x: f32, y: f32, w: usize, h: usize, depth: Option<&[f32]>, expected: f32
     t.normalized()
 }
 
+/// The fast path of [`taps`]: when all four bilinear taps at (`x`, `y`) are
+/// inside the image and pass the depth test, the index of the top-left tap
+/// and the weights (top-left, top-right, bottom-left, bottom-right), exactly
+/// as [`taps`] gives them; `None` otherwise (use [`taps`]).
+#[inline(always)]
+fn interior(
+    x: f32,
+    y: f32,
+    w: usize,
+    h: usize,
+    depth: Option<&[f32]>,
+    expected: f32,
+) -> Option<(usize, [f32; 4])> {
+    let fx = x - 0.5;
+    let fy = y - 0.5;
+    // Also false for NaN positions.
+    if !(fx >= 0.0 && fy >= 0.0 && fx < w as f32 && fy < h as f32) {
+        return None;
+    }
+    // The same floor as `taps` (bit-identical weights).
+    let x0 = (fx + 1.0) as usize - 1;
+    let y0 = (fy + 1.0) as usize - 1;
+    if x0 + 1 >= w || y0 + 1 >= h {
+        return None;
+    }
+    let ax = fx - x0 as f32;
+    let ay = fy - y0 as f32;
+    let i = y0 * w + x0;
+    if let Some(d) = depth {
+        let q = &d[i..i + w + 2];
+        let (a, b, c, e) = (q[0], q[1], q[w], q[w + 1]);
+        // `depth_match(expected, s)` holds on an interval of `s` (also in
+        // floating point: both sides of the test are monotonic in `s`), so
+        // all four taps pass exactly when the nearest and the farthest do.
+        // A NaN (not made by the library, which sanitizes depth) takes the
+        // general path.
+        if (a + b + c + e).is_nan() {
+            return None;
+        }
+        let lo = a.min(b).min(c.min(e));
+        let hi = a.max(b).max(c.max(e));
+        if !(depth_match(expected, lo) & depth_match(expected, hi)) {
+            return None;
+        }
+    }
+    Some((
+        i,
+        [
+            (1.0 - ax) * (1.0 - ay),
+            ax * (1.0 - ay),
+            (1.0 - ax) * ay,
+            ax * ay,
+        ],
+    ))
+}
+
+/// The bilinear sample of `plane` (row length `w`) with top-left tap `i` and
+/// weights `wt` from [`interior`]; the same sum, in the same order, as
+/// [`Taps::sample`].
+#[inline(always)]
+fn bilerp(plane: &[f32], i: usize, w: usize, wt: &[f32; 4]) -> f32 {
+    let q = &plane[i..i + w + 2];
+    wt[0] * q[0] + wt[1] * q[1] + wt[2] * q[w] + wt[3] * q[w + 1]
+}
+
 /// Runs `f(row, [row slices of each plane])` over all rows, in parallel on
 /// `pool` when given. Each row is written by exactly one call, so the result
 /// does not depend on the number of threads.
@@ -337,6 +402,19 @@ impl<'a> Planes<'a> {
             return ([0.0; 4], 0.0);
         }
         let hdepth = if d.is_nan() { None } else { self.depth };
+        if let Some((i, wt)) = interior(x, y, self.w, self.h, hdepth, d) {
+            // The common case, bit-identical to the general one below.
+            let w = self.w;
+            return (
+                [
+                    bilerp(self.p[0], i, w, &wt),
+                    bilerp(self.p[1], i, w, &wt),
+                    bilerp(self.p[2], i, w, &wt),
+                    bilerp(self.p[3], i, w, &wt),
+                ],
+                v,
+            );
+        }
         let t = taps(x, y, self.w, self.h, hdepth, d);
         if t.sum <= 0.0 {
             return ([0.0; 4], 0.0);
@@ -391,6 +469,13 @@ impl SourceUser<ReprojectedFrame> for ColorHop<'_> {
             [c0, c1, c2, c3, &mut valid],
             w,
             |i, [r0, r1, r2, r3, rv]| {
+                let (r0, r1, r2, r3, rv) = (
+                    &mut r0[..w],
+                    &mut r1[..w],
+                    &mut r2[..w],
+                    &mut r3[..w],
+                    &mut rv[..w],
+                );
                 for j in 0..w {
                     let (x, y, d, v) = at(i, j);
                     let (c, v) = planes.color(x, y, d, v);
@@ -443,6 +528,7 @@ impl SourceUser<Chain> for ChainHop<'_> {
         let hdepth = frame.depth.as_deref();
         let Chain { x, y, depth, valid } = &mut chain;
         par_rows(self.pool, [x, y, depth, valid], w, |i, [rx, ry, rd, rv]| {
+            let (rx, ry, rd, rv) = (&mut rx[..w], &mut ry[..w], &mut rd[..w], &mut rv[..w]);
             for j in 0..w {
                 let (x, y, d, v) = at(i, j);
                 rx[j] = 0.0;
@@ -452,7 +538,18 @@ impl SourceUser<Chain> for ChainHop<'_> {
                 if v <= 0.0 {
                     continue;
                 }
-                let t = taps(x, y, w, h, if d.is_nan() { None } else { hdepth }, d);
+                let dt = if d.is_nan() { None } else { hdepth };
+                if let Some((i, wt)) = interior(x, y, w, h, dt, d) {
+                    // The common case, bit-identical to the general one below.
+                    rx[j] = x + bilerp(mx, i, w, &wt);
+                    ry[j] = y + bilerp(my, i, w, &wt);
+                    if let Some(hd) = hdepth {
+                        rd[j] = bilerp(hd, i, w, &wt);
+                    }
+                    rv[j] = v;
+                    continue;
+                }
+                let t = taps(x, y, w, h, dt, d);
                 if t.sum <= 0.0 {
                     continue;
                 }
