@@ -78,7 +78,7 @@ impl ColorCodec {
         let v = x * self.scale;
         match self.log_range {
             None => v,
-            Some(c) => log2_1p(v) / c,
+            Some(c) => log2_1p(v) * (1.0 / c),
         }
     }
 
@@ -87,8 +87,8 @@ impl ColorCodec {
     #[inline(always)]
     pub fn decode(&self, y: f32) -> f32 {
         let v = match self.log_range {
-            None => y / self.scale,
-            Some(c) => exp2_m1(y * c) / self.scale,
+            None => y * (1.0 / self.scale),
+            Some(c) => exp2_m1(y * c) * (1.0 / self.scale),
         };
         clean(v)
     }
@@ -99,9 +99,10 @@ impl ColorCodec {
         match self.log_range {
             None => dst.iter_mut().zip(src).for_each(|(d, &x)| *d = x * s),
             Some(c) => {
+                let inv_c = 1.0 / c;
                 dst.iter_mut()
                     .zip(src)
-                    .for_each(|(d, &x)| *d = log2_1p(x * s) / c);
+                    .for_each(|(d, &x)| *d = log2_1p(x * s) * inv_c);
             }
         }
     }
@@ -118,23 +119,24 @@ impl ColorCodec {
         match self.log_range {
             None => dst.iter_mut().for_each(|d| *d *= s),
             Some(c) => {
-                dst.iter_mut().for_each(|d| *d = log2_1p(*d * s) / c);
+                let inv_c = 1.0 / c;
+                dst.iter_mut().for_each(|d| *d = log2_1p(*d * s) * inv_c);
             }
         }
     }
 
     /// Decodes a row: `dst[i] = decode(src[i])`.
     pub fn decode_row(&self, src: &[f32], dst: &mut [f32]) {
-        let s = self.scale;
+        let inv_s = 1.0 / self.scale;
         match self.log_range {
             None => dst
                 .iter_mut()
                 .zip(src)
-                .for_each(|(d, &y)| *d = clean(y / s)),
+                .for_each(|(d, &y)| *d = clean(y * inv_s)),
             Some(c) => dst
                 .iter_mut()
                 .zip(src)
-                .for_each(|(d, &y)| *d = clean(exp2_m1(y * c) / s)),
+                .for_each(|(d, &y)| *d = clean(exp2_m1(y * c) * inv_s)),
         }
     }
 }
