@@ -52,7 +52,7 @@ def test_harmonize_neural_matches_the_python_contract(tmp_path):
     man = json.loads((tmp_path / "model.json").read_text())
 
     rng = np.random.default_rng(0)
-    h, w = 80, 112
+    h, w = 75, 109  # not multiples of spatial_multiple: the far-side reflection counts
     base = rng.random((3, 5, 7)).astype(np.float32) * 2.0
     rgb = torch.nn.functional.interpolate(torch.from_numpy(base)[None], size=(h, w), mode="bilinear")[0].numpy()
     cov = np.ones((h, w), np.float32)
@@ -90,16 +90,16 @@ def test_harmonize_neural_matches_the_python_contract(tmp_path):
     rgba = torch.from_numpy(np.concatenate([rgb, cov[None]])[None])
     scale = frame_scale(rgba, man["encoding"]["key"])
     x = assemble_input(model.cfg, rgba, torch.from_numpy(insert[None, None]), [], scale)
-    # The frame fits one tile: the runtime's window is the frame widened by
-    # tile_overlap on every side by mirror reflection, then reflected on the far
-    # side up to a multiple of spatial_multiple (core/src/backend/neural/tiling.rs).
-    ov, mult = man["tile_overlap"], man["spatial_multiple"]
-    assert h + 2 * ov <= man["tile_size"] and w + 2 * ov <= man["tile_size"]
-    wh = -(-(h + 2 * ov) // mult) * mult
-    ww = -(-(w + 2 * ov) // mult) * mult
-    xp = np.pad(x.numpy(), ((0, 0), (0, 0), (ov, wh - h - ov), (ov, ww - w - ov)), mode="reflect")
+    # The frame fits one tile: the runtime's window starts at the frame edge and is
+    # the frame reflected on the far side up to a multiple of spatial_multiple
+    # (core/src/backend/neural/tiling.rs).
+    mult = man["spatial_multiple"]
+    assert h <= man["tile_size"] and w <= man["tile_size"]
+    wh = -(-h // mult) * mult
+    ww = -(-w // mult) * mult
+    xp = np.pad(x.numpy(), ((0, 0), (0, 0), (0, wh - h), (0, ww - w)), mode="reflect")
     with torch.no_grad():
-        out = model(torch.from_numpy(xp))[:, :, ov : ov + h, ov : ov + w]
+        out = model(torch.from_numpy(xp))[:, :, :h, :w]
         want = decode(out, scale, man["encoding"]["log_range"])[0].numpy()
     rel = np.abs(got - want) / (np.abs(want) + 1e-3)
     assert rel.max() < 1e-4, f"max relative difference {rel.max()}"
