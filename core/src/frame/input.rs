@@ -39,10 +39,9 @@ fn read_image(
         let mut bad = 0;
         for (c, out) in outs.iter_mut().enumerate() {
             view.read_row(y, c, out);
-            bad += out
-                .iter_mut()
-                .map(|v| usize::from(fix(c, v)))
-                .sum::<usize>();
+            // Branch-free `fix` (see the callers) and a narrow counter: the
+            // pass vectorizes.
+            bad += out.iter_mut().map(|v| u32::from(fix(c, v))).sum::<u32>() as usize;
         }
         bad
     };
@@ -257,13 +256,12 @@ impl PreparedFrame {
             None => Image::zeros(w, h, ch),
         };
         let mut color = take(3);
+        // The `fix` functions are written without branches (selects), so
+        // their loops vectorize.
         let sanitized = read_image(pool, &input.color, &mut color, |_, v| {
-            if v.is_finite() && *v >= 0.0 {
-                false
-            } else {
-                *v = 0.0;
-                true
-            }
+            let bad = !(v.is_finite() & (*v >= 0.0));
+            *v = if bad { 0.0 } else { *v };
+            bad
         });
         let mut sanitized_aovs = 0usize;
         // NaN becomes `bad` (counted), everything else is clamped to [lo, hi].
@@ -271,13 +269,9 @@ impl PreparedFrame {
             v.as_ref().map(|v| {
                 let mut img = take(ch);
                 sanitized_aovs += read_image(pool, v, &mut img, |_, x| {
-                    if x.is_nan() {
-                        *x = bad;
-                        true
-                    } else {
-                        *x = x.clamp(lo, hi);
-                        false
-                    }
+                    let nan = x.is_nan();
+                    *x = if nan { bad } else { x.clamp(lo, hi) };
+                    nan
                 });
                 img
             })
@@ -294,13 +288,10 @@ impl PreparedFrame {
         let motion = input.motion.as_ref().map(|v| {
             let mut img = take(2);
             sanitized_aovs += read_image(pool, v, &mut img, |c, x| {
-                if x.is_nan() {
-                    *x = 0.0;
-                    true
-                } else {
-                    *x = (x.clamp(-f32::MAX, f32::MAX) * s[c]).clamp(-limit, limit);
-                    false
-                }
+                let nan = x.is_nan();
+                let scaled = (x.clamp(-f32::MAX, f32::MAX) * s[c]).clamp(-limit, limit);
+                *x = if nan { 0.0 } else { scaled };
+                nan
             });
             img
         });

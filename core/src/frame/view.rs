@@ -224,12 +224,17 @@ impl<'a> ImageView<'a> {
                 let (step, start) = (l.pixel_stride / 4, base / 4);
                 if let Some(samples) = aligned::<f32>(self.data) {
                     let row = &samples[start..start + (n - 1) * step + 1];
-                    if step == 1 {
-                        out.copy_from_slice(row);
-                    } else {
-                        out.iter_mut()
+                    // Constant strides for the usual layouts (1 to 4
+                    // interleaved channels), so the copy vectorizes.
+                    match step {
+                        1 => out.copy_from_slice(row),
+                        2 => gather_every::<2>(row, out),
+                        3 => gather_every::<3>(row, out),
+                        4 => gather_every::<4>(row, out),
+                        _ => out
+                            .iter_mut()
                             .zip(row.iter().step_by(step))
-                            .for_each(|(o, v)| *o = *v);
+                            .for_each(|(o, v)| *o = *v),
                     }
                 } else {
                     let row = &self.data[base..base + (n - 1) * l.pixel_stride + 4];
@@ -372,6 +377,19 @@ impl<'a> ImageViewMut<'a> {
 
 /// The buffer as samples of `T` when its start is aligned for `T` (the tail
 /// that does not fill a whole sample is dropped; layouts never reach it).
+/// `out[x] = row[S * x]` (`row` holds `(out.len() - 1) * S + 1` samples).
+#[inline]
+fn gather_every<const S: usize>(row: &[f32], out: &mut [f32]) {
+    let Some((last, head)) = out.split_last_mut() else {
+        return;
+    };
+    let n = head.len();
+    for (o, c) in head.iter_mut().zip(row[..n * S].chunks_exact(S)) {
+        *o = c[0];
+    }
+    *last = row[n * S];
+}
+
 fn aligned<T: bytemuck::Pod>(data: &[u8]) -> Option<&[T]> {
     let whole = data.len() / std::mem::size_of::<T>() * std::mem::size_of::<T>();
     bytemuck::try_cast_slice(&data[..whole]).ok()

@@ -228,6 +228,125 @@ fn bilerp(plane: &[f32], i: usize, w: usize, wt: &[f32; 4]) -> f32 {
     wt[0] * q[0] + wt[1] * q[1] + wt[2] * q[w] + wt[3] * q[w + 1]
 }
 
+/// Pixels per [`Batch`].
+const BATCH: usize = 64;
+
+/// One run of up to [`BATCH`] pixels of a row: where they land in the
+/// history frame and, for those that take the interior fast path (all four
+/// taps inside and passing the depth test, validity so far > 0), the
+/// top-left tap and the weights, exactly as [`interior`] gives them. The
+/// work is split into short loops over the run so that the arithmetic
+/// vectorizes; only the gathers are per pixel.
+struct Batch {
+    x: [f32; BATCH],
+    y: [f32; BATCH],
+    d: [f32; BATCH],
+    v: [f32; BATCH],
+    fast: [bool; BATCH],
+    idx: [usize; BATCH],
+    wt: [[f32; 4]; BATCH],
+    lo: [f32; BATCH],
+    hi: [f32; BATCH],
+    test: [bool; BATCH],
+}
+
+impl Batch {
+    fn new() -> Batch {
+        Batch {
+            x: [0.0; BATCH],
+            y: [0.0; BATCH],
+            d: [0.0; BATCH],
+            v: [0.0; BATCH],
+            fast: [false; BATCH],
+            idx: [0; BATCH],
+            wt: [[0.0; 4]; BATCH],
+            lo: [0.0; BATCH],
+            hi: [0.0; BATCH],
+            test: [false; BATCH],
+        }
+    }
+
+    /// Fills the batch with pixels `j0..j0 + m` of row `i` (`m <= BATCH`)
+    /// of a source whose positions `at` gives, looking into a `w` x `h`
+    /// history frame with depth `depth`.
+    #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
+    fn fill<S: Fn(usize, usize) -> (f32, f32, f32, f32)>(
+        &mut self,
+        at: &S,
+        i: usize,
+        j0: usize,
+        m: usize,
+        w: usize,
+        h: usize,
+        depth: Option<&[f32]>,
+    ) {
+        for t in 0..m {
+            let (x, y, d, v) = at(i, j0 + t);
+            self.x[t] = x;
+            self.y[t] = y;
+            self.d[t] = d;
+            self.v[t] = v;
+        }
+        let (wf, hf) = (w as f32, h as f32);
+        let (wi, hi) = (w as i64, h as i64);
+        for t in 0..BATCH {
+            let fx = self.x[t] - 0.5;
+            let fy = self.y[t] - 0.5;
+            // Also false for NaN positions; the same floor as `taps`.
+            let inside = (fx >= 0.0) & (fy >= 0.0) & (fx < wf) & (fy < hf);
+            let x0 = (fx + 1.0) as i64 - 1;
+            let y0 = (fy + 1.0) as i64 - 1;
+            let ax = fx - x0 as f32;
+            let ay = fy - y0 as f32;
+            self.fast[t] = inside & (x0 + 1 < wi) & (y0 + 1 < hi) & (self.v[t] > 0.0) & (t < m);
+            // Clamped so that pixels off the fast path compute no overflow.
+            self.idx[t] = y0.clamp(0, hi - 1) as usize * w + x0.clamp(0, wi - 1) as usize;
+            self.wt[t] = [
+                (1.0 - ax) * (1.0 - ay),
+                ax * (1.0 - ay),
+                (1.0 - ax) * ay,
+                ax * ay,
+            ];
+        }
+        let Some(dp) = depth else {
+            return;
+        };
+        for t in 0..m {
+            // Known expected depth: the depth test applies.
+            self.test[t] = self.fast[t] & !self.d[t].is_nan();
+            if self.test[t] {
+                let k = self.idx[t];
+                let q = &dp[k..k + w + 2];
+                let (a, b, c, e) = (q[0], q[1], q[w], q[w + 1]);
+                // See `interior`: the nearest and farthest taps decide; a NaN
+                // takes the general path.
+                let nan = (a + b + c + e).is_nan();
+                self.lo[t] = if nan {
+                    f32::NAN
+                } else {
+                    a.min(b).min(c.min(e))
+                };
+                self.hi[t] = b.max(a).max(c.max(e));
+            }
+        }
+        for t in 0..m {
+            let e = self.d[t];
+            let pass = depth_match_select(e, self.lo[t]) & depth_match_select(e, self.hi[t]);
+            self.fast[t] &= !self.test[t] | pass;
+        }
+    }
+}
+
+/// [`depth_match`] without branches (a NaN `seen` fails).
+#[inline(always)]
+fn depth_match_select(expected: f32, seen: f32) -> bool {
+    let far_e = expected >= FAR_DEPTH;
+    let far_s = seen >= FAR_DEPTH;
+    let near = (expected - seen).abs() <= DEPTH_TOLERANCE * expected.min(seen);
+    (far_e & far_s) | (!(far_e | far_s) & near)
+}
+
 /// Runs `f(row, [row slices of each plane])` over all rows, in parallel on
 /// `pool` when given. Each row is written by exactly one call, so the result
 /// does not depend on the number of threads.
@@ -476,14 +595,32 @@ impl SourceUser<ReprojectedFrame> for ColorHop<'_> {
                     &mut r3[..w],
                     &mut rv[..w],
                 );
-                for j in 0..w {
-                    let (x, y, d, v) = at(i, j);
-                    let (c, v) = planes.color(x, y, d, v);
-                    r0[j] = c[0];
-                    r1[j] = c[1];
-                    r2[j] = c[2];
-                    r3[j] = c[3];
-                    rv[j] = v;
+                let mut b = Batch::new();
+                for j0 in (0..w).step_by(BATCH) {
+                    let m = BATCH.min(w - j0);
+                    b.fill(at, i, j0, m, w, h, planes.depth);
+                    for t in 0..m {
+                        let j = j0 + t;
+                        let (c, v) = if b.fast[t] {
+                            let (k, wt) = (b.idx[t], &b.wt[t]);
+                            (
+                                [
+                                    bilerp(planes.p[0], k, w, wt),
+                                    bilerp(planes.p[1], k, w, wt),
+                                    bilerp(planes.p[2], k, w, wt),
+                                    bilerp(planes.p[3], k, w, wt),
+                                ],
+                                b.v[t],
+                            )
+                        } else {
+                            planes.color(b.x[t], b.y[t], b.d[t], b.v[t])
+                        };
+                        r0[j] = c[0];
+                        r1[j] = c[1];
+                        r2[j] = c[2];
+                        r3[j] = c[3];
+                        rv[j] = v;
+                    }
                 }
             },
         );
@@ -529,8 +666,25 @@ impl SourceUser<Chain> for ChainHop<'_> {
         let Chain { x, y, depth, valid } = &mut chain;
         par_rows(self.pool, [x, y, depth, valid], w, |i, [rx, ry, rd, rv]| {
             let (rx, ry, rd, rv) = (&mut rx[..w], &mut ry[..w], &mut rd[..w], &mut rv[..w]);
+            let mut b = Batch::new();
             for j in 0..w {
-                let (x, y, d, v) = at(i, j);
+                let t = j % BATCH;
+                if t == 0 {
+                    b.fill(at, i, j, BATCH.min(w - j), w, h, hdepth);
+                }
+                let (x, y, d, v) = (b.x[t], b.y[t], b.d[t], b.v[t]);
+                if b.fast[t] {
+                    // The common case, bit-identical to the general one below.
+                    let (k, wt) = (b.idx[t], &b.wt[t]);
+                    rx[j] = x + bilerp(mx, k, w, wt);
+                    ry[j] = y + bilerp(my, k, w, wt);
+                    rd[j] = match hdepth {
+                        Some(hd) => bilerp(hd, k, w, wt),
+                        None => f32::NAN,
+                    };
+                    rv[j] = v;
+                    continue;
+                }
                 rx[j] = 0.0;
                 ry[j] = 0.0;
                 rd[j] = f32::NAN;
@@ -539,16 +693,6 @@ impl SourceUser<Chain> for ChainHop<'_> {
                     continue;
                 }
                 let dt = if d.is_nan() { None } else { hdepth };
-                if let Some((i, wt)) = interior(x, y, w, h, dt, d) {
-                    // The common case, bit-identical to the general one below.
-                    rx[j] = x + bilerp(mx, i, w, &wt);
-                    ry[j] = y + bilerp(my, i, w, &wt);
-                    if let Some(hd) = hdepth {
-                        rd[j] = bilerp(hd, i, w, &wt);
-                    }
-                    rv[j] = v;
-                    continue;
-                }
                 let t = taps(x, y, w, h, dt, d);
                 if t.sum <= 0.0 {
                     continue;
@@ -710,6 +854,153 @@ pub(crate) fn reproject_camera(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A deterministic pseudo-random value in `[0, 1)`.
+    fn rnd(seed: &mut u64) -> f32 {
+        *seed = seed
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (*seed >> 40) as f32 / (1u64 << 24) as f32
+    }
+
+    /// A history frame with depth layers (near, far, empty sky, some exact
+    /// tie values), motion leading partly out of the frame.
+    fn frame(w: usize, h: usize, seed: &mut u64) -> HistoryFrame {
+        let n = w * h;
+        let mut color = Image::zeros(w, h, 4);
+        for v in &mut color.data {
+            *v = rnd(seed) * 4.0;
+        }
+        let depth = (0..n)
+            .map(|_| match (rnd(seed) * 5.0) as u32 {
+                0 => 1e10,
+                1 => 10.0,
+                2 => 11.0,
+                3 => 10.0 + rnd(seed),
+                _ => 3.0 + rnd(seed),
+            })
+            .collect();
+        let mut motion = Image::zeros(w, h, 2);
+        for v in &mut motion.data {
+            *v = (rnd(seed) - 0.5) * 6.0;
+        }
+        HistoryFrame {
+            color,
+            depth: Some(depth),
+            motion: Some(motion),
+            camera: None,
+            frame_index: None,
+        }
+    }
+
+    /// The batched fast paths of the color and chain hops give exactly what
+    /// the general bilinear taps give, pixel by pixel, at borders, depth
+    /// edges, empty depth, unknown depth and with invalid sources.
+    #[test]
+    fn fast_paths_equal_the_general_taps_bit_for_bit() {
+        let (w, h) = (150, 37);
+        let n = w * h;
+        let mut seed = 7;
+        let hist = frame(w, h, &mut seed);
+        let older = frame(w, h, &mut seed);
+        let mut motion = Image::zeros(w, h, 2);
+        for v in &mut motion.data {
+            *v = (rnd(&mut seed) - 0.5) * 8.0;
+        }
+        motion.data[5] = f32::NAN;
+        let mut depth: Vec<f32> = (0..n)
+            .map(|_| match (rnd(&mut seed) * 4.0) as u32 {
+                0 => 1e10,
+                1 => 10.5,
+                _ => 3.0 + 8.0 * rnd(&mut seed),
+            })
+            .collect();
+        depth[9] = f32::NAN;
+        let hd = hist.depth.as_deref().unwrap();
+        let [p0, p1, p2, p3] = [0, 1, 2, 3].map(|c| hist.color.plane(c));
+        let (mx, my) = (
+            hist.motion.as_ref().unwrap().plane(0),
+            hist.motion.as_ref().unwrap().plane(1),
+        );
+        for with_depth in [true, false] {
+            let src = Source::Current {
+                motion: &motion,
+                depth: with_depth.then_some(&depth[..]),
+            };
+            let rep = hop_color(src, &hist, None, None);
+            let chain = hop_chain(src, &hist, None, None);
+            for i in 0..h {
+                for j in 0..w {
+                    let p = i * w + j;
+                    let (x, y, d, v) = src.at(w, i, j);
+                    let t = taps(x, y, w, h, if d.is_nan() { None } else { Some(hd) }, d);
+                    let (c, vv) = if t.sum > 0.0 {
+                        (
+                            [t.sample(p0), t.sample(p1), t.sample(p2), t.sample(p3)],
+                            v * t.sum,
+                        )
+                    } else {
+                        ([0.0; 4], 0.0)
+                    };
+                    let got = [0, 1, 2, 3].map(|c| rep.color.plane(c)[p].to_bits());
+                    assert_eq!(got, c.map(f32::to_bits), "color at ({j}, {i})");
+                    assert_eq!(
+                        rep.valid[p].to_bits(),
+                        vv.to_bits(),
+                        "validity at ({j}, {i})"
+                    );
+                    let (ex, ey, ed, ev) = if t.sum > 0.0 {
+                        (x + t.sample(mx), y + t.sample(my), t.sample(hd), v * t.sum)
+                    } else {
+                        (0.0, 0.0, f32::NAN, 0.0)
+                    };
+                    assert_eq!(chain.x[p].to_bits(), ex.to_bits(), "chain x at ({j}, {i})");
+                    assert_eq!(chain.y[p].to_bits(), ey.to_bits(), "chain y at ({j}, {i})");
+                    assert_eq!(
+                        chain.depth[p].to_bits(),
+                        ed.to_bits(),
+                        "chain depth at ({j}, {i})"
+                    );
+                    assert_eq!(
+                        chain.valid[p].to_bits(),
+                        ev.to_bits(),
+                        "chain validity at ({j}, {i})"
+                    );
+                }
+            }
+            // The second hop starts from the chain (validity below 1, some 0).
+            let rep2 = hop_color(Source::Chain(&chain), &older, None, None);
+            for i in 0..h {
+                for j in 0..w {
+                    let p = i * w + j;
+                    let (x, y, d, v) = (chain.x[p], chain.y[p], chain.depth[p], chain.valid[p]);
+                    let expected = if v <= 0.0 {
+                        ([0.0; 4], 0.0)
+                    } else {
+                        let od = older.depth.as_deref().unwrap();
+                        let t = taps(x, y, w, h, if d.is_nan() { None } else { Some(od) }, d);
+                        if t.sum > 0.0 {
+                            let q = [0, 1, 2, 3].map(|c| t.sample(older.color.plane(c)));
+                            (q, v * t.sum)
+                        } else {
+                            ([0.0; 4], 0.0)
+                        }
+                    };
+                    let got = [0, 1, 2, 3].map(|c| rep2.color.plane(c)[p].to_bits());
+                    assert_eq!(
+                        got,
+                        expected.0.map(f32::to_bits),
+                        "hop 2 color at ({j}, {i})"
+                    );
+                    assert_eq!(
+                        rep2.valid[p].to_bits(),
+                        expected.1.to_bits(),
+                        "hop 2 validity at ({j}, {i})"
+                    );
+                }
+            }
+        }
+    }
 
     #[test]
     fn depth_test_is_relative_and_far_matches_far() {
