@@ -48,6 +48,27 @@ pub struct NeuralModel {
     threads: usize,
     runtime: PathBuf,
     session: Mutex<ort::session::Session>,
+    /// Frame-sized work buffers kept between frames (fresh memory costs page
+    /// faults on every frame).
+    buffers: Mutex<Vec<Vec<f32>>>,
+}
+
+/// Work buffers kept for reuse per model (two per frame in flight).
+const KEPT_BUFFERS: usize = 4;
+
+/// A work buffer borrowed from a model; returned to it when dropped.
+struct Buffer<'a> {
+    model: &'a NeuralModel,
+    data: Vec<f32>,
+}
+
+impl Drop for Buffer<'_> {
+    fn drop(&mut self) {
+        let mut kept = self.model.buffers.lock().unwrap_or_else(|p| p.into_inner());
+        if kept.len() < KEPT_BUFFERS {
+            kept.push(std::mem::take(&mut self.data));
+        }
+    }
 }
 
 impl std::fmt::Debug for NeuralModel {
@@ -155,6 +176,7 @@ impl NeuralModel {
             threads,
             runtime,
             session: Mutex::new(session),
+            buffers: Mutex::new(Vec::new()),
         }))
     }
 
@@ -240,6 +262,19 @@ impl NeuralModel {
             p = plan(tile).map_err(|e| Error::invalid(format!("model {}: {e}", self.name)))?;
         }
         Ok(p)
+    }
+
+    /// A work buffer of `len` values with unspecified contents (the caller
+    /// writes every value before reading it).
+    fn buffer(&self, len: usize) -> Buffer<'_> {
+        let mut data = {
+            let mut kept = self.buffers.lock().unwrap_or_else(|p| p.into_inner());
+            // The largest kept buffer (frames of one session have one size).
+            let best = (0..kept.len()).max_by_key(|&i| kept[i].capacity());
+            best.map(|i| kept.swap_remove(i)).unwrap_or_default()
+        };
+        data.resize(len, 0.0);
+        Buffer { model: self, data }
     }
 
     /// Runs the network on one NCHW input; returns the output tensor data.
@@ -554,21 +589,22 @@ impl Neural {
 
         // With several tiles, computed channels are computed once for the
         // whole frame, so the tiles' overlaps only copy.
-        let computed: Vec<Vec<f32>>;
+        let computed: Buffer<'_>;
         if plan.len() > 1 {
             computed = stages.time("encode", || {
                 let wanted: Vec<Src<'_>> = sources.iter().copied().filter(Src::computed).collect();
-                let mut planes = vec![vec![0.0f32; w * h]; wanted.len()];
+                let mut planes = model.buffer(wanted.len() * w * h);
                 pool.install(|| {
                     planes
-                        .par_iter_mut()
-                        .zip(&wanted)
-                        .flat_map(|(p, src)| p.par_chunks_mut(w).enumerate().map(move |r| (r, src)))
-                        .for_each(|((y, row), src)| src.row(&codec, w, y, 0, row));
+                        .data
+                        .par_chunks_mut(w)
+                        .with_min_len(4)
+                        .enumerate()
+                        .for_each(|(r, row)| wanted[r / h].row(&codec, w, r % h, 0, row));
                 });
                 planes
             });
-            let mut next = computed.iter();
+            let mut next = computed.data.chunks_exact(w * h);
             for s in sources.iter_mut().filter(|s| s.computed()) {
                 *s = Src::Copy(next.next().expect("one plane per computed channel"));
             }
@@ -602,16 +638,16 @@ impl Neural {
         } else {
             frame.coverage.as_deref()
         };
-        let mut tensor = vec![0.0f32; cin * np];
+        let mut tensor = model.buffer(cin * np);
         let mut out = Image::zeros(w, h, 4);
         for (t, tile) in plan.tiles().enumerate() {
             stages.time("tile_input", || {
-                fill_window(&mut tensor, &sources, &codec, (w, h), tile, pool)
+                fill_window(&mut tensor.data, &sources, &codec, (w, h), tile, pool)
             });
-            let result = stages.time("inference", || model.run(&tensor, ww, wh))?;
+            let result = stages.time("inference", || model.run(&tensor.data, ww, wh))?;
             let view = TileOutput {
                 result: &result,
-                tensor: &tensor,
+                tensor: &tensor.data,
                 planes,
                 size: tile.size,
                 origin: tile.origin,
