@@ -253,16 +253,23 @@ fn identity_model_returns_its_input_through_tiles() {
 fn residual_model_adds_to_the_encoded_input() {
     let (w, h) = (70, 45);
     let rgb = hdr_rgb(w, h, 2);
-    let mut s = session(device_file("residual_zero"), &[]);
     let input = FrameInput::new(ImageView::from_f32("color", &rgb, w, h, 3).unwrap());
-    let (out, _) = s.process(&input, None).unwrap();
-    for c in 0..3 {
-        assert_close(
-            &plane_of(&out, c),
-            &deinterleave(&rgb, 3, c),
-            1e-5,
-            &format!("residual channel {c}"),
-        );
+    // Tiles across x (70 > 64) and one window (tile_size 80).
+    for tile in [0, 80] {
+        let device = device_file("residual_zero");
+        let mut s = session(device.clone(), &[("tile_size", ParamValue::Int(tile))]);
+        let model = device.neural_model().unwrap().unwrap();
+        let n = model.tile_plan(w, h, s.params()).unwrap().len();
+        assert_eq!(n == 1, tile == 80, "tile_size {tile}: {n} tiles");
+        let (out, _) = s.process(&input, None).unwrap();
+        for c in 0..3 {
+            assert_close(
+                &plane_of(&out, c),
+                &deinterleave(&rgb, 3, c),
+                1e-5,
+                &format!("residual channel {c}, {n} tiles"),
+            );
+        }
     }
 }
 
@@ -714,7 +721,10 @@ fn outputs_do_not_depend_on_threads_or_tiling_of_pointwise_models() {
     let frame = PreparedFrame::from_input(&input, Default::default()).unwrap();
     let mut hist = Image::zeros(w, h, 4);
     hist.data.iter_mut().for_each(|v| *v = r.next() * 4.0);
-    for (edit, picks) in [(false, "hist0.r, valid0, insert"), (true, "disparity, valid1, hist1.g")] {
+    for (edit, picks) in [
+        (false, "hist0.r, valid0, insert"),
+        (true, "disparity, valid1, hist1.g"),
+    ] {
         let device = device_edited("channel_probe", 0, |m| {
             if edit {
                 let ch = m["input"]["channels"].as_array_mut().unwrap();
@@ -739,7 +749,12 @@ fn outputs_do_not_depend_on_threads_or_tiling_of_pointwise_models() {
         let a = run_backend(&model, &device, &frame, &prev, &whole);
         let b = run_backend(&model, &device, &frame, &prev, &tiled);
         for c in 0..3 {
-            assert_close(b.plane(c), a.plane(c), 1e-6, &format!("{picks}: channel {c}"));
+            assert_close(
+                b.plane(c),
+                a.plane(c),
+                1e-6,
+                &format!("{picks}: channel {c}"),
+            );
         }
         let want: Vec<f32> = if edit {
             depth.iter().map(|d| 1.0 / (1.0 + d)).collect()
