@@ -391,7 +391,7 @@ impl Session {
         }
         if capacity > 0 {
             let mut kept = rec.image(out.width, out.height, out.channels);
-            kept.data.copy_from_slice(&out.data);
+            copy_on(pool, &mut kept.data, &out.data);
             let evicted = history.push(
                 HistoryFrame {
                     color: kept,
@@ -436,6 +436,17 @@ impl Session {
         write_output(&img, output);
         Ok(report)
     }
+}
+
+/// `dst.copy_from_slice(src)` in parallel on `pool`.
+fn copy_on(pool: &rayon::ThreadPool, dst: &mut [f32], src: &[f32]) {
+    use rayon::prelude::*;
+    const CHUNK: usize = 1 << 16;
+    pool.install(|| {
+        dst.par_chunks_mut(CHUNK)
+            .zip(src.par_chunks(CHUNK))
+            .for_each(|(d, s)| d.copy_from_slice(s))
+    });
 }
 
 /// Motion vectors longer than the image in either axis (a wrong scale or AOV).
