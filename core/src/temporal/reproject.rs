@@ -243,7 +243,7 @@ struct Batch {
     d: [f32; BATCH],
     v: [f32; BATCH],
     fast: [bool; BATCH],
-    idx: [usize; BATCH],
+    idx: [u32; BATCH],
     wt: [[f32; 4]; BATCH],
     lo: [f32; BATCH],
     hi: [f32; BATCH],
@@ -289,19 +289,32 @@ impl Batch {
             self.v[t] = v;
         }
         let (wf, hf) = (w as f32, h as f32);
-        let (wi, hi) = (w as i64, h as i64);
+        // 32-bit integer arithmetic vectorizes on every x86-64; frames of 4
+        // G pixels or more (or sides of 2 G) never take the fast path.
+        let small = w < i32::MAX as usize && h < i32::MAX as usize && w * h < u32::MAX as usize;
+        let (wi, hi) = (
+            w.min(i32::MAX as usize) as i32,
+            h.min(i32::MAX as usize) as i32,
+        );
         for t in 0..BATCH {
             let fx = self.x[t] - 0.5;
             let fy = self.y[t] - 0.5;
             // Also false for NaN positions; the same floor as `taps`.
             let inside = (fx >= 0.0) & (fy >= 0.0) & (fx < wf) & (fy < hf);
-            let x0 = (fx + 1.0) as i64 - 1;
-            let y0 = (fy + 1.0) as i64 - 1;
+            let x0 = ((fx + 1.0) as i32).wrapping_sub(1);
+            let y0 = ((fy + 1.0) as i32).wrapping_sub(1);
             let ax = fx - x0 as f32;
             let ay = fy - y0 as f32;
-            self.fast[t] = inside & (x0 + 1 < wi) & (y0 + 1 < hi) & (self.v[t] > 0.0) & (t < m);
+            self.fast[t] = inside
+                & (x0 < wi.wrapping_sub(1))
+                & (y0 < hi.wrapping_sub(1))
+                & (self.v[t] > 0.0)
+                & (t < m)
+                & small;
             // Clamped so that pixels off the fast path compute no overflow.
-            self.idx[t] = y0.clamp(0, hi - 1) as usize * w + x0.clamp(0, wi - 1) as usize;
+            self.idx[t] = (y0.clamp(0, hi - 1) as u32)
+                .wrapping_mul(w as u32)
+                .wrapping_add(x0.clamp(0, wi - 1) as u32);
             self.wt[t] = [
                 (1.0 - ax) * (1.0 - ay),
                 ax * (1.0 - ay),
@@ -316,7 +329,7 @@ impl Batch {
             // Known expected depth: the depth test applies.
             self.test[t] = self.fast[t] & !self.d[t].is_nan();
             if self.test[t] {
-                let k = self.idx[t];
+                let k = self.idx[t] as usize;
                 let q = &dp[k..k + w + 2];
                 let (a, b, c, e) = (q[0], q[1], q[w], q[w + 1]);
                 // See `interior`: the nearest and farthest taps decide; a NaN
@@ -602,7 +615,7 @@ impl SourceUser<ReprojectedFrame> for ColorHop<'_> {
                     for t in 0..m {
                         let j = j0 + t;
                         let (c, v) = if b.fast[t] {
-                            let (k, wt) = (b.idx[t], &b.wt[t]);
+                            let (k, wt) = (b.idx[t] as usize, &b.wt[t]);
                             (
                                 [
                                     bilerp(planes.p[0], k, w, wt),
@@ -675,7 +688,7 @@ impl SourceUser<Chain> for ChainHop<'_> {
                 let (x, y, d, v) = (b.x[t], b.y[t], b.d[t], b.v[t]);
                 if b.fast[t] {
                     // The common case, bit-identical to the general one below.
-                    let (k, wt) = (b.idx[t], &b.wt[t]);
+                    let (k, wt) = (b.idx[t] as usize, &b.wt[t]);
                     rx[j] = x + bilerp(mx, k, w, wt);
                     ry[j] = y + bilerp(my, k, w, wt);
                     rd[j] = match hdepth {
