@@ -5,7 +5,9 @@
 //! `cargo bench -p harmonizer-core --bench session -- [WxH] [frames] [threads] [backend] [passes]`
 //! (defaults: 1920x1080, 6 frames, 2 threads, classical, 1 pass). The first
 //! two frames of each pass are warm-up (a cold start, then the first frame
-//! with history) and are not counted.
+//! with history) and are not counted. Outputs are given back with
+//! `Session::recycle`, as a host that reuses them does; with the environment
+//! variable `HZ_BENCH_NO_RECYCLE` set they are dropped instead.
 //!
 //! With backend `parts`, times the shared parts alone instead, many times
 //! each on the same data, and prints the minimum and the median (the
@@ -143,7 +145,9 @@ fn main() {
             let (out, report) = session
                 .process(&f.input.frame_input(), None)
                 .expect("frame processed");
-            session.recycle(out);
+            if std::env::var_os("HZ_BENCH_NO_RECYCLE").is_none() {
+                session.recycle(out);
+            }
             if t < warmup {
                 continue;
             }

@@ -57,6 +57,18 @@ fn read_image(
     }
 }
 
+/// `x.clamp(lo, hi)` (the same results, NaN passes through) without its
+/// argument check, so loops using it vectorize; needs `lo <= hi`.
+#[inline(always)]
+fn clamp(x: f32, lo: f32, hi: f32) -> f32 {
+    let x = if x < lo { lo } else { x };
+    if x > hi {
+        hi
+    } else {
+        x
+    }
+}
+
 /// How the depth AOV measures distance.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum DepthKind {
@@ -270,7 +282,7 @@ impl PreparedFrame {
                 let mut img = take(ch);
                 sanitized_aovs += read_image(pool, v, &mut img, |_, x| {
                     let nan = x.is_nan();
-                    *x = if nan { bad } else { x.clamp(lo, hi) };
+                    *x = if nan { bad } else { clamp(*x, lo, hi) };
                     nan
                 });
                 img
@@ -289,7 +301,7 @@ impl PreparedFrame {
             let mut img = take(2);
             sanitized_aovs += read_image(pool, v, &mut img, |c, x| {
                 let nan = x.is_nan();
-                let scaled = (x.clamp(-f32::MAX, f32::MAX) * s[c]).clamp(-limit, limit);
+                let scaled = clamp(clamp(*x, -f32::MAX, f32::MAX) * s[c], -limit, limit);
                 *x = if nan { 0.0 } else { scaled };
                 nan
             });
