@@ -764,3 +764,23 @@ fn outputs_do_not_depend_on_threads_or_tiling_of_pointwise_models() {
         assert_close(a.plane(0), &want, 1e-6, &format!("{picks}: channel 0"));
     }
 }
+
+#[test]
+fn a_model_that_reads_normals_gets_them_through_the_session() {
+    let (w, h) = (40, 30);
+    let rgb = hdr_rgb(w, h, 40);
+    let normal: Vec<f32> = (0..w * h).flat_map(|_| [0.0f32, 0.6, 0.8]).collect();
+    // The probe's output b is input channel 4: here normal.y.
+    let device = device_edited("channel_probe", 0, |m| {
+        m["input"]["channels"][4] = "normal.y".into();
+    });
+    let mut s = session(device, &[]);
+    let mut input = FrameInput::new(ImageView::from_f32("color", &rgb, w, h, 3).unwrap());
+    input.normal = Some(ImageView::from_f32("normal", &normal, w, h, 3).unwrap());
+    let (out, _) = s.process(&input, None).unwrap();
+    assert!(
+        out.plane(2).iter().all(|&v| (v - 0.6).abs() < 1e-6),
+        "output.b = normal.y: {:?}",
+        &out.plane(2)[..4]
+    );
+}

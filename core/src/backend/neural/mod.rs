@@ -830,6 +830,13 @@ impl Backend for Neural {
         "neural"
     }
 
+    fn uses_normals(&self) -> bool {
+        self.model
+            .channels
+            .iter()
+            .any(|ch| matches!(ch, InputChannel::Normal(_)))
+    }
+
     fn process(
         &self,
         input: &BackendInput<'_>,
