@@ -234,9 +234,9 @@ const BATCH: usize = 64;
 /// One run of up to [`BATCH`] pixels of a row: where they land in the
 /// history frame and, for those that take the interior fast path (all four
 /// taps inside and passing the depth test, validity so far > 0), the
-/// top-left tap and the weights, exactly as [`interior`] gives them. The
-/// work is split into short loops over the run so that the arithmetic
-/// vectorizes; only the gathers are per pixel.
+/// top-left tap and the fractions the weights come from, exactly as
+/// [`interior`] gives them. The work is split into short loops over the run
+/// so that most of the arithmetic vectorizes; the gathers are per pixel.
 struct Batch {
     x: [f32; BATCH],
     y: [f32; BATCH],
@@ -244,7 +244,8 @@ struct Batch {
     v: [f32; BATCH],
     fast: [bool; BATCH],
     idx: [u32; BATCH],
-    wt: [[f32; 4]; BATCH],
+    ax: [f32; BATCH],
+    ay: [f32; BATCH],
     lo: [f32; BATCH],
     hi: [f32; BATCH],
     test: [bool; BATCH],
@@ -259,11 +260,25 @@ impl Batch {
             v: [0.0; BATCH],
             fast: [false; BATCH],
             idx: [0; BATCH],
-            wt: [[0.0; 4]; BATCH],
+            ax: [0.0; BATCH],
+            ay: [0.0; BATCH],
             lo: [0.0; BATCH],
             hi: [0.0; BATCH],
             test: [false; BATCH],
         }
+    }
+
+    /// The bilinear weights of pixel `t` (top-left, top-right, bottom-left,
+    /// bottom-right), as [`taps`] computes them.
+    #[inline(always)]
+    fn weights(&self, t: usize) -> [f32; 4] {
+        let (ax, ay) = (self.ax[t], self.ay[t]);
+        [
+            (1.0 - ax) * (1.0 - ay),
+            ax * (1.0 - ay),
+            (1.0 - ax) * ay,
+            ax * ay,
+        ]
     }
 
     /// Fills the batch with pixels `j0..j0 + m` of row `i` (`m <= BATCH`)
@@ -303,8 +318,8 @@ impl Batch {
             let inside = (fx >= 0.0) & (fy >= 0.0) & (fx < wf) & (fy < hf);
             let x0 = ((fx + 1.0) as i32).wrapping_sub(1);
             let y0 = ((fy + 1.0) as i32).wrapping_sub(1);
-            let ax = fx - x0 as f32;
-            let ay = fy - y0 as f32;
+            self.ax[t] = fx - x0 as f32;
+            self.ay[t] = fy - y0 as f32;
             self.fast[t] = inside
                 & (x0 < wi.wrapping_sub(1))
                 & (y0 < hi.wrapping_sub(1))
@@ -315,12 +330,6 @@ impl Batch {
             self.idx[t] = (y0.clamp(0, hi - 1) as u32)
                 .wrapping_mul(w as u32)
                 .wrapping_add(x0.clamp(0, wi - 1) as u32);
-            self.wt[t] = [
-                (1.0 - ax) * (1.0 - ay),
-                ax * (1.0 - ay),
-                (1.0 - ax) * ay,
-                ax * ay,
-            ];
         }
         let Some(dp) = depth else {
             return;
@@ -615,7 +624,7 @@ impl SourceUser<ReprojectedFrame> for ColorHop<'_> {
                     for t in 0..m {
                         let j = j0 + t;
                         let (c, v) = if b.fast[t] {
-                            let (k, wt) = (b.idx[t] as usize, &b.wt[t]);
+                            let (k, wt) = (b.idx[t] as usize, &b.weights(t));
                             (
                                 [
                                     bilerp(planes.p[0], k, w, wt),
@@ -688,7 +697,7 @@ impl SourceUser<Chain> for ChainHop<'_> {
                 let (x, y, d, v) = (b.x[t], b.y[t], b.d[t], b.v[t]);
                 if b.fast[t] {
                     // The common case, bit-identical to the general one below.
-                    let (k, wt) = (b.idx[t] as usize, &b.wt[t]);
+                    let (k, wt) = (b.idx[t] as usize, &b.weights(t));
                     rx[j] = x + bilerp(mx, k, w, wt);
                     ry[j] = y + bilerp(my, k, w, wt);
                     rd[j] = match hdepth {
