@@ -745,6 +745,7 @@ pub unsafe extern "C" fn hz_session_process(
         // SAFETY: writable for its validated extent per the contract; no
         // reference to the host's buffers is alive.
         unsafe { out.write(&image) };
+        s.session.recycle(image);
         if let Some(m) = s.message {
             // Frame gaps already come with a warning from the core.
             let reset = report
