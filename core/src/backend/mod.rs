@@ -44,6 +44,11 @@ impl<'a> Progress<'a> {
         self.span = (lo, hi);
     }
 
+    /// The current span (see [`Progress::set_span`]).
+    pub fn span(&self) -> (f64, f64) {
+        self.span
+    }
+
     /// Reports progress (in the current span); `Err(Cancelled)` when the host asks to stop.
     pub fn report(&mut self, p: f64) -> Result<()> {
         let v = (self.span.0 + (self.span.1 - self.span.0) * p.clamp(0.0, 1.0)).max(self.last);

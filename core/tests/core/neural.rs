@@ -585,6 +585,94 @@ fn cancel_between_tiles_leaves_the_session_unchanged() {
 }
 
 #[test]
+fn classical_post_runs_the_classical_operations_on_the_network_output() {
+    // The identity model returns its input, so with `classical_post` the
+    // sequence must come out as the classical backend makes it (full coverage:
+    // the identity leaves no hole of its own), stabilization and harmonization
+    // of the insert included; without it, as the input.
+    let (w, h) = (96, 64);
+    // One image with a little per-frame flicker (no scene cut, so history is kept).
+    let base = hdr_rgb(w, h, 40);
+    let frames: Vec<Vec<f32>> = (0..4)
+        .map(|i| {
+            base.iter()
+                .enumerate()
+                .map(|(j, v)| v * (1.0 + 0.1 * (((j * 7 + i * 13) % 11) as f32 / 11.0 - 0.5)))
+                .collect()
+        })
+        .collect();
+    let mask: Vec<f32> = (0..w * h)
+        .map(|i| {
+            let (x, y) = (i % w, i / w);
+            if (30..60).contains(&x) && (20..50).contains(&y) {
+                1.0
+            } else {
+                0.0
+            }
+        })
+        .collect();
+    let run = |backend: &str, post: bool| {
+        let mut params = Params::default();
+        params
+            .set("backend", &ParamValue::Str(backend.into()))
+            .unwrap();
+        params
+            .set("classical_post", &ParamValue::Bool(post))
+            .unwrap();
+        let mut s = Session::new(device_file("identity"), params).unwrap();
+        let mut outs = Vec::new();
+        for (i, rgb) in frames.iter().enumerate() {
+            let mut input = FrameInput::new(ImageView::from_f32("color", rgb, w, h, 3).unwrap());
+            input.insert_mask = Some(ImageView::from_f32("insert", &mask, w, h, 1).unwrap());
+            input.frame_index = Some(i as i64);
+            let mut reports = Vec::new();
+            let mut cb = |p: f64| {
+                reports.push(p);
+                true
+            };
+            let (out, report) = s.process(&input, Some(&mut cb)).unwrap();
+            assert!(reports.windows(2).all(|p| p[0] <= p[1]), "{reports:?}");
+            outs.push((out, report));
+        }
+        outs
+    };
+    let classical = run("classical", false);
+    let post = run("neural", true);
+    let plain = run("neural", false);
+    for (i, ((c, _), ((p, report), (n, _)))) in classical
+        .iter()
+        .zip(post.iter().zip(plain.iter()))
+        .enumerate()
+    {
+        // Zeros come back as about 1e-6 through the log codec.
+        assert_close(
+            &p.data,
+            &c.data,
+            2e-3,
+            &format!("frame {i}: neural + classical_post"),
+        );
+        let stages: Vec<&str> = report.stages.0.iter().map(|(s, _)| s.as_str()).collect();
+        assert!(
+            stages.contains(&"inference") && stages.contains(&"harmonize"),
+            "{stages:?}"
+        );
+        assert_eq!(stages.contains(&"stabilize"), i > 0, "{stages:?}");
+        let rgb = plane_of(n, 0);
+        let want = deinterleave(&frames[i], 3, 0);
+        assert_close(&rgb, &want, 1e-4, &format!("frame {i}: neural alone"));
+    }
+    // The classical operations changed something (else the test proves nothing).
+    let moved = post[3]
+        .0
+        .data
+        .iter()
+        .zip(&plain[3].0.data)
+        .filter(|(a, b)| (*a - *b).abs() > 1e-3)
+        .count();
+    assert!(moved > 100, "classical_post changed {moved} values");
+}
+
+#[test]
 fn missing_runtime_says_what_to_install() {
     let opts = DeviceOptions {
         ort_library: Some("/nonexistent/libonnxruntime.so.1.31.1".into()),

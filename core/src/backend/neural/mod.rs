@@ -840,10 +840,24 @@ impl Backend for Neural {
     fn process(
         &self,
         input: &BackendInput<'_>,
-        _carry: &mut Carry,
+        carry: &mut Carry,
         progress: &mut Progress<'_>,
         stages: &mut Stages,
     ) -> Result<Image> {
-        self.run_frame(input, progress, stages)
+        if !input.params.classical_post {
+            return self.run_frame(input, progress, stages);
+        }
+        // `classical_post`: the classical operations (hole fill, insert
+        // harmonization, contact shadow, stabilization) run on the network's
+        // output, with the same history and carried state.
+        let (lo, hi) = progress.span();
+        let mid = lo + 0.8 * (hi - lo);
+        progress.set_span(lo, mid);
+        let mut img = self.run_frame(input, progress, stages)?;
+        progress.set_span(mid, hi);
+        let done = crate::backend::classical::run_ops(&mut img, input, carry, progress, stages);
+        progress.set_span(lo, hi);
+        done?;
+        Ok(img)
     }
 }
