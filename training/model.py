@@ -152,8 +152,16 @@ class Enhancer(nn.Module):
                 layers = [conv(w[i + 1] + w[i], w[i])] + [conv(w[i], w[i]) for _ in range(cfg.dec_convs - 1)]
             self.dec.append(nn.Sequential(*layers))
         self.head = nn.Conv2d(w[0], 3 * r * r, 3, padding=1)
-        # Small (not zero) so gradients reach every layer from the first step.
-        nn.init.normal_(self.head.weight, std=1e-3)
+        # He initialization for the leaky ReLU layers keeps activations (and the
+        # gradients flowing back) at unit scale through the depth; PyTorch's
+        # default shrinks them level by level and training stalled. The head
+        # starts small, so the model starts near its prior, but not so small that
+        # the gradient reaching the rest of the network vanishes (1e-3 stalled).
+        for mod in self.modules():
+            if isinstance(mod, nn.Conv2d) and mod is not self.head:
+                nn.init.kaiming_normal_(mod.weight, a=NEGATIVE_SLOPE, nonlinearity="leaky_relu")
+                nn.init.zeros_(mod.bias)
+        nn.init.normal_(self.head.weight, std=0.01)
         nn.init.zeros_(self.head.bias)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
