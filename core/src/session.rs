@@ -93,6 +93,9 @@ pub struct Session {
     state: State,
     /// Frame-sized buffers reused from frame to frame (no page faults on the hot path).
     recycler: Recycler,
+    /// Why `auto` did not pick the neural backend, reported with the frames
+    /// until one succeeds.
+    fallback: Option<String>,
 }
 
 impl std::fmt::Debug for Session {
@@ -105,8 +108,24 @@ impl std::fmt::Debug for Session {
     }
 }
 
-fn make_backend(device: &Device, params: &Params) -> Result<Box<dyn Backend>> {
-    Ok(match params.backend {
+/// The backend for `params`, and a warning when `auto` fell back to classical.
+fn make_backend(device: &Device, params: &Params) -> Result<(Box<dyn Backend>, Option<String>)> {
+    if params.backend == BackendKind::Auto {
+        // The embedded model needs ONNX Runtime; without it `auto` still works
+        // (classical) and says why. Any other model error is an error.
+        return Ok(match device.neural_model() {
+            Ok(Some(model)) => (Box::new(backend::neural::Neural { model }), None),
+            Ok(None) => (Box::new(backend::classical::Classical), None),
+            Err(Error::RuntimeMissing(why)) => (
+                Box::new(backend::classical::Classical),
+                Some(format!(
+                    "backend auto: running classical because the neural model cannot run: {why}"
+                )),
+            ),
+            Err(e) => return Err(e),
+        });
+    }
+    let backend: Box<dyn Backend> = match params.backend {
         BackendKind::Bypass => Box::new(backend::Bypass),
         BackendKind::Classical => Box::new(backend::classical::Classical),
         BackendKind::Neural => match device.neural_model()? {
@@ -118,17 +137,15 @@ fn make_backend(device: &Device, params: &Params) -> Result<Box<dyn Backend>> {
                 ))
             }
         },
-        BackendKind::Auto => match device.neural_model()? {
-            Some(model) => Box::new(backend::neural::Neural { model }),
-            None => Box::new(backend::classical::Classical),
-        },
-    })
+        BackendKind::Auto => unreachable!("handled above"),
+    };
+    Ok((backend, None))
 }
 
 impl Session {
     /// A session on `device` with `params`.
     pub fn new(device: Arc<Device>, params: Params) -> Result<Session> {
-        let backend = make_backend(&device, &params)?;
+        let (backend, fallback) = make_backend(&device, &params)?;
         Ok(Session {
             device,
             staged: params.clone(),
@@ -136,6 +153,7 @@ impl Session {
             backend,
             state: State::default(),
             recycler: Recycler::new(),
+            fallback,
         })
     }
 
@@ -164,11 +182,12 @@ impl Session {
         if self.staged == self.params {
             return Ok(());
         }
-        let backend = make_backend(&self.device, &self.staged)?;
+        let (backend, fallback) = make_backend(&self.device, &self.staged)?;
         let reset = self.staged.backend != self.params.backend
             || self.staged.context_frames != self.params.context_frames
             || self.staged.depth_kind != self.params.depth_kind;
         self.backend = backend;
+        self.fallback = fallback;
         self.params = self.staged.clone();
         if reset {
             self.drop_state(ResetReason::ParamsChanged);
@@ -418,6 +437,9 @@ impl Session {
             pending_reset: None,
         };
         report.backend = self.backend.name().to_string();
+        if let Some(why) = self.fallback.take() {
+            report.warnings.push(why);
+        }
         report.stages = stages;
         report.total_ms = t0.elapsed().as_secs_f64() * 1e3;
         Ok((out, report))

@@ -705,6 +705,44 @@ fn missing_runtime_says_what_to_install() {
     );
 }
 
+#[test]
+fn auto_without_the_runtime_runs_classical_and_says_why() {
+    let device = Device::new(DeviceOptions {
+        ort_library: Some("/nonexistent/libonnxruntime.so.1.31.1".into()),
+        model: ModelSource::File(fixture("identity")),
+        ..DeviceOptions::default()
+    })
+    .unwrap();
+    // Asked for by name, the neural backend is an error that names the runtime.
+    let mut params = Params::default();
+    params
+        .set("backend", &ParamValue::Str("neural".into()))
+        .unwrap();
+    let e = Session::new(device.clone(), params).unwrap_err();
+    assert!(matches!(e, Error::RuntimeMissing(_)), "{e}");
+    // `auto` falls back to classical; the first frame's report says why, once.
+    let mut s = Session::new(device, Params::default()).unwrap();
+    assert_eq!(s.backend_name(), "classical");
+    let (w, h) = (64, 48);
+    let rgb = hdr_rgb(w, h, 7);
+    let input = FrameInput::new(ImageView::from_f32("color", &rgb, w, h, 3).unwrap());
+    let (_, first) = s.process(&input, None).unwrap();
+    assert_eq!(first.backend, "classical");
+    assert!(
+        first.warnings.iter().any(|m| m.contains("backend auto")
+            && m.contains("/nonexistent/libonnxruntime.so.1.31.1")
+            && m.contains("pip install onnxruntime")),
+        "{:?}",
+        first.warnings
+    );
+    let (_, second) = s.process(&input, None).unwrap();
+    assert!(
+        !second.warnings.iter().any(|m| m.contains("backend auto")),
+        "{:?}",
+        second.warnings
+    );
+}
+
 fn model_error(name: &str, edit: impl FnOnce(&mut serde_json::Value)) -> String {
     let e = device_edited(name, 0, edit).neural_model().unwrap_err();
     assert!(matches!(e, Error::Model(_)), "{e}");
