@@ -260,6 +260,74 @@ impl<'a> HistoryView<'a> {
         })
     }
 
+    /// Row `i` of history frame `k` reprojected into the current view, the
+    /// same bits as that row of [`HistoryView::reproject`]: R, G, B, A into
+    /// `out[0..4]` and the validity into `out[4]`, each one row long.
+    ///
+    /// Computes only that row (nothing is cached) unless frame `k` is
+    /// already reprojected, or is reached by chained motion vectors
+    /// (`k >= 1` in [`ReprojectionMode::MotionVectors`]), where the whole
+    /// frame is reprojected once and cached: call [`HistoryView::reproject`]
+    /// for such a `k` before a parallel loop over rows. For `k = 0` this
+    /// lets a pass over the image consume the reprojected history row by
+    /// row without a frame-sized buffer being written and read back.
+    ///
+    /// # Panics
+    /// When `k >= self.len()`, `i` is not a row of the frame or a slice of
+    /// `out` is shorter than a row.
+    pub fn reproject_row(&self, k: usize, i: usize, out: [&mut [f32]; 5]) {
+        let (w, h) = (self.current.width(), self.current.height());
+        assert!(i < h, "row {i} outside the {w}x{h} frame");
+        let [o0, o1, o2, o3, ov] = out;
+        let out = [
+            &mut o0[..w],
+            &mut o1[..w],
+            &mut o2[..w],
+            &mut o3[..w],
+            &mut ov[..w],
+        ];
+        let s = i * w..(i + 1) * w;
+        let copy = |r: &ReprojectedFrame, out: [&mut [f32]; 5]| {
+            let [o0, o1, o2, o3, ov] = out;
+            for (c, o) in [o0, o1, o2, o3].into_iter().enumerate() {
+                o.copy_from_slice(&r.color.plane(c)[s.clone()]);
+            }
+            ov.copy_from_slice(&r.valid[s.clone()]);
+        };
+        if let Some(r) = self.cache.get(k).and_then(OnceLock::get) {
+            return copy(r, out);
+        }
+        let frame = self.frame(k);
+        match self.mode(k) {
+            ReprojectionMode::MotionVectors if k == 0 => {
+                reproject::hop_color_row(self.source(0), frame, i, out)
+            }
+            ReprojectionMode::MotionVectors => copy(self.reproject(k), out),
+            ReprojectionMode::DepthCamera => {
+                let depth = self
+                    .current
+                    .depth
+                    .as_deref()
+                    .expect("depth mode needs depth");
+                self.maps[k]
+                    .get_or_init(|| reproject::CameraMap::new(self.current, frame))
+                    .color_row(frame, depth, i, out)
+            }
+            ReprojectionMode::Identity => {
+                let [o0, o1, o2, o3, ov] = out;
+                for (c, o) in [o0, o1, o2, o3].into_iter().enumerate() {
+                    o.copy_from_slice(&frame.color.plane(c)[s.clone()]);
+                }
+                ov.fill(1.0);
+            }
+            ReprojectionMode::Unavailable => {
+                for o in out {
+                    o.fill(0.0);
+                }
+            }
+        }
+    }
+
     /// Pixel (row `i`, column `j`) of history frame `k` reprojected into
     /// the current view: RGBA and validity, bit-identical to that pixel of
     /// [`HistoryView::reproject`]. Cheap for `k = 0` (or once `k` is
@@ -335,5 +403,155 @@ impl<'a> HistoryView<'a> {
                 self.recycler,
             )
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::frame::Camera;
+
+    fn rnd(seed: &mut u64) -> f32 {
+        *seed = seed
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (*seed >> 40) as f32 / (1u64 << 24) as f32
+    }
+
+    fn planes(w: usize, h: usize, c: usize, seed: &mut u64, f: fn(f32) -> f32) -> Image {
+        let mut img = Image::zeros(w, h, c);
+        for v in &mut img.data {
+            *v = f(rnd(seed));
+        }
+        img
+    }
+
+    /// Depth layers with exact ties and empty sky, so every depth-test path runs.
+    fn depth(n: usize, seed: &mut u64) -> Vec<f32> {
+        (0..n)
+            .map(|_| match (rnd(seed) * 5.0) as u32 {
+                0 => 1e10,
+                1 => 10.0,
+                2 => 11.0,
+                _ => 3.0 + 8.0 * rnd(seed),
+            })
+            .collect()
+    }
+
+    fn camera(x: f32) -> Camera {
+        Camera::look_at(
+            glam::Vec3::new(x, 0.2, -5.0),
+            glam::Vec3::new(0.0, 0.0, 4.0),
+            0.8,
+            1.6,
+        )
+    }
+
+    /// Rows ([`HistoryView::reproject_row`]) and pixels
+    /// ([`HistoryView::sample`]) taken before and after the whole frame is
+    /// reprojected equal [`HistoryView::reproject`] bit for bit, in every mode.
+    #[test]
+    fn rows_and_samples_equal_the_reprojected_frame_bit_for_bit() {
+        let (w, h) = (97, 41);
+        let n = w * h;
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(2)
+            .build()
+            .unwrap();
+        let cases = [
+            ("motion", true, true, Some((camera(0.0), camera(0.3)))),
+            ("motion without depth", true, false, None),
+            (
+                "depth camera",
+                false,
+                true,
+                Some((camera(0.0), camera(0.3))),
+            ),
+            ("identity", false, false, None),
+            (
+                "unavailable",
+                false,
+                false,
+                Some((camera(0.0), camera(0.3))),
+            ),
+        ];
+        for (name, motion, with_depth, cams) in cases {
+            let mut seed = 11;
+            let mut history = History::default();
+            for _ in 0..3 {
+                let frame = HistoryFrame {
+                    color: planes(w, h, 4, &mut seed, |r| r * 3.0),
+                    depth: with_depth.then(|| depth(n, &mut seed)),
+                    motion: Some(planes(w, h, 2, &mut seed, |r| (r - 0.5) * 7.0)),
+                    camera: cams.map(|c| c.1),
+                    frame_index: None,
+                };
+                history.push(frame, 4);
+            }
+            let current = PreparedFrame {
+                color: planes(w, h, 3, &mut seed, |r| r),
+                coverage: None,
+                depth: with_depth.then(|| depth(n, &mut seed)),
+                motion: motion.then(|| planes(w, h, 2, &mut seed, |r| (r - 0.5) * 7.0)),
+                normal: None,
+                insert_mask: None,
+                camera: cams.map(|c| c.0),
+                frame_index: None,
+                sanitized: 0,
+                sanitized_aovs: 0,
+            };
+            let full = HistoryView::new(&history, &current, 3, &pool);
+            for k in 0..full.len() {
+                let want = full.reproject(k);
+                let valid = want.valid.iter().filter(|&&v| v > 0.0).count();
+                if name == "unavailable" {
+                    assert_eq!(valid, 0, "{name}");
+                } else {
+                    assert!(valid > n / 10, "{name}: k {k}: {valid} valid of {n}");
+                }
+                for before in [true, false] {
+                    let view = HistoryView::new(&history, &current, 3, &pool);
+                    if !before {
+                        view.reproject(k);
+                    }
+                    let mut row = vec![0.0f32; 5 * w];
+                    for i in 0..h {
+                        let (a, rest) = row.split_at_mut(w);
+                        let (b, rest) = rest.split_at_mut(w);
+                        let (c, rest) = rest.split_at_mut(w);
+                        let (d, v) = rest.split_at_mut(w);
+                        view.reproject_row(k, i, [a, b, c, d, v]);
+                        for j in 0..w {
+                            let p = i * w + j;
+                            let wc = [0, 1, 2, 3].map(|c| want.color.plane(c)[p].to_bits());
+                            let got = [0, 1, 2, 3].map(|c| row[c * w + j].to_bits());
+                            assert_eq!(got, wc, "{name}: k {k} row color at ({j}, {i})");
+                            assert_eq!(
+                                row[4 * w + j].to_bits(),
+                                want.valid[p].to_bits(),
+                                "{name}: k {k} row validity at ({j}, {i})"
+                            );
+                            let (c, v) = view.sample(k, i, j);
+                            assert_eq!(
+                                c.map(f32::to_bits),
+                                wc,
+                                "{name}: k {k} sample at ({j}, {i})"
+                            );
+                            assert_eq!(v.to_bits(), want.valid[p].to_bits(), "{name}: k {k}");
+                        }
+                    }
+                }
+            }
+            assert_eq!(
+                full.mode(0),
+                match name {
+                    "motion" | "motion without depth" => ReprojectionMode::MotionVectors,
+                    "depth camera" => ReprojectionMode::DepthCamera,
+                    "identity" => ReprojectionMode::Identity,
+                    _ => ReprojectionMode::Unavailable,
+                },
+                "{name}"
+            );
+        }
     }
 }

@@ -605,48 +605,76 @@ impl SourceUser<ReprojectedFrame> for ColorHop<'_> {
         let (mut color, mut valid) = outputs(w, h, self.rec);
         let [c0, c1, c2, c3] = planes4(&mut color);
         let planes = Planes::of(frame);
-        par_rows(
-            self.pool,
-            [c0, c1, c2, c3, &mut valid],
-            w,
-            |i, [r0, r1, r2, r3, rv]| {
-                let (r0, r1, r2, r3, rv) = (
-                    &mut r0[..w],
-                    &mut r1[..w],
-                    &mut r2[..w],
-                    &mut r3[..w],
-                    &mut rv[..w],
-                );
-                let mut b = Batch::new();
-                for j0 in (0..w).step_by(BATCH) {
-                    let m = BATCH.min(w - j0);
-                    b.fill(at, i, j0, m, w, h, planes.depth);
-                    for t in 0..m {
-                        let j = j0 + t;
-                        let (c, v) = if b.fast[t] {
-                            let (k, wt) = (b.idx[t] as usize, &b.weights(t));
-                            (
-                                [
-                                    bilerp(planes.p[0], k, w, wt),
-                                    bilerp(planes.p[1], k, w, wt),
-                                    bilerp(planes.p[2], k, w, wt),
-                                    bilerp(planes.p[3], k, w, wt),
-                                ],
-                                b.v[t],
-                            )
-                        } else {
-                            planes.color(b.x[t], b.y[t], b.d[t], b.v[t])
-                        };
-                        r0[j] = c[0];
-                        r1[j] = c[1];
-                        r2[j] = c[2];
-                        r3[j] = c[3];
-                        rv[j] = v;
-                    }
-                }
-            },
-        );
+        par_rows(self.pool, [c0, c1, c2, c3, &mut valid], w, |i, out| {
+            color_row(at, &planes, i, out)
+        });
         ReprojectedFrame { color, valid }
+    }
+}
+
+/// Row `i` of the color hop with positions from `at` into the history
+/// frame `planes`: RGBA into `out[0..4]`, validity into `out[4]` (each at
+/// least one row long; the first row's worth is written).
+#[inline(always)]
+fn color_row<S: Fn(usize, usize) -> (f32, f32, f32, f32)>(
+    at: &S,
+    planes: &Planes<'_>,
+    i: usize,
+    out: [&mut [f32]; 5],
+) {
+    let (w, h) = (planes.w, planes.h);
+    let [r0, r1, r2, r3, rv] = out;
+    let (r0, r1, r2, r3, rv) = (
+        &mut r0[..w],
+        &mut r1[..w],
+        &mut r2[..w],
+        &mut r3[..w],
+        &mut rv[..w],
+    );
+    let mut b = Batch::new();
+    for j0 in (0..w).step_by(BATCH) {
+        let m = BATCH.min(w - j0);
+        b.fill(at, i, j0, m, w, h, planes.depth);
+        for t in 0..m {
+            let j = j0 + t;
+            let (c, v) = if b.fast[t] {
+                let (k, wt) = (b.idx[t] as usize, &b.weights(t));
+                (
+                    [
+                        bilerp(planes.p[0], k, w, wt),
+                        bilerp(planes.p[1], k, w, wt),
+                        bilerp(planes.p[2], k, w, wt),
+                        bilerp(planes.p[3], k, w, wt),
+                    ],
+                    b.v[t],
+                )
+            } else {
+                planes.color(b.x[t], b.y[t], b.d[t], b.v[t])
+            };
+            r0[j] = c[0];
+            r1[j] = c[1];
+            r2[j] = c[2];
+            r3[j] = c[3];
+            rv[j] = v;
+        }
+    }
+}
+
+/// Row `i` of [`hop_color`] alone (the same bits): RGBA into `out[0..4]`,
+/// validity into `out[4]`, each one row long.
+pub(crate) fn hop_color_row(src: Source<'_>, frame: &HistoryFrame, i: usize, out: [&mut [f32]; 5]) {
+    src.with(frame.color.width, ColorRow { frame, i, out });
+}
+
+struct ColorRow<'a, 'o> {
+    frame: &'a HistoryFrame,
+    i: usize,
+    out: [&'o mut [f32]; 5],
+}
+
+impl SourceUser<()> for ColorRow<'_, '_> {
+    fn run<S: Fn(usize, usize) -> (f32, f32, f32, f32) + Sync>(self, at: &S) {
+        color_row(at, &Planes::of(self.frame), self.i, self.out);
     }
 }
 
@@ -822,6 +850,30 @@ impl CameraMap {
         }
     }
 
+    /// Row `i` of [`reproject_camera`] (the same bits): RGBA into
+    /// `out[0..4]`, validity into `out[4]`, each one row long; `depth` is
+    /// the current frame's.
+    pub(crate) fn color_row(
+        &self,
+        frame: &HistoryFrame,
+        depth: &[f32],
+        i: usize,
+        out: [&mut [f32]; 5],
+    ) {
+        let w = self.wf as usize;
+        let [o0, o1, o2, o3, ov] = out;
+        let b = self.row(i);
+        let drow = &depth[i * w..(i + 1) * w];
+        for (j, &d) in drow.iter().enumerate() {
+            let (c, v) = self.color(frame, b, j, d);
+            o0[j] = c[0];
+            o1[j] = c[1];
+            o2[j] = c[2];
+            o3[j] = c[3];
+            ov[j] = v;
+        }
+    }
+
     /// [`CameraMap::color`] at pixel (row `i`, column `j`) alone; equal to
     /// that pixel of [`reproject_camera`].
     pub(crate) fn color_at(
@@ -853,23 +905,9 @@ pub(crate) fn reproject_camera(
     let map = CameraMap::new(current, frame);
     let (mut color, mut valid) = outputs(w, h, rec);
     let [c0, c1, c2, c3] = planes4(&mut color);
-    par_rows(
-        pool,
-        [c0, c1, c2, c3, &mut valid],
-        w,
-        |i, [o0, o1, o2, o3, ov]| {
-            let b = map.row(i);
-            let drow = &depth[i * w..(i + 1) * w];
-            for (j, &d) in drow.iter().enumerate() {
-                let (c, v) = map.color(frame, b, j, d);
-                o0[j] = c[0];
-                o1[j] = c[1];
-                o2[j] = c[2];
-                o3[j] = c[3];
-                ov[j] = v;
-            }
-        },
-    );
+    par_rows(pool, [c0, c1, c2, c3, &mut valid], w, |i, out| {
+        map.color_row(frame, depth, i, out)
+    });
     ReprojectedFrame { color, valid }
 }
 
