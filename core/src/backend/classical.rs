@@ -5,6 +5,9 @@
 //!    from the reprojected history (frame 0, then older frames only where
 //!    still missing, and only while more than [`OLDER_HISTORY_MIN_HOLES`] of
 //!    the frame is missing), then by push-pull over a window around the rest.
+//!    The history is reprojected at the hole pixels alone
+//!    ([`crate::temporal::HistoryView::sample`]), except for frames reached
+//!    by chained motion vectors (reprojected whole, stage `reproject`).
 //! 2. **harmonize** (`harmonize`, needs the insert mask): the insert's color
 //!    statistics are matched part of the way to a ring of background; the
 //!    filter parameters are smoothed over time in the [`Carry`] (key
@@ -12,7 +15,10 @@
 //! 3. **shadow** (`contact_shadows`, needs mask and depth): a soft contact
 //!    shadow of strength `shadow_strength` under the insert.
 //! 4. **stabilize** (`stabilize`): blend with the reprojected previous result
-//!    (`temporal_blend` times validity), history clamped to the local range.
+//!    (`temporal_blend` times validity), history clamped to the local range;
+//!    history frame 0 is reprojected row by row inside that pass
+//!    ([`crate::temporal::HistoryView::reproject_row`]), so no frame-sized
+//!    reprojection is written and read back.
 //!
 //! Everything runs on the device's pool, row-parallel in fixed bands, so the
 //! output does not depend on the thread count.
@@ -23,6 +29,7 @@ use super::{Backend, BackendInput, Carry, Progress, Stages};
 use crate::error::Result;
 use crate::frame::{Image, PreparedFrame};
 use crate::ops::{harmonize, inpaint, par_bands_mut, shadow, stabilize};
+use crate::temporal::ReprojectionMode;
 
 /// Carry key of the smoothed harmonization filter ([`harmonize::Tone::to_vec`]).
 pub const TONE_KEY: &str = "classical.harmonize.tone";
@@ -88,9 +95,20 @@ pub fn run_ops(
             if k >= history.len() || !enough {
                 break;
             }
-            let past = stages.time("reproject", || pool.install(|| history.reproject(k)));
+            if k > 0 && history.mode(k) == ReprojectionMode::MotionVectors {
+                // Chained motion vectors: the whole frame once (the chain
+                // is a frame-wide pass anyway), then read pixel by pixel.
+                stages.time("reproject", || {
+                    pool.install(|| {
+                        history.reproject(k);
+                    })
+                });
+            }
+            // Only the hole pixels of history frame `k` are reprojected.
             holes = stages.time("inpaint", || {
-                pool.install(|| inpaint::fill_from_history(img, past, hh.rect))
+                pool.install(|| {
+                    inpaint::fill_from_history_with(img, hh.rect, |i, j| history.sample(k, i, j))
+                })
             });
             k += 1;
         }
@@ -158,9 +176,14 @@ pub fn run_ops(
     progress.report(0.7)?;
 
     if params.stabilize && params.temporal_blend > 0.0 && !history.is_empty() {
-        let past = stages.time("reproject", || pool.install(|| history.reproject(0)));
+        // History frame 0 is reprojected row by row inside the blend pass
+        // (the time is the stabilize stage's), never as a whole frame.
         stages.time("stabilize", || {
-            pool.install(|| stabilize::stabilize(img, past, params.temporal_blend))
+            pool.install(|| {
+                stabilize::stabilize_rows(img, params.temporal_blend, |y, out| {
+                    history.reproject_row(0, y, out)
+                })
+            })
         });
     }
     progress.report(1.0)?;

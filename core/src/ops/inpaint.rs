@@ -35,11 +35,30 @@ pub fn find_holes(img: &Image) -> Option<Holes> {
 /// hole pixel inside `rect`: `C += (1 - A) * v * H`, `A += (1 - A) * v * H.a`
 /// with `v` the history's validity. Returns the holes that remain.
 pub fn fill_from_history(img: &mut Image, history: &ReprojectedFrame, rect: Rect) -> Option<Holes> {
-    let w = img.width;
     let n = img.len();
     assert_eq!(history.color.len(), n, "history and frame sizes differ");
-    let hist = &history.color.data;
-    let valid = &history.valid;
+    let w = img.width;
+    let (hist, valid) = (&history.color.data, &history.valid);
+    fill_from_history_with(img, rect, |y, x| {
+        let p = y * w + x;
+        (
+            [hist[p], hist[n + p], hist[2 * n + p], hist[3 * n + p]],
+            valid[p],
+        )
+    })
+}
+
+/// [`fill_from_history`] with the history given pixel by pixel:
+/// `sample(row, column)` is the reprojected history's RGBA and validity
+/// there (as [`crate::temporal::HistoryView::sample`] gives them), asked
+/// only at hole pixels, once each, from the pool's threads. Holes are
+/// usually a small part of the frame, so this costs far less than
+/// reprojecting the whole frame.
+pub fn fill_from_history_with<F>(img: &mut Image, rect: Rect, sample: F) -> Option<Holes>
+where
+    F: Fn(usize, usize) -> ([f32; 4], f32) + Sync,
+{
+    let w = img.width;
     let parts: Vec<Option<(Rect, usize)>> = par_bands_mut(img, rect.y0, rect.y1)
         .map(|(y0, [r, g, b, a])| {
             let mut found: Option<(Rect, usize)> = None;
@@ -58,15 +77,14 @@ pub fn fill_from_history(img: &mut Image, history: &ReprojectedFrame, rect: Rect
                     if cov >= FULL {
                         continue;
                     }
-                    let p = y * w + x;
-                    let v = valid[p];
-                    let ha = hist[3 * n + p];
+                    let (hc, v) = sample(y, x);
+                    let ha = hc[3];
                     let mut cov_new = cov;
                     if v > 0.0 && ha > 0.0 {
                         let k = (1.0 - cov) * v;
-                        r[i] += k * hist[p];
-                        g[i] += k * hist[n + p];
-                        b[i] += k * hist[2 * n + p];
+                        r[i] += k * hc[0];
+                        g[i] += k * hc[1];
+                        b[i] += k * hc[2];
                         cov_new = (cov + k * ha).min(1.0);
                     }
                     if cov_new >= FULL {

@@ -90,44 +90,46 @@ fn shifted(v: &[f32], c: usize, w: usize) -> (&[f32], &[f32], &[f32]) {
 /// Alpha is kept; pixels with A = 0 or without usable history keep their
 /// color (negative values become 0 in rows that hold some history).
 ///
-/// One pass over the image: each band keeps a sliding window of three YCoCg
-/// rows, and the horizontal min/max is taken inside the blend loop. Bands
-/// and rows without valid history are skipped (only the window rolls on).
+/// See [`stabilize_rows`], which takes the history row by row.
 pub fn stabilize(img: &mut Image, history: &ReprojectedFrame, blend: f32) {
-    let (w, h) = (img.width, img.height);
-    let n = w * h;
+    let (w, n) = (img.width, img.len());
     assert_eq!(history.color.len(), n, "history and frame sizes differ");
-    if blend <= 0.0 || n == 0 {
+    let (hist, valid) = (&history.color.data, &history.valid);
+    stabilize_rows(img, blend, |y, [r, g, b, a, v]| {
+        let s = y * w;
+        r.copy_from_slice(&hist[s..s + w]);
+        g.copy_from_slice(&hist[n + s..n + s + w]);
+        b.copy_from_slice(&hist[2 * n + s..2 * n + s + w]);
+        a.copy_from_slice(&hist[3 * n + s..3 * n + s + w]);
+        v.copy_from_slice(&valid[s..s + w]);
+    });
+}
+
+/// [`stabilize`] with the history given row by row: `history_row(y, out)`
+/// writes row `y` of the reprojected history's R, G, B, A and validity
+/// into the five row-long slices of `out` (as
+/// [`crate::temporal::HistoryView::reproject_row`] does), once per row, from
+/// the pool's threads. The history is never held as a whole frame.
+///
+/// One pass over the image: each band keeps a sliding window of three YCoCg
+/// rows, and the horizontal min/max is taken inside the blend loop. Rows
+/// without valid history are skipped (only the window rolls on).
+pub fn stabilize_rows<F>(img: &mut Image, blend: f32, history_row: F)
+where
+    F: Fn(usize, [&mut [f32]; 5]) + Sync,
+{
+    let (w, h) = (img.width, img.height);
+    if blend <= 0.0 || w * h == 0 {
         return;
     }
-    let hist = &history.color.data;
-    let valid = &history.valid;
     let bands = h.div_ceil(BAND_ROWS);
     let band_rows = |bi: usize| bi * BAND_ROWS..((bi + 1) * BAND_ROWS).min(h);
-    // Bands with any usable history; the others are not touched at all.
-    let active: Vec<bool> = (0..bands)
-        .into_par_iter()
-        .map(|bi| {
-            let rows = band_rows(bi);
-            row_max(&valid[rows.start * w..rows.end * w]) > 0.0
-        })
-        .collect();
-    if !active.iter().any(|&v| v) {
-        return;
-    }
-    // YCoCg of the first and last row of every band a working band borders,
-    // taken before any change.
+    // YCoCg of the first and last row of every band, taken before any change.
     let edges: Vec<(Vec<f32>, Vec<f32>)> = {
         let src = &*img;
         (0..bands)
             .into_par_iter()
             .map(|bi| {
-                let needed = active[bi.saturating_sub(1)..(bi + 2).min(bands)]
-                    .iter()
-                    .any(|&v| v);
-                if !needed {
-                    return (Vec::new(), Vec::new());
-                }
                 let rows = band_rows(bi);
                 let row = |y: usize| {
                     let mut out = vec![0.0; 3 * w];
@@ -146,9 +148,6 @@ pub fn stabilize(img: &mut Image, history: &ReprojectedFrame, blend: f32) {
     };
     par_bands_mut(img, 0, h).for_each(|(y0, [r, g, b, a])| {
         let bi = y0 / BAND_ROWS;
-        if !active[bi] {
-            return;
-        }
         let rows = a.len() / w;
         // Sliding window of YCoCg rows of the unmodified image.
         let mut above = if y0 > 0 {
@@ -160,6 +159,8 @@ pub fn stabilize(img: &mut Image, history: &ReprojectedFrame, blend: f32) {
         let mut below = vec![0.0; 3 * w];
         let mut lo = vec![0.0; 3 * (w + 2)];
         let mut hi = vec![0.0; 3 * (w + 2)];
+        // One row of the history: R, G, B, A, validity.
+        let mut hrow = vec![0.0; 5 * w];
         for dy in 0..rows {
             let y = y0 + dy;
             if dy + 1 < rows {
@@ -170,8 +171,17 @@ pub fn stabilize(img: &mut Image, history: &ReprojectedFrame, blend: f32) {
             } else {
                 below.copy_from_slice(&centre);
             }
-            let prow = y * w;
-            let vv = &valid[prow..prow + w];
+            {
+                let (hr, rest) = hrow.split_at_mut(w);
+                let (hg, rest) = rest.split_at_mut(w);
+                let (hb, rest) = rest.split_at_mut(w);
+                let (ha, vv) = rest.split_at_mut(w);
+                history_row(y, [hr, hg, hb, ha, vv]);
+            }
+            let (hr, rest) = hrow.split_at(w);
+            let (hg, rest) = rest.split_at(w);
+            let (hb, rest) = rest.split_at(w);
+            let (ha, vv) = rest.split_at(w);
             if row_max(vv) > 0.0 {
                 vertical_min_max([&above, &centre, &below], w, &mut lo, &mut hi);
                 let row = dy * w..(dy + 1) * w;
@@ -181,10 +191,6 @@ pub fn stabilize(img: &mut Image, history: &ReprojectedFrame, blend: f32) {
                     &mut b[row.clone()],
                     &a[row],
                 );
-                let hr = &hist[prow..prow + w];
-                let hg = &hist[n + prow..n + prow + w];
-                let hb = &hist[2 * n + prow..2 * n + prow + w];
-                let ha = &hist[3 * n + prow..3 * n + prow + w];
                 let (ly, lco, lcg) = (shifted(&lo, 0, w), shifted(&lo, 1, w), shifted(&lo, 2, w));
                 let (hy, hco, hcg) = (shifted(&hi, 0, w), shifted(&hi, 1, w), shifted(&hi, 2, w));
                 for x in 0..w {
