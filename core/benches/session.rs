@@ -3,9 +3,9 @@
 //! about, without the synthesis in the measurement (frames are made first).
 //!
 //! `cargo bench -p harmonizer-core --bench session -- [WxH] [frames] [threads] [backend] [passes]`
-//! (defaults: 1920x1080, 6 frames, 2 threads, classical, 1 pass). The first
-//! two frames of each pass are warm-up (a cold start, then the first frame
-//! with history) and are not counted. Outputs are given back with
+//! (defaults: 1920x1080, 10 frames, 2 threads, classical, 1 pass). The first
+//! `context_frames + 1` frames of each pass are warm-up (a cold start, then
+//! the history filling up, its buffers fresh memory) and are not counted. Outputs are given back with
 //! `Session::recycle`, as a host that reuses them does; with the environment
 //! variable `HZ_BENCH_NO_RECYCLE` set they are dropped instead.
 //!
@@ -106,11 +106,13 @@ fn main() {
         .split_once('x')
         .and_then(|(w, h)| Some((w.parse::<usize>().ok()?, h.parse::<usize>().ok()?)))
         .expect("size as WxH");
-    let frames: usize = arg(1, "6").parse().expect("frames");
+    let frames: usize = arg(1, "10").parse().expect("frames");
     let threads: usize = arg(2, "2").parse().expect("threads");
     let backend = arg(3, "classical");
     let passes: usize = arg(4, "1").parse().expect("passes");
-    let warmup = 2;
+    // Steady state: the history fills (and its buffers come from fresh
+    // memory) over the first `context_frames` frames.
+    let warmup = (Params::default().context_frames + 1).max(2);
 
     let scene = Scene::new(SynthConfig {
         width: w,

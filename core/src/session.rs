@@ -383,6 +383,7 @@ impl Session {
         }
 
         // Commit: only now does the temporal state change.
+        let t_commit = std::time::Instant::now();
         let capacity = self.params.context_frames;
         let mut history = if reset.is_some() {
             History::default()
@@ -436,6 +437,9 @@ impl Session {
             last_index: input.frame_index,
             pending_reset: None,
         };
+        // The history copy of the result and the buffers handed back.
+        let commit_ms = t_commit.elapsed().as_secs_f64() * 1e3;
+        stages.0.push(("commit".to_string(), commit_ms));
         report.backend = self.backend.name().to_string();
         if let Some(why) = self.fallback.take() {
             report.warnings.push(why);

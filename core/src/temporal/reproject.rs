@@ -635,8 +635,16 @@ fn color_row<S: Fn(usize, usize) -> (f32, f32, f32, f32)>(
     for j0 in (0..w).step_by(BATCH) {
         let m = BATCH.min(w - j0);
         b.fill(at, i, j0, m, w, h, planes.depth);
+        // This batch's outputs: stores without a bounds check each.
+        let s = j0..j0 + m;
+        let (o0, o1, o2, o3, ov) = (
+            &mut r0[s.clone()],
+            &mut r1[s.clone()],
+            &mut r2[s.clone()],
+            &mut r3[s.clone()],
+            &mut rv[s],
+        );
         for t in 0..m {
-            let j = j0 + t;
             let (c, v) = if b.fast[t] {
                 let (k, wt) = (b.idx[t] as usize, &b.weights(t));
                 (
@@ -651,11 +659,11 @@ fn color_row<S: Fn(usize, usize) -> (f32, f32, f32, f32)>(
             } else {
                 planes.color(b.x[t], b.y[t], b.d[t], b.v[t])
             };
-            r0[j] = c[0];
-            r1[j] = c[1];
-            r2[j] = c[2];
-            r3[j] = c[3];
-            rv[j] = v;
+            o0[t] = c[0];
+            o1[t] = c[1];
+            o2[t] = c[2];
+            o3[t] = c[3];
+            ov[t] = v;
         }
     }
 }
