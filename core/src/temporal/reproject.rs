@@ -27,6 +27,7 @@ use rayon::prelude::*;
 
 use super::{HistoryFrame, ReprojectedFrame};
 use crate::frame::{Image, PreparedFrame, Recycler};
+use crate::ops::{fmax, fmin};
 
 /// Depth at or beyond this is empty (sky, holes): it only matches other empty depth.
 pub const FAR_DEPTH: f32 = 1e9;
@@ -202,8 +203,9 @@ fn interior(
         if (a + b + c + e).is_nan() {
             return None;
         }
-        let lo = a.min(b).min(c.min(e));
-        let hi = a.max(b).max(c.max(e));
+        // No NaN here: plain compares give what `f32::min`/`max` give.
+        let lo = fmin(fmin(a, b), fmin(c, e));
+        let hi = fmax(fmax(a, b), fmax(c, e));
         if !(depth_match(expected, lo) & depth_match(expected, hi)) {
             return None;
         }
@@ -344,12 +346,14 @@ impl Batch {
                 // See `interior`: the nearest and farthest taps decide; a NaN
                 // takes the general path.
                 let nan = (a + b + c + e).is_nan();
+                // Plain compares (no NaN here, or `lo` is NaN and fails):
+                // `f32::min` orders NaN at a cost of several instructions.
                 self.lo[t] = if nan {
                     f32::NAN
                 } else {
-                    a.min(b).min(c.min(e))
+                    fmin(fmin(a, b), fmin(c, e))
                 };
-                self.hi[t] = b.max(a).max(c.max(e));
+                self.hi[t] = fmax(fmax(b, a), fmax(c, e));
             }
         }
         for t in 0..m {
@@ -360,12 +364,16 @@ impl Batch {
     }
 }
 
-/// [`depth_match`] without branches (a NaN `seen` fails).
+/// [`depth_match`] without branches, for a known `expected` (not NaN); a NaN
+/// `seen` fails.
 #[inline(always)]
 fn depth_match_select(expected: f32, seen: f32) -> bool {
     let far_e = expected >= FAR_DEPTH;
     let far_s = seen >= FAR_DEPTH;
-    let near = (expected - seen).abs() <= DEPTH_TOLERANCE * expected.min(seen);
+    // With a NaN `seen` the difference is NaN and `near` false, whichever
+    // operand `fmin` returns; otherwise `fmin` is `f32::min` (up to the sign
+    // of a zero, which the product does not change).
+    let near = (expected - seen).abs() <= DEPTH_TOLERANCE * fmin(expected, seen);
     (far_e & far_s) | (!(far_e | far_s) & near)
 }
 
