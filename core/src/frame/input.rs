@@ -271,9 +271,10 @@ impl PreparedFrame {
         // The `fix` functions are written without branches (selects), so
         // their loops vectorize.
         let sanitized = read_image(pool, &input.color, &mut color, |_, v| {
-            let bad = !(v.is_finite() & (*v >= 0.0));
-            *v = if bad { 0.0 } else { *v };
-            bad
+            // Finite and not negative, as two plain compares (NaN fails both).
+            let good = (*v >= 0.0) & (*v < f32::INFINITY);
+            *v = if good { *v } else { 0.0 };
+            !good
         });
         let mut sanitized_aovs = 0usize;
         // NaN becomes `bad` (counted), everything else is clamped to [lo, hi].
