@@ -153,15 +153,15 @@ class Enhancer(nn.Module):
             self.dec.append(nn.Sequential(*layers))
         self.head = nn.Conv2d(w[0], 3 * r * r, 3, padding=1)
         # He initialization for the leaky ReLU layers keeps activations (and the
-        # gradients flowing back) at unit scale through the depth; PyTorch's
-        # default shrinks them level by level and training stalled. The head
-        # starts small, so the model starts near its prior, but not so small that
-        # the gradient reaching the rest of the network vanishes (1e-3 stalled).
+        # gradients flowing back) at unit scale through the depth. The head starts
+        # at zero: the model starts exactly at its prior. A random head made the
+        # first steps harmful and the optimizer shut the last decoder level off
+        # (measured: the correction collapsed to a constant within 20 steps).
         for mod in self.modules():
             if isinstance(mod, nn.Conv2d) and mod is not self.head:
                 nn.init.kaiming_normal_(mod.weight, a=NEGATIVE_SLOPE, nonlinearity="leaky_relu")
                 nn.init.zeros_(mod.bias)
-        nn.init.normal_(self.head.weight, std=0.01)
+        nn.init.zeros_(self.head.weight)
         nn.init.zeros_(self.head.bias)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
