@@ -10,7 +10,9 @@ with the clean render:
 - ``input``: the degraded input itself;
 - ``classical``: ``--backend classical``;
 - ``neural``: ``--backend neural --model M`` (K from the manifest);
-- ``neural_k0``: the same network with ``--context 0`` (no temporal context).
+- ``neural_k0``: the same network with ``--context 0`` (no temporal context);
+- ``neural_post``: the network followed by the classical operations
+  (``--set classical_post=true``).
 
 Metrics (on sRGB-encoded color clipped to [0,1]): PSNR and SSIM over the
 frame, in holes (input coverage < 0.5), on the insert (mask > 0.5) and in its
@@ -160,6 +162,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.model:
         methods["neural"] = ["--backend", "neural", "--model", str(args.model)]
         methods["neural_k0"] = ["--backend", "neural", "--model", str(args.model), "--context", "0"]
+        methods["neural_post"] = ["--backend", "neural", "--model", str(args.model), "--set", "classical_post=true"]
     rows: list[dict] = []
     # Last frame of the first scene of each stream, per method, for the before/after sheets.
     shown: dict[str, dict[str, np.ndarray]] = {}

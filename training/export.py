@@ -63,7 +63,7 @@ def manifest_for(model: Enhancer, name: str, version: str) -> dict:
         "input": {"name": "input", "channels": cfg.input_channels()},
         "output": {"name": "output", "channels": ["color.r", "color.g", "color.b"]},
         "residual": not cfg.prior,
-        "premultiplied": True,
+        "premultiplied": cfg.premultiplied,
         "encoding": {"kind": "log", "key": cfg.key, "exposure": "frame", "log_range": cfg.log_range},
         # With the prior a 1024x576 frame is one window (push-pull reaches across
         # the whole window) and 1920x1080 two; the memory limit may shrink tiles.

@@ -43,6 +43,11 @@ class ModelConfig:
     # the input color (`residual: true`).
     prior: bool = True
     pushpull_levels: int = 8
+    # Manifest `premultiplied`: false = the network sees straight color (color /
+    # coverage where coverage >= 1e-3, else 0), so the prior's `coverage * color
+    # + (1 - coverage) * fill` blends soft edges correctly (premultiplied input
+    # darkened every soft edge twice and pulled the darkening into the holes).
+    premultiplied: bool = False
     # Width of a 1x1 convolution on the unshuffled input (0: none); it replaces the
     # first 3x3 layer's many input channels with a cheap mix.
     stem: int = 32
@@ -73,7 +78,7 @@ class ModelConfig:
         d = dict(d)
         d["widths"] = tuple(d["widths"])
         # Configurations saved before the prior existed describe the plain residual UNet.
-        for k, v in (("prior", False), ("stem", 0), ("skip", "cat")):
+        for k, v in (("prior", False), ("stem", 0), ("skip", "cat"), ("premultiplied", True)):
             d.setdefault(k, v)
         return ModelConfig(**d)
 
@@ -355,7 +360,12 @@ def assemble_input(
     ``history``: up to K (reprojected linear color ``[N, 3, H, W]``, validity)
     pairs, newest first; missing ones are zeros with validity 0."""
     n, _, h, w = rgba.shape
-    parts = [encode(rgba[:, :3], scale, cfg.log_range), rgba[:, 3:4], insert]
+    rgb = rgba[:, :3]
+    if not cfg.premultiplied:
+        a = rgba[:, 3:4]
+        ok = a >= COVERAGE_EPSILON
+        rgb = torch.where(ok, rgb / a.clamp(min=COVERAGE_EPSILON), torch.zeros_like(rgb))
+    parts = [encode(rgb, scale, cfg.log_range), rgba[:, 3:4], insert]
     zero3 = torch.zeros(n, 3, h, w, dtype=rgba.dtype, device=rgba.device)
     zero1 = torch.zeros(n, 1, h, w, dtype=rgba.dtype, device=rgba.device)
     for k in range(cfg.context_frames):

