@@ -304,14 +304,8 @@ impl<'a> HistoryView<'a> {
             }
             ReprojectionMode::MotionVectors => copy(self.reproject(k), out),
             ReprojectionMode::DepthCamera => {
-                let depth = self
-                    .current
-                    .depth
-                    .as_deref()
-                    .expect("depth mode needs depth");
-                self.maps[k]
-                    .get_or_init(|| reproject::CameraMap::new(self.current, frame))
-                    .color_row(frame, depth, i, out)
+                let (map, depth) = self.camera_map(k);
+                map.color_row(frame, depth, i, out)
             }
             ReprojectionMode::Identity => {
                 let [o0, o1, o2, o3, ov] = out;
@@ -326,6 +320,19 @@ impl<'a> HistoryView<'a> {
                 }
             }
         }
+    }
+
+    /// The depth-and-cameras map of history frame `k` (built once) and the
+    /// current depth it reads.
+    fn camera_map(&self, k: usize) -> (&reproject::CameraMap, &[f32]) {
+        let depth = self
+            .current
+            .depth
+            .as_deref()
+            .expect("depth mode needs depth");
+        let map =
+            self.maps[k].get_or_init(|| reproject::CameraMap::new(self.current, self.frame(k)));
+        (map, depth)
     }
 
     /// Pixel (row `i`, column `j`) of history frame `k` reprojected into
@@ -356,14 +363,8 @@ impl<'a> HistoryView<'a> {
             }
             ReprojectionMode::MotionVectors => rep(self.reproject(k)),
             ReprojectionMode::DepthCamera => {
-                let depth = self
-                    .current
-                    .depth
-                    .as_deref()
-                    .expect("depth mode needs depth");
-                self.maps[k]
-                    .get_or_init(|| reproject::CameraMap::new(self.current, frame))
-                    .color_at(frame, depth, i, j)
+                let (map, depth) = self.camera_map(k);
+                map.color_at(frame, depth, i, j)
             }
             ReprojectionMode::Identity => {
                 let p = i * w + j;
@@ -411,12 +412,7 @@ mod tests {
     use super::*;
     use crate::frame::Camera;
 
-    fn rnd(seed: &mut u64) -> f32 {
-        *seed = seed
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        (*seed >> 40) as f32 / (1u64 << 24) as f32
-    }
+    use super::reproject::tests::rnd;
 
     fn planes(w: usize, h: usize, c: usize, seed: &mut u64, f: fn(f32) -> f32) -> Image {
         let mut img = Image::zeros(w, h, c);

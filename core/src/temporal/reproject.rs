@@ -928,11 +928,11 @@ pub(crate) fn reproject_camera(
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
     /// A deterministic pseudo-random value in `[0, 1)`.
-    fn rnd(seed: &mut u64) -> f32 {
+    pub(crate) fn rnd(seed: &mut u64) -> f32 {
         *seed = seed
             .wrapping_mul(6364136223846793005)
             .wrapping_add(1442695040888963407);
