@@ -110,21 +110,6 @@ impl std::fmt::Debug for Session {
 
 /// The backend for `params`, and a warning when `auto` fell back to classical.
 fn make_backend(device: &Device, params: &Params) -> Result<(Box<dyn Backend>, Option<String>)> {
-    if params.backend == BackendKind::Auto {
-        // The embedded model needs ONNX Runtime; without it `auto` still works
-        // (classical) and says why. Any other model error is an error.
-        return Ok(match device.neural_model() {
-            Ok(Some(model)) => (Box::new(backend::neural::Neural { model }), None),
-            Ok(None) => (Box::new(backend::classical::Classical), None),
-            Err(Error::RuntimeMissing(why)) => (
-                Box::new(backend::classical::Classical),
-                Some(format!(
-                    "backend auto: running classical because the neural model cannot run: {why}"
-                )),
-            ),
-            Err(e) => return Err(e),
-        });
-    }
     let backend: Box<dyn Backend> = match params.backend {
         BackendKind::Bypass => Box::new(backend::Bypass),
         BackendKind::Classical => Box::new(backend::classical::Classical),
@@ -137,7 +122,21 @@ fn make_backend(device: &Device, params: &Params) -> Result<(Box<dyn Backend>, O
                 ))
             }
         },
-        BackendKind::Auto => unreachable!("handled above"),
+        // The embedded model needs ONNX Runtime; without it `auto` still works
+        // (classical) and says why. Any other model error is an error.
+        BackendKind::Auto => match device.neural_model() {
+            Ok(Some(model)) => Box::new(backend::neural::Neural { model }),
+            Ok(None) => Box::new(backend::classical::Classical),
+            Err(Error::RuntimeMissing(why)) => {
+                return Ok((
+                    Box::new(backend::classical::Classical),
+                    Some(format!(
+                        "backend auto: running classical because the neural model cannot run: {why}"
+                    )),
+                ))
+            }
+            Err(e) => return Err(e),
+        },
     };
     Ok((backend, None))
 }
