@@ -3,7 +3,7 @@
 //! Run one group: `cargo bench -p harmonizer-core --bench core -- reprojection`.
 
 use criterion::{criterion_group, criterion_main, Criterion};
-use harmonizer_core::frame::{DepthKind, Image, PreparedFrame};
+use harmonizer_core::frame::{DepthKind, Image, PreparedFrame, RgbaImage};
 use harmonizer_core::synth::{Scene, SynthConfig};
 use harmonizer_core::temporal::{History, HistoryFrame, HistoryView};
 
@@ -40,7 +40,7 @@ fn reprojection(c: &mut Criterion) {
         color.data[..3 * n].copy_from_slice(&p.color.data);
         color.data[3 * n..].copy_from_slice(p.coverage.as_deref().unwrap());
         let frame = HistoryFrame {
-            color,
+            color: RgbaImage::from_planes(&color, None),
             depth: p.depth,
             motion: p.motion,
             camera: p.camera,
@@ -184,7 +184,7 @@ fn classical(c: &mut Criterion) {
             }
         }
         let frame = HistoryFrame {
-            color,
+            color: RgbaImage::from_planes(&color, None),
             depth: p.depth,
             motion: p.motion,
             camera: p.camera,

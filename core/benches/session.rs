@@ -14,7 +14,7 @@
 //! minimum is the figure least disturbed by other work on the machine):
 //! preparing a frame, reprojecting history frame 0 and frame 3 (chained).
 
-use harmonizer_core::frame::{DepthKind, Image, PreparedFrame, Recycler};
+use harmonizer_core::frame::{DepthKind, Image, PreparedFrame, Recycler, RgbaImage};
 use harmonizer_core::synth::{Scene, SynthConfig, SynthFrame};
 use harmonizer_core::temporal::{History, HistoryFrame, HistoryView};
 use harmonizer_core::{Device, DeviceOptions, ParamValue, Params, Session};
@@ -45,6 +45,7 @@ fn parts(made: &[SynthFrame], threads: usize, runs: usize) {
             &pool,
             &rec,
             false,
+            false,
         )
         .expect("frame prepared")
     };
@@ -59,7 +60,7 @@ fn parts(made: &[SynthFrame], threads: usize, runs: usize) {
         color.data[3 * n..].copy_from_slice(p.coverage.as_deref().expect("coverage"));
         history.push(
             HistoryFrame {
-                color,
+                color: RgbaImage::from_planes(&color, None),
                 depth: p.depth,
                 motion: p.motion,
                 camera: p.camera,
@@ -166,8 +167,9 @@ fn main() {
         .into_iter()
         .map(|(k, v)| format!("{k} {:.2}", median(v)))
         .collect();
+    let min = totals.iter().copied().fold(f64::INFINITY, f64::min);
     println!(
-        "{backend} {w}x{h} threads={threads}: {:.2} ms/frame (median of {}), stages: {}",
+        "{backend} {w}x{h} threads={threads}: {:.2} ms/frame (median of {}, min {min:.2}), stages: {}",
         median(totals.clone()),
         totals.len(),
         stages.join(", ")

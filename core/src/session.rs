@@ -5,7 +5,7 @@ use std::sync::Arc;
 use crate::backend::{self, Backend, BackendInput, Carry, Progress, Stages};
 use crate::device::Device;
 use crate::error::{Error, Result};
-use crate::frame::{FrameInput, Image, ImageViewMut, PreparedFrame, Recycler};
+use crate::frame::{FrameInput, Image, ImageViewMut, PreparedFrame, Recycler, RgbaImage};
 use crate::params::{BackendKind, GapPolicy, ParamValue, Params};
 use crate::temporal::{History, HistoryFrame, HistoryView};
 
@@ -249,13 +249,17 @@ impl Session {
         progress.report(0.0)?;
 
         let pool = self.device.pool();
-        let frame = stages.time("prepare", || {
+        // The backend may work on the frame's color itself when nothing
+        // after it reads that color (`apply_strength` does).
+        let in_place = self.backend.works_in_place() && self.params.strength >= 1.0;
+        let mut frame = stages.time("prepare", || {
             PreparedFrame::from_input_recycled(
                 input,
                 self.params.depth_kind,
                 pool,
                 &self.recycler,
                 self.backend.uses_normals(),
+                in_place,
             )
         })?;
         if frame.sanitized > 0 {
@@ -321,23 +325,21 @@ impl Session {
             reset = Some(ResetReason::FirstFrame);
         }
         let empty = History::default();
-        let history = if reset.is_some() { &empty } else { &st.history };
-        let mut view = HistoryView::new_recycled(
-            history,
-            &frame,
-            self.params.context_frames,
-            pool,
-            &self.recycler,
-        );
-        if reset.is_none() && self.params.scene_cut_detection && !view.is_empty() {
-            let cut = stages.time("scene_cut", || {
-                crate::temporal::is_scene_cut(&view, &frame, self.params.scene_cut_threshold)
-            });
+        let context = self.params.context_frames;
+        if reset.is_none() && self.params.scene_cut_detection {
+            let view =
+                HistoryView::new_recycled(&st.history, &frame, context, pool, &self.recycler);
+            let cut = !view.is_empty()
+                && stages.time("scene_cut", || {
+                    crate::temporal::is_scene_cut(&view, &frame, self.params.scene_cut_threshold)
+                });
             if cut {
                 reset = Some(ResetReason::SceneCut);
-                view = HistoryView::new_recycled(&empty, &frame, 0, pool, &self.recycler);
             }
         }
+        let rgba = in_place.then(|| frame.take_color());
+        let history = if reset.is_some() { &empty } else { &st.history };
+        let view = HistoryView::new_recycled(history, &frame, context, pool, &self.recycler);
         report.reset = reset;
         report.history_used = view.len();
         if reset == Some(ResetReason::SizeChanged) {
@@ -357,9 +359,18 @@ impl Session {
             pool,
         };
         progress.set_span(0.05, 0.95);
-        let out = self
-            .backend
-            .process(&backend_input, &mut carry, &mut progress, &mut stages);
+        let out = match rgba {
+            Some(rgba) => self.backend.process_in_place(
+                rgba,
+                &backend_input,
+                &mut carry,
+                &mut progress,
+                &mut stages,
+            ),
+            None => self
+                .backend
+                .process(&backend_input, &mut carry, &mut progress, &mut stages),
+        };
         let mut out = match out {
             Ok(out) => out,
             Err(e) => {
@@ -409,8 +420,14 @@ impl Session {
             rec.give(n.data);
         }
         if capacity > 0 {
-            let mut kept = rec.image(out.width, out.height, out.channels);
-            copy_on(pool, &mut kept.data, &out.data);
+            // Kept interleaved (see `HistoryFrame::color`); the buffer is
+            // one of the recycled frame-sized ones.
+            let mut kept = RgbaImage {
+                width: out.width,
+                height: out.height,
+                data: rec.take(4 * out.len()),
+            };
+            kept.set_planes(&out, Some(pool));
             let evicted = history.push(
                 HistoryFrame {
                     color: kept,
@@ -461,17 +478,6 @@ impl Session {
         write_output(&img, output);
         Ok(report)
     }
-}
-
-/// `dst.copy_from_slice(src)` in parallel on `pool`.
-fn copy_on(pool: &rayon::ThreadPool, dst: &mut [f32], src: &[f32]) {
-    use rayon::prelude::*;
-    const CHUNK: usize = 1 << 16;
-    pool.install(|| {
-        dst.par_chunks_mut(CHUNK)
-            .zip(src.par_chunks(CHUNK))
-            .for_each(|(d, s)| d.copy_from_slice(s))
-    });
 }
 
 /// Motion vectors longer than the image in either axis (a wrong scale or AOV).

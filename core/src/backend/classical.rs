@@ -69,7 +69,7 @@ fn rgba_into(frame: &PreparedFrame, out: &mut Image) {
 }
 
 /// Runs the four operations on `img` (the frame as [`rgba_from_frame`] makes
-/// it, or another backend's output when the classical pipeline runs as a
+/// it, the frame's color handed over by the session, or another backend's output when the classical pipeline runs as a
 /// post-stage, `classical_post`) with the parameters in `input`.
 pub fn run_ops(
     img: &mut Image,
@@ -206,7 +206,7 @@ impl Backend for Classical {
         progress: &mut Progress<'_>,
         stages: &mut Stages,
     ) -> Result<Image> {
-        let mut img = stages.time("prepare", || {
+        let img = stages.time("prepare", || {
             let f = input.frame;
             let mut img = match input.history.recycler() {
                 Some(r) => r.image(f.width(), f.height(), 4),
@@ -215,6 +215,22 @@ impl Backend for Classical {
             input.pool.install(|| rgba_into(f, &mut img));
             img
         });
+        self.process_in_place(img, input, carry, progress, stages)
+    }
+
+    fn works_in_place(&self) -> bool {
+        true
+    }
+
+    /// The operations run on the handed-over color itself.
+    fn process_in_place(
+        &self,
+        mut img: Image,
+        input: &BackendInput<'_>,
+        carry: &mut Carry,
+        progress: &mut Progress<'_>,
+        stages: &mut Stages,
+    ) -> Result<Image> {
         progress.report(0.05)?;
         run_ops(&mut img, input, carry, progress, stages)?;
         Ok(img)

@@ -115,6 +115,34 @@ pub trait Backend: Send + Sync {
         progress: &mut Progress<'_>,
         stages: &mut Stages,
     ) -> Result<Image>;
+
+    /// Whether the backend works on the frame's color in place
+    /// ([`Backend::process_in_place`]). The session then prepares the color
+    /// as 4 planes (RGBA) and hands it over when nothing after the backend
+    /// needs the frame's color (`strength` 1), so the backend makes no
+    /// frame-sized copy of it.
+    fn works_in_place(&self) -> bool {
+        false
+    }
+
+    /// [`Backend::process`] with the frame's color handed over as `rgba`
+    /// (4 planes: RGB premultiplied, A the coverage, 1 where absent;
+    /// `input.frame.color` has no planes then). Called only when
+    /// [`Backend::works_in_place`] is true; the default is an error.
+    fn process_in_place(
+        &self,
+        rgba: Image,
+        input: &BackendInput<'_>,
+        carry: &mut Carry,
+        progress: &mut Progress<'_>,
+        stages: &mut Stages,
+    ) -> Result<Image> {
+        let _ = (rgba, input, carry, progress, stages);
+        Err(Error::invalid(format!(
+            "backend {}: does not work in place",
+            self.name()
+        )))
+    }
 }
 
 /// Output equals input: RGB copied, A = coverage (1 when absent).
@@ -137,7 +165,7 @@ impl Backend for Bypass {
             let f = input.frame;
             let mut out = Image::zeros(f.width(), f.height(), 4);
             let n = f.color.len();
-            out.data[..3 * n].copy_from_slice(&f.color.data);
+            out.data[..3 * n].copy_from_slice(&f.color.data[..3 * n]);
             match &f.coverage {
                 Some(c) => out.data[3 * n..].copy_from_slice(c),
                 None => out.data[3 * n..].fill(1.0),
@@ -146,5 +174,22 @@ impl Backend for Bypass {
         });
         progress.report(1.0)?;
         Ok(out)
+    }
+
+    fn works_in_place(&self) -> bool {
+        true
+    }
+
+    /// The handed-over color is the output as it is.
+    fn process_in_place(
+        &self,
+        rgba: Image,
+        _input: &BackendInput<'_>,
+        _carry: &mut Carry,
+        progress: &mut Progress<'_>,
+        _stages: &mut Stages,
+    ) -> Result<Image> {
+        progress.report(1.0)?;
+        Ok(rgba)
     }
 }

@@ -78,6 +78,115 @@ impl Image {
     }
 }
 
+/// An interleaved RGBA f32 image: R, G, B, A of a pixel side by side, pixels
+/// row after row. The history's color is kept so: a bilinear tap of a
+/// reprojection reads one 16-byte run instead of one sample from each of four
+/// planes.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RgbaImage {
+    /// Width in pixels.
+    pub width: usize,
+    /// Height in pixels.
+    pub height: usize,
+    /// `4 * width * height` samples: pixel `p` at `4 * p .. 4 * p + 4`.
+    pub data: Vec<f32>,
+}
+
+impl RgbaImage {
+    /// A zero-filled image.
+    pub fn zeros(width: usize, height: usize) -> RgbaImage {
+        RgbaImage {
+            width,
+            height,
+            data: vec![0.0; 4 * width * height],
+        }
+    }
+
+    /// Pixels.
+    #[inline]
+    pub fn len(&self) -> usize {
+        self.width * self.height
+    }
+
+    /// True when the image has no pixels.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Pixel `p` (row-major index) as R, G, B, A.
+    #[inline(always)]
+    pub fn pixel(&self, p: usize) -> [f32; 4] {
+        let q = &self.data[4 * p..4 * p + 4];
+        [q[0], q[1], q[2], q[3]]
+    }
+
+    /// Row `y` of channel `c` into `out` (one row long).
+    pub fn read_row(&self, y: usize, c: usize, out: &mut [f32]) {
+        let w = self.width;
+        let row = &self.data[4 * y * w..4 * (y + 1) * w];
+        for (o, q) in out[..w].iter_mut().zip(row.chunks_exact(4)) {
+            *o = q[c];
+        }
+    }
+
+    /// The image of a 4-plane [`Image`], in parallel on `pool` when given.
+    pub fn from_planes(img: &Image, pool: Option<&rayon::ThreadPool>) -> RgbaImage {
+        let mut out = RgbaImage::zeros(img.width, img.height);
+        out.set_planes(img, pool);
+        out
+    }
+
+    /// Overwrites every sample with the 4-plane `img` of the same size, in
+    /// parallel on `pool` when given.
+    pub fn set_planes(&mut self, img: &Image, pool: Option<&rayon::ThreadPool>) {
+        use rayon::prelude::*;
+        assert_eq!(
+            (img.width, img.height, img.channels),
+            (self.width, self.height, 4),
+            "an RGBA image is made of 4 planes of its size"
+        );
+        let n = img.len();
+        if n == 0 {
+            return;
+        }
+        let [r, g, b, a] = [0, 1, 2, 3].map(|c| img.plane(c));
+        const CHUNK: usize = 1 << 14;
+        let part = |(k, out): (usize, &mut [f32])| {
+            let s = k * CHUNK..k * CHUNK + out.len() / 4;
+            let (r, g, b, a) = (&r[s.clone()], &g[s.clone()], &b[s.clone()], &a[s]);
+            for (p, q) in out.chunks_exact_mut(4).enumerate() {
+                q.copy_from_slice(&[r[p], g[p], b[p], a[p]]);
+            }
+        };
+        match pool {
+            Some(pool) => pool.install(|| {
+                self.data
+                    .par_chunks_mut(4 * CHUNK)
+                    .enumerate()
+                    .for_each(part)
+            }),
+            None => self.data.chunks_mut(4 * CHUNK).enumerate().for_each(part),
+        }
+    }
+
+    /// The 4-plane [`Image`] of this one.
+    pub fn to_planes(&self) -> Image {
+        let mut img = Image::zeros(self.width, self.height, 4);
+        let n = self.len();
+        for (p, q) in self.data.chunks_exact(4).enumerate() {
+            for (c, v) in q.iter().enumerate() {
+                img.data[c * n + p] = *v;
+            }
+        }
+        img
+    }
+
+    /// Bytes held.
+    pub fn bytes(&self) -> usize {
+        self.data.len() * std::mem::size_of::<f32>()
+    }
+}
+
 /// Sample buffers kept for reuse from one frame to the next.
 ///
 /// Frame-sized buffers are tens of megabytes; allocating them fresh every

@@ -18,6 +18,21 @@ fn read_image(
     img: &mut Image,
     fix: impl Fn(usize, &mut f32) -> bool + Sync,
 ) -> usize {
+    let channels = img.channels;
+    read_image_with(pool, view, img, channels, fix, |_, _| {})
+}
+
+/// [`read_image`] of the first `read` channels of `view` into the first
+/// `read` planes of `img`; `rest(y, planes)` then writes row `y` of the
+/// planes after them (in the same row task, so no second pass).
+fn read_image_with(
+    pool: Option<&rayon::ThreadPool>,
+    view: &ImageView<'_>,
+    img: &mut Image,
+    read: usize,
+    fix: impl Fn(usize, &mut f32) -> bool + Sync,
+    rest: impl Fn(usize, &mut [&mut [f32]]) + Sync,
+) -> usize {
     let (w, h) = (img.width, img.height);
     if w == 0 || h == 0 {
         return 0;
@@ -37,12 +52,14 @@ fn read_image(
         .collect();
     let row = |(y, mut outs): (usize, Vec<&mut [f32]>)| -> usize {
         let mut bad = 0;
-        for (c, out) in outs.iter_mut().enumerate() {
+        let (first, after) = outs.split_at_mut(read);
+        for (c, out) in first.iter_mut().enumerate() {
             view.read_row(y, c, out);
             // Branch-free `fix` (see the callers) and a narrow counter: the
             // pass vectorizes.
             bad += out.iter_mut().map(|v| u32::from(fix(c, v))).sum::<u32>() as usize;
         }
+        rest(y, after);
         bad
     };
     match pool {
@@ -139,7 +156,11 @@ impl<'a> FrameInput<'a> {
 /// A frame in the pipeline's planar form, in the library's conventions.
 #[derive(Debug, Clone)]
 pub struct PreparedFrame {
-    /// Premultiplied RGB, sanitized (no NaN, Inf or negative values).
+    /// Premultiplied RGB, sanitized (no NaN, Inf or negative values): 3
+    /// planes, or 4 when prepared as RGBA ([`PreparedFrame::from_input_recycled`]
+    /// with `rgba`), plane 3 then a copy of the coverage (1 where it is
+    /// absent). No planes (the size kept) once [`PreparedFrame::take_color`]
+    /// handed it to a backend.
     pub color: Image,
     /// Coverage in `[0,1]`; `None` means fully covered.
     pub coverage: Option<Vec<f32>>,
@@ -173,7 +194,7 @@ impl PreparedFrame {
 
     /// Validates `input` and converts it to the planar form (on the calling thread).
     pub fn from_input(input: &FrameInput<'_>, depth_kind: DepthKind) -> Result<PreparedFrame> {
-        Self::prepare(input, depth_kind, None, None, true)
+        Self::prepare(input, depth_kind, None, None, true, false)
     }
 
     /// Like [`PreparedFrame::from_input`], row-parallel on `pool`; the result
@@ -183,21 +204,41 @@ impl PreparedFrame {
         depth_kind: DepthKind,
         pool: &rayon::ThreadPool,
     ) -> Result<PreparedFrame> {
-        Self::prepare(input, depth_kind, Some(pool), None, true)
+        Self::prepare(input, depth_kind, Some(pool), None, true, false)
     }
 
     /// Like [`PreparedFrame::from_input_on`], with its buffers taken from
     /// `recycler` (give them back with [`PreparedFrame::recycle`]); the
     /// normals are prepared only when `normals` is true (else `normal` is
-    /// `None`, their size is still checked).
+    /// `None`, their size is still checked); with `rgba` the color gets a
+    /// 4th plane, the coverage (1 where absent), written in the same pass:
+    /// the working image of a backend that works in place
+    /// ([`crate::backend::Backend::works_in_place`]), no copy needed.
     pub fn from_input_recycled(
         input: &FrameInput<'_>,
         depth_kind: DepthKind,
         pool: &rayon::ThreadPool,
         recycler: &Recycler,
         normals: bool,
+        rgba: bool,
     ) -> Result<PreparedFrame> {
-        Self::prepare(input, depth_kind, Some(pool), Some(recycler), normals)
+        Self::prepare(input, depth_kind, Some(pool), Some(recycler), normals, rgba)
+    }
+
+    /// Takes the color out (for a backend that works on it in place),
+    /// leaving an image of the frame's size with no planes, so
+    /// [`PreparedFrame::width`] and [`PreparedFrame::height`] still hold.
+    pub fn take_color(&mut self) -> Image {
+        let (width, height) = (self.color.width, self.color.height);
+        std::mem::replace(
+            &mut self.color,
+            Image {
+                width,
+                height,
+                channels: 0,
+                data: Vec::new(),
+            },
+        )
     }
 
     /// Gives the frame's buffers to `recycler`.
@@ -220,6 +261,7 @@ impl PreparedFrame {
         pool: Option<&rayon::ThreadPool>,
         recycler: Option<&Recycler>,
         normals: bool,
+        rgba: bool,
     ) -> Result<PreparedFrame> {
         let (w, h) = (input.width(), input.height());
         if input.color.channels() < 3 {
@@ -267,15 +309,6 @@ impl PreparedFrame {
             Some(r) => r.image(w, h, ch),
             None => Image::zeros(w, h, ch),
         };
-        let mut color = take(3);
-        // The `fix` functions are written without branches (selects), so
-        // their loops vectorize.
-        let sanitized = read_image(pool, &input.color, &mut color, |_, v| {
-            // Finite and not negative, as two plain compares (NaN fails both).
-            let good = (*v >= 0.0) & (*v < f32::INFINITY);
-            *v = if good { *v } else { 0.0 };
-            !good
-        });
         let mut sanitized_aovs = 0usize;
         // NaN becomes `bad` (counted), everything else is clamped to [lo, hi].
         let mut read_planes = |v: &Option<ImageView<'_>>, ch: usize, lo: f32, hi: f32, bad: f32| {
@@ -290,6 +323,31 @@ impl PreparedFrame {
             })
         };
         let coverage = read_planes(&input.coverage, 1, 0.0, 1.0, 0.0).map(|i| i.data);
+        let mut color = take(if rgba { 4 } else { 3 });
+        // The `fix` functions are written without branches (selects), so
+        // their loops vectorize.
+        let cov = coverage.as_deref();
+        let sanitized = read_image_with(
+            pool,
+            &input.color,
+            &mut color,
+            3,
+            |_, v| {
+                // Finite and not negative, as two plain compares (NaN fails both).
+                let good = (*v >= 0.0) & (*v < f32::INFINITY);
+                *v = if good { *v } else { 0.0 };
+                !good
+            },
+            |y, alpha| {
+                // The coverage read above, or 1 where there is none.
+                if let Some(a) = alpha.first_mut() {
+                    match cov {
+                        Some(c) => a.copy_from_slice(&c[y * w..(y + 1) * w]),
+                        None => a.fill(1.0),
+                    }
+                }
+            },
+        );
         let insert_mask = read_planes(&input.insert_mask, 1, 0.0, 1.0, 0.0).map(|i| i.data);
         let mut depth = read_planes(&input.depth, 1, 0.0, f32::MAX, f32::MAX).map(|i| i.data);
         let normal = if normals {

@@ -7,6 +7,6 @@ mod input;
 mod view;
 
 pub use camera::Camera;
-pub use image::{Image, Recycler};
+pub use image::{Image, Recycler, RgbaImage};
 pub use input::{DepthKind, FrameInput, PreparedFrame};
 pub use view::{ImageView, ImageViewMut, PixelFormat};

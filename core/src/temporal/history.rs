@@ -2,13 +2,14 @@
 
 use std::collections::VecDeque;
 
-use crate::frame::{Camera, Image, Recycler};
+use crate::frame::{Camera, Image, Recycler, RgbaImage};
 
 /// One enhanced frame kept for the future.
 #[derive(Debug, Clone)]
 pub struct HistoryFrame {
-    /// The enhanced output: RGB premultiplied by A, A coverage (4 planes).
-    pub color: Image,
+    /// The enhanced output: RGB premultiplied by A, A coverage, interleaved
+    /// (one bilinear tap of a reprojection reads 16 contiguous bytes).
+    pub color: RgbaImage,
     /// Planar depth of the frame, if the host gave one.
     pub depth: Option<Vec<f32>>,
     /// The frame's motion vectors (to its own previous frame), if any.

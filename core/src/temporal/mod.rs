@@ -114,7 +114,7 @@ impl<'a> HistoryView<'a> {
         let (w, h) = (current.width(), current.height());
         let usable = history
             .iter()
-            .take_while(|f| f.color.width == w && f.color.height == h && f.color.channels == 4)
+            .take_while(|f| f.color.width == w && f.color.height == h)
             .count();
         let count = count.min(usable);
         HistoryView {
@@ -244,7 +244,12 @@ impl<'a> HistoryView<'a> {
                 }
                 ReprojectionMode::Identity => {
                     let mut color = take(4);
-                    color.data.copy_from_slice(&frame.color.data);
+                    let n = w * h;
+                    for (p, q) in frame.color.data.chunks_exact(4).enumerate() {
+                        for (c, v) in q.iter().enumerate() {
+                            color.data[c * n + p] = *v;
+                        }
+                    }
                     let mut valid = take(1).data;
                     valid.fill(1.0);
                     ReprojectedFrame { color, valid }
@@ -310,7 +315,7 @@ impl<'a> HistoryView<'a> {
             ReprojectionMode::Identity => {
                 let [o0, o1, o2, o3, ov] = out;
                 for (c, o) in [o0, o1, o2, o3].into_iter().enumerate() {
-                    o.copy_from_slice(&frame.color.plane(c)[s.clone()]);
+                    frame.color.read_row(i, c, o);
                 }
                 ov.fill(1.0);
             }
@@ -366,14 +371,7 @@ impl<'a> HistoryView<'a> {
                 let (map, depth) = self.camera_map(k);
                 map.color_at(frame, depth, i, j)
             }
-            ReprojectionMode::Identity => {
-                let p = i * w + j;
-                let c = &frame.color;
-                (
-                    [c.plane(0)[p], c.plane(1)[p], c.plane(2)[p], c.plane(3)[p]],
-                    1.0,
-                )
-            }
+            ReprojectionMode::Identity => (frame.color.pixel(i * w + j), 1.0),
             ReprojectionMode::Unavailable => ([0.0; 4], 0.0),
         }
     }
@@ -410,7 +408,7 @@ impl<'a> HistoryView<'a> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::frame::Camera;
+    use crate::frame::{Camera, RgbaImage};
 
     use super::reproject::tests::rnd;
 
@@ -476,7 +474,7 @@ mod tests {
             let mut history = History::default();
             for _ in 0..3 {
                 let frame = HistoryFrame {
-                    color: planes(w, h, 4, &mut seed, |r| r * 3.0),
+                    color: RgbaImage::from_planes(&planes(w, h, 4, &mut seed, |r| r * 3.0), None),
                     depth: with_depth.then(|| depth(n, &mut seed)),
                     motion: Some(planes(w, h, 2, &mut seed, |r| (r - 0.5) * 7.0)),
                     camera: cams.map(|c| c.1),

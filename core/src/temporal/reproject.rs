@@ -83,6 +83,17 @@ impl Taps {
             + self.w[2] * plane[self.idx[2]]
             + self.w[3] * plane[self.idx[3]]
     }
+
+    /// [`Taps::sample`] of each channel of an interleaved RGBA image (the
+    /// same sums, channel by channel).
+    #[inline(always)]
+    fn sample4(&self, rgba: &[[f32; 4]]) -> [f32; 4] {
+        let px = |k: usize| rgba[self.idx[k]];
+        let (a, b, c, d) = (px(0), px(1), px(2), px(3));
+        std::array::from_fn(|ch| {
+            self.w[0] * a[ch] + self.w[1] * b[ch] + self.w[2] * c[ch] + self.w[3] * d[ch]
+        })
+    }
 }
 
 /// Bilinear taps at pixel position (`x`, `y`) (pixel centres at +0.5) in a
@@ -228,6 +239,15 @@ fn interior(
 fn bilerp(plane: &[f32], i: usize, w: usize, wt: &[f32; 4]) -> f32 {
     let q = &plane[i..i + w + 2];
     wt[0] * q[0] + wt[1] * q[1] + wt[2] * q[w] + wt[3] * q[w + 1]
+}
+
+/// [`bilerp`] of each channel of an interleaved RGBA image: one 16-byte
+/// run per tap, the same sums channel by channel.
+#[inline(always)]
+fn bilerp4(rgba: &[[f32; 4]], i: usize, w: usize, wt: &[f32; 4]) -> [f32; 4] {
+    let q = &rgba[i..i + w + 2];
+    let (a, b, c, d) = (q[0], q[1], q[w], q[w + 1]);
+    std::array::from_fn(|ch| wt[0] * a[ch] + wt[1] * b[ch] + wt[2] * c[ch] + wt[3] * d[ch])
 }
 
 /// Pixels per [`Batch`].
@@ -523,10 +543,10 @@ fn color_pixel(frame: &HistoryFrame, x: f32, y: f32, d: f32, v: f32) -> ([f32; 4
     Planes::of(frame).color(x, y, d, v)
 }
 
-/// A history frame's color planes and depth, split once per loop.
+/// A history frame's interleaved color and depth, split once per loop.
 #[derive(Clone, Copy)]
 struct Planes<'a> {
-    p: [&'a [f32]; 4],
+    rgba: &'a [[f32; 4]],
     depth: Option<&'a [f32]>,
     w: usize,
     h: usize,
@@ -537,7 +557,7 @@ impl<'a> Planes<'a> {
     fn of(frame: &'a HistoryFrame) -> Planes<'a> {
         let hist = &frame.color;
         Planes {
-            p: [hist.plane(0), hist.plane(1), hist.plane(2), hist.plane(3)],
+            rgba: hist.data.as_chunks::<4>().0,
             depth: frame.depth.as_deref(),
             w: hist.width,
             h: hist.height,
@@ -553,30 +573,13 @@ impl<'a> Planes<'a> {
         let hdepth = if d.is_nan() { None } else { self.depth };
         if let Some((i, wt)) = interior(x, y, self.w, self.h, hdepth, d) {
             // The common case, bit-identical to the general one below.
-            let w = self.w;
-            return (
-                [
-                    bilerp(self.p[0], i, w, &wt),
-                    bilerp(self.p[1], i, w, &wt),
-                    bilerp(self.p[2], i, w, &wt),
-                    bilerp(self.p[3], i, w, &wt),
-                ],
-                v,
-            );
+            return (bilerp4(self.rgba, i, self.w, &wt), v);
         }
         let t = taps(x, y, self.w, self.h, hdepth, d);
         if t.sum <= 0.0 {
             return ([0.0; 4], 0.0);
         }
-        (
-            [
-                t.sample(self.p[0]),
-                t.sample(self.p[1]),
-                t.sample(self.p[2]),
-                t.sample(self.p[3]),
-            ],
-            v * t.sum,
-        )
+        (t.sample4(self.rgba), v * t.sum)
     }
 }
 
@@ -655,15 +658,7 @@ fn color_row<S: Fn(usize, usize) -> (f32, f32, f32, f32)>(
         for t in 0..m {
             let (c, v) = if b.fast[t] {
                 let (k, wt) = (b.idx[t] as usize, &b.weights(t));
-                (
-                    [
-                        bilerp(planes.p[0], k, w, wt),
-                        bilerp(planes.p[1], k, w, wt),
-                        bilerp(planes.p[2], k, w, wt),
-                        bilerp(planes.p[3], k, w, wt),
-                    ],
-                    b.v[t],
-                )
+                (bilerp4(planes.rgba, k, w, wt), b.v[t])
             } else {
                 planes.color(b.x[t], b.y[t], b.d[t], b.v[t])
             };
@@ -961,7 +956,7 @@ pub(crate) mod tests {
             *v = (rnd(seed) - 0.5) * 6.0;
         }
         HistoryFrame {
-            color,
+            color: crate::frame::RgbaImage::from_planes(&color, None),
             depth: Some(depth),
             motion: Some(motion),
             camera: None,
@@ -993,7 +988,9 @@ pub(crate) mod tests {
             .collect();
         depth[9] = f32::NAN;
         let hd = hist.depth.as_deref().unwrap();
-        let [p0, p1, p2, p3] = [0, 1, 2, 3].map(|c| hist.color.plane(c));
+        let hist_planes = hist.color.to_planes();
+        let older_planes = older.color.to_planes();
+        let [p0, p1, p2, p3] = [0, 1, 2, 3].map(|c| hist_planes.plane(c));
         let (mx, my) = (
             hist.motion.as_ref().unwrap().plane(0),
             hist.motion.as_ref().unwrap().plane(1),
@@ -1056,7 +1053,7 @@ pub(crate) mod tests {
                         let od = older.depth.as_deref().unwrap();
                         let t = taps(x, y, w, h, if d.is_nan() { None } else { Some(od) }, d);
                         if t.sum > 0.0 {
-                            let q = [0, 1, 2, 3].map(|c| t.sample(older.color.plane(c)));
+                            let q = [0, 1, 2, 3].map(|c| t.sample(older_planes.plane(c)));
                             (q, v * t.sum)
                         } else {
                             ([0.0; 4], 0.0)

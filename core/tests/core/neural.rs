@@ -285,7 +285,7 @@ fn run_backend(
     for img in prev.iter().rev() {
         history.push(
             HistoryFrame {
-                color: img.clone(),
+                color: harmonizer_core::frame::RgbaImage::from_planes(img, None),
                 depth: None,
                 motion: None,
                 camera: None,

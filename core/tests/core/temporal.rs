@@ -8,7 +8,7 @@
 //! which pixels were visible in the previous frame are exact.
 
 use glam::{DVec2, DVec3, Vec3};
-use harmonizer_core::frame::{Camera, FrameInput, ImageView, PreparedFrame};
+use harmonizer_core::frame::{Camera, FrameInput, ImageView, PreparedFrame, RgbaImage};
 use harmonizer_core::temporal::{
     is_scene_cut, scene_cut_score, History, HistoryFrame, HistoryView, ReprojectionMode,
 };
@@ -186,7 +186,7 @@ pub fn history_frame(r: &Rendered, index: i64) -> HistoryFrame {
     let mut color = Image::filled(r.w, r.h, 4, 1.0);
     color.data[..3 * n].copy_from_slice(&f.color.data);
     HistoryFrame {
-        color,
+        color: RgbaImage::from_planes(&color, None),
         depth: f.depth,
         motion: f.motion,
         camera: f.camera,
@@ -476,7 +476,7 @@ fn identity_and_unavailable_modes() {
         .unwrap();
     let view = HistoryView::new(&hist, &frame, 4, &pool);
     assert_eq!(view.mode(0), ReprojectionMode::Identity);
-    assert_eq!(view.reproject(0).color, hf.color);
+    assert_eq!(view.reproject(0).color, hf.color.to_planes());
     // Different cameras and no depth nor motion: nothing can be aligned.
     let mut hist = History::default();
     hf.camera = Some(seq[0].camera);
