@@ -277,17 +277,14 @@ impl Session {
                 frame.sanitized_aovs
             ));
         }
-        if let Some(m) = &frame.motion {
-            let big = stages.time("prepare", || count_huge_motion(m, pool));
-            if big > 0 {
-                report.warnings.push(format!(
-                    "frame {}: {} motion vectors are longer than the image ({}x{}); check motion_vector_scale and the motion AOV",
-                    fmt_index(input.frame_index),
-                    big,
-                    frame.width(),
-                    frame.height()
-                ));
-            }
+        if frame.huge_motion > 0 {
+            report.warnings.push(format!(
+                "frame {}: {} motion vectors are longer than the image ({}x{}); check motion_vector_scale and the motion AOV",
+                fmt_index(input.frame_index),
+                frame.huge_motion,
+                frame.width(),
+                frame.height()
+            ));
         }
 
         let sig = Signature {
@@ -478,24 +475,6 @@ impl Session {
         write_output(&img, output);
         Ok(report)
     }
-}
-
-/// Motion vectors longer than the image in either axis (a wrong scale or AOV).
-fn count_huge_motion(m: &Image, pool: &rayon::ThreadPool) -> usize {
-    use rayon::prelude::*;
-    let (w, h) = (m.width as f32, m.height as f32);
-    let (mx, my) = (m.plane(0), m.plane(1));
-    pool.install(|| {
-        mx.par_chunks(m.width.max(1))
-            .zip(my.par_chunks(m.width.max(1)))
-            .map(|(rx, ry)| {
-                rx.iter()
-                    .zip(ry)
-                    .filter(|(x, y)| x.abs() > w || y.abs() > h)
-                    .count()
-            })
-            .sum()
-    })
 }
 
 fn fmt_index(i: Option<i64>) -> String {

@@ -19,27 +19,32 @@ fn read_image(
     fix: impl Fn(usize, &mut f32) -> bool + Sync,
 ) -> usize {
     let channels = img.channels;
-    read_image_with(pool, view, img, channels, fix, |_, _| {})
+    read_image_with(pool, view, img, channels, Vec::new(), fix, |_, _| 0).0
 }
 
 /// [`read_image`] of the first `read` channels of `view` into the first
-/// `read` planes of `img`; `rest(y, planes)` then writes row `y` of the
-/// planes after them (in the same row task, so no second pass).
+/// `read` planes of `img`; `rest(y, rows)` then gets row `y` of every plane
+/// (those of `img`, then those of `extra`, each a frame-sized plane) in the
+/// same row task, so work on the row (writing the planes after the read
+/// ones, counting) needs no second pass over the frame. Returns the number
+/// of replaced samples and the sum of what `rest` returned.
 fn read_image_with(
     pool: Option<&rayon::ThreadPool>,
     view: &ImageView<'_>,
     img: &mut Image,
     read: usize,
+    extra: Vec<&mut [f32]>,
     fix: impl Fn(usize, &mut f32) -> bool + Sync,
-    rest: impl Fn(usize, &mut [&mut [f32]]) + Sync,
-) -> usize {
+    rest: impl Fn(usize, &mut [&mut [f32]]) -> usize + Sync,
+) -> (usize, usize) {
     let (w, h) = (img.width, img.height);
     if w == 0 || h == 0 {
-        return 0;
+        return (0, 0);
     }
     let mut planes: Vec<_> = img
         .data
         .chunks_mut(w * h)
+        .chain(extra)
         .map(|p| p.chunks_mut(w))
         .collect();
     let rows: Vec<Vec<&mut [f32]>> = (0..h)
@@ -50,27 +55,26 @@ fn read_image_with(
                 .collect()
         })
         .collect();
-    let row = |(y, mut outs): (usize, Vec<&mut [f32]>)| -> usize {
+    let row = |(y, mut outs): (usize, Vec<&mut [f32]>)| -> (usize, usize) {
         let mut bad = 0;
-        let (first, after) = outs.split_at_mut(read);
-        for (c, out) in first.iter_mut().enumerate() {
-            view.read_row(y, c, out);
+        view.read_row_channels(y, &mut outs[..read]);
+        for (c, out) in outs[..read].iter_mut().enumerate() {
             // Branch-free `fix` (see the callers) and a narrow counter: the
             // pass vectorizes.
             bad += out.iter_mut().map(|v| u32::from(fix(c, v))).sum::<u32>() as usize;
         }
-        rest(y, after);
-        bad
+        (bad, rest(y, &mut outs))
     };
+    let add = |a: (usize, usize), b: (usize, usize)| (a.0 + b.0, a.1 + b.1);
     match pool {
         Some(pool) => pool.install(|| {
             rows.into_par_iter()
                 .enumerate()
                 .with_min_len(8)
                 .map(row)
-                .sum()
+                .reduce(|| (0, 0), add)
         }),
-        None => rows.into_iter().enumerate().map(row).sum(),
+        None => rows.into_iter().enumerate().map(row).fold((0, 0), add),
     }
 }
 
@@ -180,6 +184,9 @@ pub struct PreparedFrame {
     pub sanitized: usize,
     /// Samples of the other AOVs that were NaN or infinite and were replaced.
     pub sanitized_aovs: usize,
+    /// Motion vectors longer than the image in either axis (a wrong scale
+    /// or AOV), counted after scaling.
+    pub huge_motion: usize,
 }
 
 impl PreparedFrame {
@@ -322,30 +329,49 @@ impl PreparedFrame {
                 img
             })
         };
-        let coverage = read_planes(&input.coverage, 1, 0.0, 1.0, 0.0).map(|i| i.data);
-        let mut color = take(if rgba { 4 } else { 3 });
+        // Coverage: NaN becomes 0 (counted), the rest is clamped to [0, 1].
+        // It is read in the color pass, row by row beside the color, so
+        // the alpha plane is its copy while the row is still in cache.
+        let cov_fix = |x: &mut f32| {
+            let nan = x.is_nan();
+            *x = if nan { 0.0 } else { clamp(*x, 0.0, 1.0) };
+            nan
+        };
+        let cov_view = input.coverage.as_ref();
+        let mut coverage = cov_view.map(|_| take(1).data);
+        let color_planes = if rgba { 4 } else { 3 };
+        let mut color = take(color_planes);
         // The `fix` functions are written without branches (selects), so
         // their loops vectorize.
-        let cov = coverage.as_deref();
-        let sanitized = read_image_with(
+        let (sanitized, cov_bad) = read_image_with(
             pool,
             &input.color,
             &mut color,
             3,
+            coverage.as_deref_mut().into_iter().collect(),
             |_, v| {
                 // Finite and not negative, as two plain compares (NaN fails both).
                 let good = (*v >= 0.0) & (*v < f32::INFINITY);
                 *v = if good { *v } else { 0.0 };
                 !good
             },
-            |y, alpha| {
-                // The coverage read above, or 1 where there is none.
-                if let Some(a) = alpha.first_mut() {
-                    match cov {
-                        Some(c) => a.copy_from_slice(&c[y * w..(y + 1) * w]),
-                        None => a.fill(1.0),
+            |y, rows| {
+                // Rows: R, G, B, then A when `rgba`, then the coverage when given.
+                let mut bad = 0;
+                if let Some(v) = cov_view {
+                    let c = &mut *rows[color_planes];
+                    v.read_row(y, 0, c);
+                    bad = c.iter_mut().map(|x| u32::from(cov_fix(x))).sum::<u32>() as usize;
+                }
+                if rgba {
+                    // The coverage, or 1 where there is none.
+                    let (head, tail) = rows.split_at_mut(4);
+                    match tail.first() {
+                        Some(c) => head[3].copy_from_slice(c),
+                        None => head[3].fill(1.0),
                     }
                 }
+                bad
             },
         );
         let insert_mask = read_planes(&input.insert_mask, 1, 0.0, 1.0, 0.0).map(|i| i.data);
@@ -356,14 +382,33 @@ impl PreparedFrame {
             None
         };
         let limit = 4.0 * (w.max(h) as f32);
+        let (wf, hf) = (w as f32, h as f32);
+        let mut huge_motion = 0;
         let motion = input.motion.as_ref().map(|v| {
             let mut img = take(2);
-            sanitized_aovs += read_image(pool, v, &mut img, |c, x| {
-                let nan = x.is_nan();
-                let scaled = clamp(clamp(*x, -f32::MAX, f32::MAX) * s[c], -limit, limit);
-                *x = if nan { 0.0 } else { scaled };
-                nan
-            });
+            let (bad, huge) = read_image_with(
+                pool,
+                v,
+                &mut img,
+                2,
+                Vec::new(),
+                |c, x| {
+                    let nan = x.is_nan();
+                    let scaled = clamp(clamp(*x, -f32::MAX, f32::MAX) * s[c], -limit, limit);
+                    *x = if nan { 0.0 } else { scaled };
+                    nan
+                },
+                // Vectors longer than the image, counted on the row just read.
+                |_, rows| {
+                    rows[0]
+                        .iter()
+                        .zip(rows[1].iter())
+                        .map(|(x, y)| u32::from((x.abs() > wf) | (y.abs() > hf)))
+                        .sum::<u32>() as usize
+                },
+            );
+            sanitized_aovs += bad;
+            huge_motion = huge;
             img
         });
         if depth_kind == DepthKind::Euclidean {
@@ -398,7 +443,8 @@ impl PreparedFrame {
             camera: input.camera,
             frame_index: input.frame_index,
             sanitized,
-            sanitized_aovs,
+            sanitized_aovs: sanitized_aovs + cov_bad,
+            huge_motion,
         })
     }
 }

@@ -213,6 +213,44 @@ impl<'a> ImageView<'a> {
         }
     }
 
+    /// Copies channels `0..outs.len()` of row `y` into `outs` (one slice
+    /// of width samples per channel): the same values as [`ImageView::read_row`]
+    /// channel by channel, in one pass over the row for interleaved f32 RGB
+    /// in RGBA pixels and 2-channel pixels (the usual color and motion).
+    pub fn read_row_channels(&self, y: usize, outs: &mut [&mut [f32]]) {
+        let l = &self.layout;
+        let n = l.width;
+        if l.format == PixelFormat::F32 {
+            if let Some(samples) = aligned::<f32>(self.data) {
+                let start = l.index(0, y, 0) / 4;
+                match (l.pixel_stride, &mut *outs) {
+                    (16, [r, g, b]) => {
+                        if let Some(row) = samples.get(start..start + 4 * n) {
+                            let px = row.chunks_exact(4).zip(r.iter_mut());
+                            for ((q, r), (g, b)) in px.zip(g.iter_mut().zip(b.iter_mut())) {
+                                (*r, *g, *b) = (q[0], q[1], q[2]);
+                            }
+                            return;
+                        }
+                    }
+                    (8, [u, v]) => {
+                        if let Some(row) = samples.get(start..start + 2 * n) {
+                            let px = row.chunks_exact(2).zip(u.iter_mut());
+                            for ((q, u), v) in px.zip(v.iter_mut()) {
+                                (*u, *v) = (q[0], q[1]);
+                            }
+                            return;
+                        }
+                    }
+                    _ => {}
+                }
+            }
+        }
+        for (c, out) in outs.iter_mut().enumerate() {
+            self.read_row(y, c, out);
+        }
+    }
+
     /// Copies channel `c` of row `y` into `out` (length = width).
     pub fn read_row(&self, y: usize, c: usize, out: &mut [f32]) {
         let l = &self.layout;
@@ -434,6 +472,50 @@ mod tests {
         v.read_row(1, 2, &mut row);
         assert_eq!(row, [14.0, 18.0, 22.0]);
         assert_eq!(v.get(2, 1, 1), 21.0);
+    }
+
+    #[test]
+    fn row_channels_equal_channel_by_channel_reads() {
+        let data: Vec<f32> = (0..5 * 3 * 4 + 1).map(|i| i as f32 * 0.5).collect();
+        // (channels, pixel stride, offset in samples): the one-pass cases
+        // (the last pixel of an RGB view of RGBA ends the buffer early), and
+        // others that read channel by channel.
+        for (ch, stride, off) in [
+            (3, 16, 0),
+            (3, 16, 1),
+            (4, 16, 0),
+            (2, 8, 0),
+            (2, 12, 0),
+            (3, 12, 0),
+        ] {
+            let end = off + (5 * 3 - 1) * stride / 4 + ch;
+            let v = ImageView::new(
+                "x",
+                f32_bytes(&data[..end]),
+                PixelFormat::F32,
+                5,
+                3,
+                ch,
+                4 * off,
+                stride,
+                0,
+            )
+            .unwrap();
+            let read = ch.min(3);
+            for y in 0..3 {
+                let mut want = vec![vec![0.0; 5]; read];
+                for (c, o) in want.iter_mut().enumerate() {
+                    v.read_row(y, c, o);
+                }
+                let mut got = vec![vec![0.0; 5]; read];
+                let mut outs: Vec<&mut [f32]> = got.iter_mut().map(|o| &mut o[..]).collect();
+                v.read_row_channels(y, &mut outs);
+                assert_eq!(
+                    got, want,
+                    "{ch} channels, stride {stride}, offset {off}, row {y}"
+                );
+            }
+        }
     }
 
     #[test]

@@ -493,6 +493,7 @@ mod tests {
                 frame_index: None,
                 sanitized: 0,
                 sanitized_aovs: 0,
+                huge_motion: 0,
             };
             let full = HistoryView::new(&history, &current, 3, &pool);
             for k in 0..full.len() {

@@ -253,6 +253,17 @@ fn bilerp4(rgba: &[[f32; 4]], i: usize, w: usize, wt: &[f32; 4]) -> [f32; 4] {
 /// Pixels per [`Batch`].
 const BATCH: usize = 64;
 
+/// `0.0, 1.0, .., BATCH - 1` (offsets of a batch's columns).
+const COLUMNS: [f32; BATCH] = {
+    let mut c = [0.0; BATCH];
+    let mut t = 0;
+    while t < BATCH {
+        c[t] = t as f32;
+        t += 1;
+    }
+    c
+};
+
 /// One run of up to [`BATCH`] pixels of a row: where they land in the
 /// history frame and, for those that take the interior fast path (all four
 /// taps inside and passing the depth test, validity so far > 0), the
@@ -290,6 +301,31 @@ impl Batch {
         }
     }
 
+    /// Positions of pixels `j0..j0 + mx.len()` of row `i` of the current
+    /// frame with motion `mx`, `my` (row slices) into `x`, `y`, validity 1
+    /// into `v`: the values of [`Source::at`], bit for bit.
+    #[inline(always)]
+    fn current_span(&mut self, i: usize, j0: usize, mx: &[f32], my: &[f32]) {
+        let m = mx.len();
+        let yc = i as f32 + 0.5;
+        if j0 + BATCH <= 1 << 23 {
+            // Column + 0.5 is exact in f32 below 2^23, so it can be summed
+            // from the batch's first column (vectorizes).
+            let x0 = j0 as f32;
+            for ((x, &c), &d) in self.x[..m].iter_mut().zip(&COLUMNS).zip(mx) {
+                *x = (x0 + c) + 0.5 + d;
+            }
+        } else {
+            for (t, (x, &d)) in self.x[..m].iter_mut().zip(mx).enumerate() {
+                *x = (j0 + t) as f32 + 0.5 + d;
+            }
+        }
+        for (y, &d) in self.y[..m].iter_mut().zip(my) {
+            *y = yc + d;
+        }
+        self.v[..m].fill(1.0);
+    }
+
     /// The bilinear weights of pixel `t` (top-left, top-right, bottom-left,
     /// bottom-right), as [`taps`] computes them.
     #[inline(always)]
@@ -308,7 +344,7 @@ impl Batch {
     /// history frame with depth `depth`.
     #[inline(always)]
     #[allow(clippy::too_many_arguments)]
-    fn fill<S: Fn(usize, usize) -> (f32, f32, f32, f32)>(
+    fn fill<S: Fn(usize, usize, usize, &mut Batch)>(
         &mut self,
         at: &S,
         i: usize,
@@ -318,13 +354,7 @@ impl Batch {
         h: usize,
         depth: Option<&[f32]>,
     ) {
-        for t in 0..m {
-            let (x, y, d, v) = at(i, j0 + t);
-            self.x[t] = x;
-            self.y[t] = y;
-            self.d[t] = d;
-            self.v[t] = v;
-        }
+        at(i, j0, m, self);
         let (wf, hf) = (w as f32, h as f32);
         // 32-bit integer arithmetic vectorizes on every x86-64; frames of 4
         // G pixels or more (or sides of 2 G) never take the fast path.
@@ -488,33 +518,35 @@ impl Source<'_> {
         }
     }
 
-    /// Runs `f` with a function that gives, for pixel (row, col), the
-    /// position in the next frame, the expected depth there (NaN: unknown) and
-    /// the validity so far; one monomorphized loop per kind of source.
+    /// Runs `f` with a function `span(i, j0, m, batch)` that writes, for
+    /// the pixels `j0..j0 + m` of row `i` (`m <= BATCH`), what
+    /// [`Source::at`] gives into `batch.x`, `.y`, `.d` and `.v` (the
+    /// same values, a row slice at a time); one monomorphized loop per kind
+    /// of source.
     #[inline(always)]
     fn with<R>(self, w: usize, f: impl SourceUser<R>) -> R {
         match self {
             Source::Current { motion, depth } => {
                 let (mx, my) = (motion.plane(0), motion.plane(1));
                 match depth {
-                    Some(d) => f.run(&move |i: usize, j: usize| {
-                        let p = i * w + j;
-                        (j as f32 + 0.5 + mx[p], i as f32 + 0.5 + my[p], d[p], 1.0)
+                    Some(d) => f.run(&move |i: usize, j0: usize, m: usize, b: &mut Batch| {
+                        let p = i * w + j0;
+                        b.current_span(i, j0, &mx[p..p + m], &my[p..p + m]);
+                        b.d[..m].copy_from_slice(&d[p..p + m]);
                     }),
-                    None => f.run(&move |i: usize, j: usize| {
-                        let p = i * w + j;
-                        (
-                            j as f32 + 0.5 + mx[p],
-                            i as f32 + 0.5 + my[p],
-                            f32::NAN,
-                            1.0,
-                        )
+                    None => f.run(&move |i: usize, j0: usize, m: usize, b: &mut Batch| {
+                        let p = i * w + j0;
+                        b.current_span(i, j0, &mx[p..p + m], &my[p..p + m]);
+                        b.d[..m].fill(f32::NAN);
                     }),
                 }
             }
-            Source::Chain(c) => f.run(&move |i: usize, j: usize| {
-                let p = i * w + j;
-                (c.x[p], c.y[p], c.depth[p], c.valid[p])
+            Source::Chain(c) => f.run(&move |i: usize, j0: usize, m: usize, b: &mut Batch| {
+                let p = i * w + j0..i * w + j0 + m;
+                b.x[..m].copy_from_slice(&c.x[p.clone()]);
+                b.y[..m].copy_from_slice(&c.y[p.clone()]);
+                b.d[..m].copy_from_slice(&c.depth[p.clone()]);
+                b.v[..m].copy_from_slice(&c.valid[p]);
             }),
         }
     }
@@ -522,7 +554,7 @@ impl Source<'_> {
 
 /// A loop generic over how positions are found (see [`Source::with`]).
 trait SourceUser<R> {
-    fn run<S: Fn(usize, usize) -> (f32, f32, f32, f32) + Sync>(self, at: &S) -> R;
+    fn run<S: Fn(usize, usize, usize, &mut Batch) + Sync>(self, at: &S) -> R;
 }
 
 /// Samples history frame `frame`'s color at the positions of `src`; buffers
@@ -610,7 +642,7 @@ fn outputs(w: usize, h: usize, rec: Option<&Recycler>) -> (Image, Vec<f32>) {
 }
 
 impl SourceUser<ReprojectedFrame> for ColorHop<'_> {
-    fn run<S: Fn(usize, usize) -> (f32, f32, f32, f32) + Sync>(self, at: &S) -> ReprojectedFrame {
+    fn run<S: Fn(usize, usize, usize, &mut Batch) + Sync>(self, at: &S) -> ReprojectedFrame {
         let frame = self.frame;
         let (w, h) = (frame.color.width, frame.color.height);
         let (mut color, mut valid) = outputs(w, h, self.rec);
@@ -627,7 +659,7 @@ impl SourceUser<ReprojectedFrame> for ColorHop<'_> {
 /// frame `planes`: RGBA into `out[0..4]`, validity into `out[4]` (each at
 /// least one row long; the first row's worth is written).
 #[inline(always)]
-fn color_row<S: Fn(usize, usize) -> (f32, f32, f32, f32)>(
+fn color_row<S: Fn(usize, usize, usize, &mut Batch)>(
     at: &S,
     planes: &Planes<'_>,
     i: usize,
@@ -684,7 +716,7 @@ struct ColorRow<'a, 'o> {
 }
 
 impl SourceUser<()> for ColorRow<'_, '_> {
-    fn run<S: Fn(usize, usize) -> (f32, f32, f32, f32) + Sync>(self, at: &S) {
+    fn run<S: Fn(usize, usize, usize, &mut Batch) + Sync>(self, at: &S) {
         color_row(at, &Planes::of(self.frame), self.i, self.out);
     }
 }
@@ -707,7 +739,7 @@ struct ChainHop<'a> {
 }
 
 impl SourceUser<Chain> for ChainHop<'_> {
-    fn run<S: Fn(usize, usize) -> (f32, f32, f32, f32) + Sync>(self, at: &S) -> Chain {
+    fn run<S: Fn(usize, usize, usize, &mut Batch) + Sync>(self, at: &S) -> Chain {
         let frame = self.frame;
         let (w, h) = (frame.color.width, frame.color.height);
         let n = w * h;
