@@ -106,8 +106,14 @@ pub fn run_ops(
             }
             // Only the hole pixels of history frame `k` are reprojected.
             holes = stages.time("inpaint", || {
+                let at = history.sampler(k);
                 pool.install(|| {
-                    inpaint::fill_from_history_with(img, hh.rect, |i, j| history.sample(k, i, j))
+                    inpaint::fill_from_history_with(
+                        img,
+                        hh.rect,
+                        |i, j| at.at(i, j),
+                        |i, j, out| at.span(i, j, out),
+                    )
                 })
             });
             k += 1;

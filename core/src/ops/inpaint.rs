@@ -39,30 +39,56 @@ pub fn fill_from_history(img: &mut Image, history: &ReprojectedFrame, rect: Rect
     assert_eq!(history.color.len(), n, "history and frame sizes differ");
     let w = img.width;
     let (hist, valid) = (&history.color.data, &history.valid);
-    fill_from_history_with(img, rect, |y, x| {
-        let p = y * w + x;
-        (
-            [hist[p], hist[n + p], hist[2 * n + p], hist[3 * n + p]],
-            valid[p],
-        )
-    })
+    fill_from_history_with(
+        img,
+        rect,
+        |y, x| {
+            let p = y * w + x;
+            (
+                [hist[p], hist[n + p], hist[2 * n + p], hist[3 * n + p]],
+                valid[p],
+            )
+        },
+        |y, x0, out| {
+            let s = y * w + x0..y * w + x0 + out[0].len();
+            let [o0, o1, o2, o3, ov] = out;
+            for (c, o) in [o0, o1, o2, o3].into_iter().enumerate() {
+                o.copy_from_slice(&hist[c * n + s.start..c * n + s.end]);
+            }
+            ov.copy_from_slice(&valid[s]);
+        },
+    )
 }
 
-/// [`fill_from_history`] with the history given pixel by pixel:
-/// `sample(row, column)` is the reprojected history's RGBA and validity
-/// there (as [`crate::temporal::HistoryView::sample`] gives them), asked
-/// only at hole pixels, once each, from the pool's threads. Holes are
-/// usually a small part of the frame, so this costs far less than
-/// reprojecting the whole frame.
-pub fn fill_from_history_with<F>(img: &mut Image, rect: Rect, sample: F) -> Option<Holes>
+/// Hole runs at least this long take the history as a run
+/// (`fill_from_history_with`'s `span`), shorter ones pixel by pixel.
+const MIN_RUN: usize = 8;
+
+/// [`fill_from_history`] with the history given pixel by pixel or in runs
+/// of a row: `sample(row, column)` is the reprojected history's RGBA and
+/// validity there, and `span(row, x0, out)` writes the same for columns
+/// `x0..x0 + out[0].len()` into `out` (RGBA, validity), as
+/// [`crate::temporal::Sampler`] gives them; asked only at hole pixels, once
+/// each, from the pool's threads (runs of [`MIN_RUN`] or more hole pixels
+/// through `span`). Holes are usually a small part of the frame, so this
+/// costs far less than reprojecting the whole frame.
+pub fn fill_from_history_with<F, S>(
+    img: &mut Image,
+    rect: Rect,
+    sample: F,
+    span: S,
+) -> Option<Holes>
 where
     F: Fn(usize, usize) -> ([f32; 4], f32) + Sync,
+    S: Fn(usize, usize, [&mut [f32]; 5]) + Sync,
 {
     let w = img.width;
     let parts: Vec<Option<(Rect, usize)>> = par_bands_mut(img, rect.y0, rect.y1)
         .map(|(y0, [r, g, b, a])| {
             let mut found: Option<(Rect, usize)> = None;
             let rows = a.len() / w;
+            // One run of history: R, G, B, A, validity (`w` each).
+            let mut run = Vec::new();
             for dy in 0..rows {
                 let y = y0 + dy;
                 if super::row_min(&a[dy * w + rect.x0..dy * w + rect.x1]) >= FULL {
@@ -71,13 +97,41 @@ where
                 let mut first = None;
                 let mut last = 0;
                 let mut count = 0;
+                // Columns `run_at..run_end` of the row are in `run`; the
+                // short run being sampled pixel by pixel ends at `short_end`.
+                let (mut run_at, mut run_end, mut short_end) = (0, 0, 0);
                 for x in rect.x0..rect.x1 {
                     let i = dy * w + x;
                     let cov = a[i];
                     if cov >= FULL {
                         continue;
                     }
-                    let (hc, v) = sample(y, x);
+                    if x >= run_end && x >= short_end {
+                        // A new run of holes: taken as a run when long enough.
+                        let end = a[i..dy * w + rect.x1]
+                            .iter()
+                            .position(|&c| c >= FULL)
+                            .map_or(rect.x1, |e| x + e);
+                        if end - x >= MIN_RUN {
+                            if run.is_empty() {
+                                run = vec![0.0f32; 5 * w];
+                            }
+                            let n = end - x;
+                            let mut parts = run.chunks_mut(w).map(|p| &mut p[..n]);
+                            let out = std::array::from_fn(|_| parts.next().expect("5 planes"));
+                            span(y, x, out);
+                            (run_at, run_end) = (x, end);
+                        } else {
+                            short_end = end;
+                        }
+                    }
+                    let (hc, v) = if x < run_end {
+                        let t = x - run_at;
+                        let q = |c: usize| run[c * w + t];
+                        ([q(0), q(1), q(2), q(3)], q(4))
+                    } else {
+                        sample(y, x)
+                    };
                     let ha = hc[3];
                     let mut cov_new = cov;
                     if v > 0.0 && ha > 0.0 {

@@ -56,6 +56,59 @@ pub struct HistoryView<'a> {
     maps: Vec<OnceLock<reproject::CameraMap>>,
 }
 
+/// Samples of one history frame reprojected into the current view
+/// ([`HistoryView::sampler`]): [`Sampler::at`] one pixel, [`Sampler::span`]
+/// a run of a row, the same values as [`HistoryView::sample`] bit for bit.
+pub struct Sampler<'v> {
+    view: &'v HistoryView<'v>,
+    k: usize,
+    hop: Option<(Source<'v>, &'v HistoryFrame)>,
+}
+
+impl Sampler<'_> {
+    /// RGBA and validity at pixel (row `i`, column `j`).
+    ///
+    /// # Panics
+    /// When the pixel is outside the frame.
+    pub fn at(&self, i: usize, j: usize) -> ([f32; 4], f32) {
+        match self.hop {
+            Some((src, frame)) => {
+                let (w, h) = (self.view.current.width(), self.view.current.height());
+                assert!(i < h && j < w, "pixel ({j}, {i}) outside the {w}x{h} frame");
+                reproject::hop_color_pixel(src, frame, i, j)
+            }
+            None => self.view.sample(self.k, i, j),
+        }
+    }
+
+    /// Pixels `j0..j0 + n` of row `i`, `n` the length of `out[0]`: RGBA
+    /// into `out[0..4]`, validity into `out[4]` (each at least `n` long).
+    /// Cheaper per pixel than [`Sampler::at`] for runs of more than a few
+    /// pixels (the hop's batched row path).
+    ///
+    /// # Panics
+    /// When the run is outside the frame.
+    pub fn span(&self, i: usize, j0: usize, out: [&mut [f32]; 5]) {
+        let n = out[0].len();
+        let (w, h) = (self.view.current.width(), self.view.current.height());
+        assert!(
+            i < h && j0 + n <= w,
+            "row {i}, columns {j0}..{} outside the {w}x{h} frame",
+            j0 + n
+        );
+        match self.hop {
+            Some((src, frame)) => reproject::hop_color_row(src, frame, i, j0, out),
+            None => {
+                let [o0, o1, o2, o3, ov] = out;
+                for t in 0..n {
+                    let (c, v) = self.view.sample(self.k, i, j0 + t);
+                    (o0[t], o1[t], o2[t], o3[t], ov[t]) = (c[0], c[1], c[2], c[3], v);
+                }
+            }
+        }
+    }
+}
+
 impl Drop for HistoryView<'_> {
     fn drop(&mut self) {
         let Some(rec) = self.recycler else {
@@ -305,7 +358,7 @@ impl<'a> HistoryView<'a> {
         let frame = self.frame(k);
         match self.mode(k) {
             ReprojectionMode::MotionVectors if k == 0 => {
-                reproject::hop_color_row(self.source(0), frame, i, out)
+                reproject::hop_color_row(self.source(0), frame, i, 0, out)
             }
             ReprojectionMode::MotionVectors => copy(self.reproject(k), out),
             ReprojectionMode::DepthCamera => {
@@ -374,6 +427,23 @@ impl<'a> HistoryView<'a> {
             ReprojectionMode::Identity => (frame.color.pixel(i * w + j), 1.0),
             ReprojectionMode::Unavailable => ([0.0; 4], 0.0),
         }
+    }
+
+    /// [`HistoryView::sample`] of history frame `k` for many pixels, one
+    /// at a time or in runs of a row (see [`Sampler`]): what does not change
+    /// from pixel to pixel (the reprojection mode, the source of the hop) is
+    /// resolved once.
+    ///
+    /// # Panics
+    /// When `k >= self.len()`.
+    pub fn sampler(&self, k: usize) -> Sampler<'_> {
+        assert!(k < self.len(), "history frame {k} of {}", self.len());
+        // The common case: frame 0 by motion vectors, not reprojected whole.
+        let hop = (k == 0
+            && self.cache.first().and_then(OnceLock::get).is_none()
+            && self.mode(0) == ReprojectionMode::MotionVectors)
+            .then(|| (self.source(0), self.frame(0)));
+        Sampler { view: self, k, hop }
     }
 
     /// Where the motion-vector chain into history frame `k` starts its last hop.
@@ -516,6 +586,23 @@ mod tests {
                         let (c, rest) = rest.split_at_mut(w);
                         let (d, v) = rest.split_at_mut(w);
                         view.reproject_row(k, i, [a, b, c, d, v]);
+                        // A run of the row through the sampler, at an offset.
+                        let (j0, n) = (i % 5, w - i % 5 - i % 3);
+                        let mut run = vec![0.0f32; 5 * n];
+                        {
+                            let (a, rest) = run.split_at_mut(n);
+                            let (b, rest) = rest.split_at_mut(n);
+                            let (c, rest) = rest.split_at_mut(n);
+                            let (d, v) = rest.split_at_mut(n);
+                            view.sampler(k).span(i, j0, [a, b, c, d, v]);
+                        }
+                        for t in 0..n {
+                            let p = i * w + j0 + t;
+                            let wc = [0, 1, 2, 3].map(|c| want.color.plane(c)[p].to_bits());
+                            let got = [0, 1, 2, 3].map(|c| run[c * n + t].to_bits());
+                            assert_eq!(got, wc, "{name}: k {k} span color at ({}, {i})", j0 + t);
+                            assert_eq!(run[4 * n + t].to_bits(), want.valid[p].to_bits());
+                        }
                         for j in 0..w {
                             let p = i * w + j;
                             let wc = [0, 1, 2, 3].map(|c| want.color.plane(c)[p].to_bits());
@@ -532,6 +619,9 @@ mod tests {
                                 wc,
                                 "{name}: k {k} sample at ({j}, {i})"
                             );
+                            assert_eq!(v.to_bits(), want.valid[p].to_bits(), "{name}: k {k}");
+                            let (c, v) = view.sampler(k).at(i, j);
+                            assert_eq!(c.map(f32::to_bits), wc, "{name}: k {k} sampler");
                             assert_eq!(v.to_bits(), want.valid[p].to_bits(), "{name}: k {k}");
                         }
                     }

@@ -649,37 +649,41 @@ impl SourceUser<ReprojectedFrame> for ColorHop<'_> {
         let [c0, c1, c2, c3] = planes4(&mut color);
         let planes = Planes::of(frame);
         par_rows(self.pool, [c0, c1, c2, c3, &mut valid], w, |i, out| {
-            color_row(at, &planes, i, out)
+            color_row(at, &planes, i, 0..w, out)
         });
         ReprojectedFrame { color, valid }
     }
 }
 
 /// Row `i` of the color hop with positions from `at` into the history
-/// frame `planes`: RGBA into `out[0..4]`, validity into `out[4]` (each at
-/// least one row long; the first row's worth is written).
+/// frame `planes`, columns `cols`: RGBA into `out[0..4]`, validity into
+/// `out[4]` (each at least `cols.len()` long; that many are written). Every
+/// pixel's values depend on that pixel alone (not on where a batch starts).
 #[inline(always)]
 fn color_row<S: Fn(usize, usize, usize, &mut Batch)>(
     at: &S,
     planes: &Planes<'_>,
     i: usize,
+    cols: std::ops::Range<usize>,
     out: [&mut [f32]; 5],
 ) {
     let (w, h) = (planes.w, planes.h);
+    assert!(cols.end <= w, "columns {cols:?} outside a row of {w}");
+    let n = cols.len();
     let [r0, r1, r2, r3, rv] = out;
     let (r0, r1, r2, r3, rv) = (
-        &mut r0[..w],
-        &mut r1[..w],
-        &mut r2[..w],
-        &mut r3[..w],
-        &mut rv[..w],
+        &mut r0[..n],
+        &mut r1[..n],
+        &mut r2[..n],
+        &mut r3[..n],
+        &mut rv[..n],
     );
     let mut b = Batch::new();
-    for j0 in (0..w).step_by(BATCH) {
-        let m = BATCH.min(w - j0);
+    for j0 in cols.clone().step_by(BATCH) {
+        let m = BATCH.min(cols.end - j0);
         b.fill(at, i, j0, m, w, h, planes.depth);
         // This batch's outputs: stores without a bounds check each.
-        let s = j0..j0 + m;
+        let s = j0 - cols.start..j0 - cols.start + m;
         let (o0, o1, o2, o3, ov) = (
             &mut r0[s.clone()],
             &mut r1[s.clone()],
@@ -703,21 +707,31 @@ fn color_row<S: Fn(usize, usize, usize, &mut Batch)>(
     }
 }
 
-/// Row `i` of [`hop_color`] alone (the same bits): RGBA into `out[0..4]`,
-/// validity into `out[4]`, each one row long.
-pub(crate) fn hop_color_row(src: Source<'_>, frame: &HistoryFrame, i: usize, out: [&mut [f32]; 5]) {
-    src.with(frame.color.width, ColorRow { frame, i, out });
+/// Row `i` of [`hop_color`] alone (the same bits), columns `j0..j0 + n`
+/// with `n` the length of `out[0]`: RGBA into `out[0..4]`, validity into
+/// `out[4]`.
+pub(crate) fn hop_color_row(
+    src: Source<'_>,
+    frame: &HistoryFrame,
+    i: usize,
+    j0: usize,
+    out: [&mut [f32]; 5],
+) {
+    src.with(frame.color.width, ColorRow { frame, i, j0, out });
 }
 
 struct ColorRow<'a, 'o> {
     frame: &'a HistoryFrame,
     i: usize,
+    j0: usize,
     out: [&'o mut [f32]; 5],
 }
 
 impl SourceUser<()> for ColorRow<'_, '_> {
     fn run<S: Fn(usize, usize, usize, &mut Batch) + Sync>(self, at: &S) {
-        color_row(at, &Planes::of(self.frame), self.i, self.out);
+        let n = self.out[0].len();
+        let cols = self.j0..self.j0 + n;
+        color_row(at, &Planes::of(self.frame), self.i, cols, self.out);
     }
 }
 

@@ -83,6 +83,7 @@ pub fn scene_cut_score(view: &HistoryView<'_>, current: &PreparedFrame) -> Optio
     let n = w * h;
     let cov = current.coverage.as_deref();
     let cur = &current.color.data;
+    let at = view.sampler(0);
     let row_cells = |gy: usize| -> Vec<Cell> {
         let mut cells = vec![Cell::default(); gw];
         for y in (gy * s + step / 2..((gy + 1) * s).min(h)).step_by(step) {
@@ -90,7 +91,7 @@ pub fn scene_cut_score(view: &HistoryView<'_>, current: &PreparedFrame) -> Optio
                 for x in (gx * s + step / 2..((gx + 1) * s).min(w)).step_by(step) {
                     let p = y * w + x;
                     cell.area += 1.0;
-                    let (hist, v) = view.sample(0, y, x);
+                    let (hist, v) = at.at(y, x);
                     if v <= 0.0 {
                         continue;
                     }
