@@ -22,6 +22,10 @@ fn read_image(
     read_image_with(pool, view, img, channels, Vec::new(), fix, |_, _| 0).0
 }
 
+/// The most planes [`read_image_with`] fills in one row pass (RGBA and the
+/// coverage).
+const MAX_PLANES: usize = 5;
+
 /// [`read_image`] of the first `read` channels of `view` into the first
 /// `read` planes of `img`; `rest(y, rows)` then gets row `y` of every plane
 /// (those of `img`, then those of `extra`, each a frame-sized plane) in the
@@ -47,15 +51,19 @@ fn read_image_with(
         .chain(extra)
         .map(|p| p.chunks_mut(w))
         .collect();
-    let rows: Vec<Vec<&mut [f32]>> = (0..h)
+    let count = planes.len();
+    assert!(count <= MAX_PLANES, "{count} planes read together");
+    // Fixed-size rows (the unused entries empty): one allocation, not one per row.
+    let rows: Vec<[&mut [f32]; MAX_PLANES]> = (0..h)
         .map(|_| {
-            planes
+            let mut next = planes
                 .iter_mut()
-                .map(|p| p.next().expect("planes of equal size"))
-                .collect()
+                .map(|p| p.next().expect("planes of equal size"));
+            std::array::from_fn(|_| next.next().unwrap_or_default())
         })
         .collect();
-    let row = |(y, mut outs): (usize, Vec<&mut [f32]>)| -> (usize, usize) {
+    let row = |(y, mut outs): (usize, [&mut [f32]; MAX_PLANES])| -> (usize, usize) {
+        let outs = &mut outs[..count];
         let mut bad = 0;
         view.read_row_channels(y, &mut outs[..read]);
         for (c, out) in outs[..read].iter_mut().enumerate() {
@@ -63,7 +71,7 @@ fn read_image_with(
             // pass vectorizes.
             bad += out.iter_mut().map(|v| u32::from(fix(c, v))).sum::<u32>() as usize;
         }
-        (bad, rest(y, &mut outs))
+        (bad, rest(y, outs))
     };
     let add = |a: (usize, usize), b: (usize, usize)| (a.0 + b.0, a.1 + b.1);
     match pool {
