@@ -69,7 +69,7 @@ const MIN_RUN: usize = 8;
 /// validity there, and `span(row, x0, out)` writes the same for columns
 /// `x0..x0 + out[0].len()` into `out` (RGBA, validity), as
 /// [`crate::temporal::Sampler`] gives them; asked only at hole pixels, once
-/// each, from the pool's threads (runs of [`MIN_RUN`] or more hole pixels
+/// each, from the pool's threads (runs of 8 or more hole pixels
 /// through `span`). Holes are usually a small part of the frame, so this
 /// costs far less than reprojecting the whole frame.
 pub fn fill_from_history_with<F, S>(
