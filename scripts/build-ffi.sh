@@ -41,5 +41,6 @@ subst cmake/harmonizer-config-version.cmake.in >"$PREFIX/lib/cmake/harmonizer/ha
 # The Python binding, with the library next to it (found without HARMONIZER_LIB).
 install -d "$PREFIX/python/harmonizer"
 install -m 644 ffi/python/harmonizer/*.py ffi/python/harmonizer/py.typed "$PREFIX/python/harmonizer/"
+install -m 644 ffi/python/pyproject.toml ffi/python/README.md "$PREFIX/python/"
 install -m 755 "$TARGET_DIR/release/$SHARED" "$PREFIX/python/harmonizer/"
 echo "installed libharmonizer $VERSION into $PREFIX"
