@@ -43,6 +43,12 @@ class ModelConfig:
     # the input color (`residual: true`).
     prior: bool = True
     pushpull_levels: int = 8
+    # How the prior fills: "chain" composites the history frames under the holes
+    # newest first and pulls with the weight clamped to one (the classical
+    # backend's fill, `core/src/ops/inpaint.rs`); "mean" (models before 1.1)
+    # averaged the valid history frames and pulled plain 2x2 averages, which
+    # blurred the fill across the holes (hole PSNR 1.5 dB lower without history).
+    prior_fill: str = "chain"
     # Manifest `premultiplied`: false = the network sees straight color (color /
     # coverage where coverage >= 1e-3, else 0), so the prior's `coverage * color
     # + (1 - coverage) * fill` blends soft edges correctly (premultiplied input
@@ -78,7 +84,7 @@ class ModelConfig:
         d = dict(d)
         d["widths"] = tuple(d["widths"])
         # Configurations saved before the prior existed describe the plain residual UNet.
-        for k, v in (("prior", False), ("stem", 0), ("skip", "cat"), ("premultiplied", True)):
+        for k, v in (("prior", False), ("stem", 0), ("skip", "cat"), ("premultiplied", True), ("prior_fill", "mean")):
             d.setdefault(k, v)
         return ModelConfig(**d)
 
@@ -114,6 +120,31 @@ def push_pull(c: torch.Tensor, w: torch.Tensor, levels: int) -> torch.Tensor:
         up = F.interpolate(f, size=cs[lv].shape[-2:], mode="bilinear", align_corners=False)
         a = (2 * ws[lv]).clamp(0, 1)
         f = cs[lv] / ws[lv].clamp(min=1e-4) * a + up * (1 - a)
+    return f
+
+
+def push_pull_clamped(c: torch.Tensor, w: torch.Tensor, levels: int) -> torch.Tensor:
+    """The classical backend's push-pull (``core/src/ops/inpaint.rs``): ``c``
+    premultiplied by ``w`` in [0, 1]; returns ``c + (1 - w) * fill``.
+
+    Pull: 2x2 sums, with the weight clamped to 1 and the color scaled with it
+    (a coarse pixel is complete as soon as one fine pixel's worth of data falls
+    into it, so known data is not diluted by the holes around it). Push: from
+    the coarsest level up, each level's missing part ``1 - w`` takes the
+    bilinear upsampling of the completed level below."""
+    cs, ws = [c], [w]
+    for _ in range(levels):
+        c = F.avg_pool2d(F.pad(c, (0, 1, 0, 1)), 2) * 4
+        w = F.avg_pool2d(F.pad(w, (0, 1, 0, 1)), 2) * 4
+        k = w.clamp(max=1) / w.clamp(min=1e-12)
+        c = c * k
+        w = w.clamp(max=1)
+        cs.append(c)
+        ws.append(w)
+    f = cs[-1] / ws[-1].clamp(min=1e-4)
+    for lv in range(levels - 1, -1, -1):
+        up = F.interpolate(f, size=cs[lv].shape[-2:], mode="bilinear", align_corners=False)
+        f = cs[lv] + (1 - ws[lv]) * up
     return f
 
 
@@ -180,6 +211,17 @@ class Enhancer(nn.Module):
         (newer frames weigh more), then push-pull of what is known."""
         color = x[:, 0:3]
         cov = x[:, 3:4].clamp(0, 1)
+        if self.cfg.prior_fill == "chain":
+            # Newest history first, each under what is still missing.
+            known = cov * color
+            weight = cov
+            for k in range(self.cfg.context_frames):
+                b = 5 + 4 * k
+                v = x[:, b + 3 : b + 4].clamp(0, 1)
+                m = (1 - weight) * v
+                known = known + m * x[:, b : b + 3]
+                weight = weight + m
+            return push_pull_clamped(known, weight, self.cfg.pushpull_levels)
         hsum = torch.zeros_like(color)
         wsum = torch.zeros_like(cov)
         vsum = torch.zeros_like(cov)

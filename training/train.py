@@ -1,4 +1,4 @@
-"""Trains the temporal enhancer on rendered samples (PyTorch, CPU).
+"""Trains the temporal enhancer on rendered samples (PyTorch; CPU, or a GPU with --device cuda).
 
     .venv-train/bin/python -m training.train --data training/data --run training/runs/main --steps 20000
 
@@ -68,6 +68,12 @@ def make_batch(cache: SampleCache, rng: np.random.Generator, cfg: dict, key: flo
     crop_h, crop_w = cfg["crop"]
     items = []
     temporal = rng.random() >= cfg["p_no_history"]
+    # Frames before the window that fill the history (one count for the whole
+    # batch, so the windows stack): mostly a full history of K frames, as in
+    # a long sequence, sometimes fewer (the start of a sequence, a reset).
+    want_pre = 0
+    if temporal:
+        want_pre = K if rng.random() < cfg.get("p_full_prefill", 0.7) else int(rng.integers(0, K + 1))
     for _ in range(B):
         scene = cache.scenes[int(rng.integers(len(cache.scenes)))]
         names = cache.streams[str(scene)]
@@ -75,8 +81,8 @@ def make_batch(cache: SampleCache, rng: np.random.Generator, cfg: dict, key: flo
         s = cache.get(scene, stream)
         T, H, W = s["input"].shape[:3]
         unroll = min(L, T) if temporal else 1
-        start = int(rng.integers(0, T - unroll + 1))
-        pre = min(start, K) if temporal else 0
+        pre = min(want_pre, T - unroll)
+        start = int(rng.integers(pre, T - unroll + 1))
         fr = list(range(start - pre, start + unroll))
         ch = min(crop_h, H) // 16 * 16
         cw = min(crop_w, W) // 16 * 16
@@ -127,6 +133,26 @@ def make_batch(cache: SampleCache, rng: np.random.Generator, cfg: dict, key: flo
         "prefill": min(pre, F_ - 1),
         "temporal": temporal,
     }
+
+
+def batch_rng(seed: int, step: int) -> np.random.Generator:
+    """The generator that draws batch ``step``."""
+    return np.random.default_rng([seed, step])
+
+
+class Batches(torch.utils.data.Dataset):
+    """Batches ``first..last`` by index, for a ``DataLoader`` with workers
+    (each worker loads and caches samples itself)."""
+
+    def __init__(self, cache: SampleCache, cfg: dict, key: float, first: int, last: int):
+        self.cache, self.cfg, self.key, self.first, self.last = cache, cfg, key, first, last
+
+    def __len__(self) -> int:
+        return max(self.last - self.first, 0)
+
+    def __getitem__(self, i: int) -> dict:
+        step = self.first + i
+        return make_batch(self.cache, batch_rng(self.cfg["seed"], step), self.cfg, self.key)
 
 
 # ---------------------------------------------------------------------------
@@ -185,6 +211,7 @@ def run_window(model: Enhancer, batch: dict, cfg: dict, rng: np.random.Generator
     loss = inp.new_zeros(())
     prev_out = None
     n_frames = 0
+    self_prefill = rng.random() < cfg.get("p_self_prefill", 0.0)
     for f in range(Fr):
         if f > 0:
             d_prev, d_cur, mv = dep[:, f - 1], dep[:, f], mot[:, f]
@@ -194,11 +221,19 @@ def run_window(model: Enhancer, batch: dict, cfg: dict, rng: np.random.Generator
         scale = batch["scale"][:, f] if "scale" in batch else frame_scale(rgba, mcfg.key)
         gt_enc = encode(tgt[:, f], scale, mcfg.log_range)
         if f < pre:
-            # Prefill: a near-truth "enhanced" frame (small random gain and blur).
-            g = torch.from_numpy(np.exp(rng.normal(0, 0.03, (tgt.shape[0], 3, 1, 1))).astype(np.float32))
-            pseudo = tgt[:, f] * g
-            if rng.random() < 0.5:
-                pseudo = F.avg_pool2d(pseudo, 3, 1, 1, count_include_pad=False)
+            if self_prefill:
+                # Prefill with the model's own outputs (no gradient), as at run
+                # time: the history then holds the model's own errors, and the
+                # network learns not to amplify them frame after frame.
+                with torch.no_grad():
+                    pseudo = decode(model(assemble_input(mcfg, rgba, ins[:, f], hist, scale)), scale, mcfg.log_range)
+            else:
+                # A near-truth "enhanced" frame (small random gain and blur).
+                g = np.exp(rng.normal(0, 0.03, (tgt.shape[0], 3, 1, 1))).astype(np.float32)
+                g = torch.from_numpy(g).to(tgt.device)
+                pseudo = tgt[:, f] * g
+                if rng.random() < 0.5:
+                    pseudo = F.avg_pool2d(pseudo, 3, 1, 1, count_include_pad=False)
             hist = [(pseudo, torch.ones_like(rgba[:, 3:4]))] + hist
             hist = hist[: mcfg.context_frames]
             continue
@@ -206,7 +241,10 @@ def run_window(model: Enhancer, batch: dict, cfg: dict, rng: np.random.Generator
         out = model(x)
         # Losses see the encoding times loss_gain (the default encoding puts the log-average at 0.4).
         lg = cfg["loss_gain"]
-        l2 = F.mse_loss(out * lg, gt_enc * lg)
+        # Holes (coverage below 1) weigh 1 + w_hole: they are a small share of
+        # the pixels but where the input says nothing.
+        wmap = 1 + cfg.get("w_hole", 0.0) * (1 - rgba[:, 3:4].clamp(0, 1))
+        l2 = (((out - gt_enc) * lg) ** 2 * wmap).mean()
         pl = patch_loss(out * lg, gt_enc * lg, rng, cfg["patches"])
         loss = loss + l2 * cfg["w_l2"] + pl * cfg["w_patch"]
         parts["l2"] += l2.item()
@@ -267,21 +305,52 @@ def add_args(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--clip", type=float, default=0.5, help="gradient norm clip")
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument(
+        "--device",
+        default="cpu",
+        help="torch device of the network and losses (cpu, cuda); batches are made on the CPU",
+    )
     ap.add_argument("--widths", type=int, nargs="+", default=[16, 32, 48, 64])
     ap.add_argument("--stem", type=int, default=24, help="1x1 stem width (0: none)")
     ap.add_argument("--enc-convs", type=int, default=2)
     ap.add_argument("--dec-convs", type=int, default=2)
     ap.add_argument("--skip", choices=("add", "cat"), default="add")
     ap.add_argument("--no-prior", action="store_true", help="plain residual UNet, no in-graph prior")
+    ap.add_argument("--prior-fill", choices=("chain", "mean"), default="chain", help="how the prior fills holes")
+    ap.add_argument(
+        "--init",
+        type=Path,
+        help="start from this checkpoint's weights and architecture (fine-tuning; --prior-fill still applies)",
+    )
     ap.add_argument("--rescan-every", type=int, default=200, help="pick up newly rendered scenes every N steps")
     ap.add_argument("--context-frames", type=int, default=4)
     ap.add_argument("--p-no-history", type=float, default=0.3, help="share of non-temporal batches")
+    ap.add_argument(
+        "--p-full-prefill",
+        type=float,
+        default=0.7,
+        help="share of temporal batches whose history starts full (K frames before the window); else 0..K",
+    )
     ap.add_argument("--p-drop-insert", type=float, default=0.2)
+    ap.add_argument(
+        "--p-self-prefill",
+        type=float,
+        default=0.5,
+        help="share of windows whose history frames come from the model itself (else near-truth frames)",
+    )
     ap.add_argument("--patches", type=int, default=4)
     ap.add_argument("--loss-gain", type=float, default=1.0, help="encoded color is scaled by this in the losses")
     ap.add_argument("--w-l2", type=float, default=1.0)
     ap.add_argument("--w-patch", type=float, default=0.2)
     ap.add_argument("--w-temporal", type=float, default=0.5)
+    ap.add_argument("--w-hole", type=float, default=2.0, help="extra L2 weight in holes (coverage 0)")
+    ap.add_argument(
+        "--workers",
+        type=int,
+        default=0,
+        help="processes that make batches ahead (0: in the training loop; the scene list is then fixed at the start)",
+    )
+    ap.add_argument("--cache-samples", type=int, default=64, help="(scene, stream) samples kept in memory")
     ap.add_argument("--ckpt-every", type=int, default=200)
     ap.add_argument("--log-every", type=int, default=20)
 
@@ -305,12 +374,15 @@ def main(argv: list[str] | None = None) -> int:
         "unroll": args.unroll,
         "context_frames": args.context_frames,
         "p_no_history": args.p_no_history,
+        "p_full_prefill": args.p_full_prefill,
         "p_drop_insert": args.p_drop_insert,
+        "p_self_prefill": args.p_self_prefill,
         "patches": args.patches,
         "loss_gain": args.loss_gain,
         "w_l2": args.w_l2,
         "w_patch": args.w_patch,
         "w_temporal": args.w_temporal,
+        "w_hole": args.w_hole,
         "lr": args.lr,
         "seed": args.seed,
     }
@@ -327,6 +399,14 @@ def main(argv: list[str] | None = None) -> int:
         step = ck["step"]
         cfg = {**ck["cfg"], **{k: cfg[k] for k in ("lr",)}}
         print(f"train: resumed {ckpt_path} at step {step}", flush=True)
+    elif args.init:
+        init = load_checkpoint(args.init)
+        mcfg = ModelConfig.from_dict({**init["model_cfg"], "prior_fill": args.prior_fill})
+        model = Enhancer(mcfg)
+        model.load_state_dict(init["model"])
+        opt = torch.optim.Adam(model.parameters(), lr=args.lr)
+        cfg["init"] = str(args.init)
+        print(f"train: starting from the weights of {args.init} (step {init['step']})", flush=True)
     else:
         mcfg = ModelConfig(
             context_frames=args.context_frames,
@@ -336,23 +416,44 @@ def main(argv: list[str] | None = None) -> int:
             dec_convs=args.dec_convs,
             skip=args.skip,
             prior=not args.no_prior,
+            prior_fill=args.prior_fill,
         )
         model = Enhancer(mcfg)
         opt = torch.optim.Adam(model.parameters(), lr=args.lr)
-    cache = SampleCache(scenes)
+    device = torch.device(args.device)
+    model.to(device)
+    if ckpt_path.exists():
+        # The optimizer state follows the parameters' device.
+        opt.load_state_dict(ck["opt"])
+    cache = SampleCache(scenes, args.cache_samples)
     log = open(args.run / "train.log", "a")
     t0 = time.time()
     model.train()
+    batches = None
+    if args.workers > 0:
+        # Batch i is made from (seed, i) alone, so workers give the same batches in the same order.
+        loader = torch.utils.data.DataLoader(
+            Batches(cache, cfg, mcfg.key, step, args.steps),
+            batch_size=None,
+            num_workers=args.workers,
+            prefetch_factor=4,
+            persistent_workers=False,
+        )
+        batches = iter(loader)
     while step < args.steps:
-        if args.rescan_every > 0 and step % args.rescan_every == 0:
+        if batches is None and args.rescan_every > 0 and step % args.rescan_every == 0:
             found = list_scenes(args.data, "train")
             if len(found) != len(cache.scenes):
                 print(f"train: {len(found)} training scenes", flush=True)
                 cache.scenes = found
                 cache.streams = {str(p): scene_streams(p) for p in found}
-        rng = np.random.default_rng([cfg["seed"], step])
         torch.manual_seed(cfg["seed"] * 1_000_003 + step)
-        batch = make_batch(cache, rng, cfg, mcfg.key)
+        if batches is None:
+            batch = make_batch(cache, batch_rng(cfg["seed"], step), cfg, mcfg.key)
+        else:
+            batch = next(batches)
+        rng = np.random.default_rng([cfg["seed"], step, 1])
+        batch = {k: v.to(device) if isinstance(v, torch.Tensor) else v for k, v in batch.items()}
         # Cosine learning rate with a short warm-up.
         warmup = max(1, min(200, args.steps // 10))
         lr = (
