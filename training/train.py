@@ -108,6 +108,16 @@ def make_batch(cache: SampleCache, rng: np.random.Generator, cfg: dict, key: flo
         # The runtime computes the exposure scale over the whole frame, not the crop.
         full = s["input"][fr].copy()
         full[..., :3] *= g
+        # Exposure and white-balance flicker (per-view appearance of a
+        # reconstruction, auto exposure): a gain per frame on the input only;
+        # the target stays steady, so the history is what tells the network
+        # the right level.
+        if rng.random() < cfg.get("p_flicker", 0.0):
+            sigma = rng.uniform(0.03, 0.15)
+            gain = rng.normal(0, sigma, (len(fr), 1, 1, 1)) + rng.normal(0, 0.3 * sigma, (len(fr), 1, 1, 3))
+            gain = np.exp(gain).astype(np.float32)
+            inp[..., :3] *= gain
+            full[..., :3] *= gain
         with torch.no_grad():
             scale = frame_scale(torch.from_numpy(full.transpose(0, 3, 1, 2).copy()), key).numpy()
         items.append((inp, tgt, dep, mot, ins, shd, pre, scale))
@@ -332,6 +342,7 @@ def add_args(ap: argparse.ArgumentParser) -> None:
         help="share of temporal batches whose history starts full (K frames before the window); else 0..K",
     )
     ap.add_argument("--p-drop-insert", type=float, default=0.2)
+    ap.add_argument("--p-flicker", type=float, default=0.25, help="share of items with per-frame exposure flicker")
     ap.add_argument(
         "--p-self-prefill",
         type=float,
@@ -376,6 +387,7 @@ def main(argv: list[str] | None = None) -> int:
         "p_no_history": args.p_no_history,
         "p_full_prefill": args.p_full_prefill,
         "p_drop_insert": args.p_drop_insert,
+        "p_flicker": args.p_flicker,
         "p_self_prefill": args.p_self_prefill,
         "patches": args.patches,
         "loss_gain": args.loss_gain,
