@@ -93,9 +93,9 @@ echo "== train 2 steps"
 "$train_py" -m training.train --data "$work/data" --run "$work/run" --steps 2 --batch 1 --crop 48 64 \
   --unroll 2 --widths 8 8 12 16 --log-every 1 --ckpt-every 1 --p-no-history 0
 
-echo "== resume to step 3"
+echo "== resume to step 3 (batches made ahead by a worker process)"
 "$train_py" -m training.train --data "$work/data" --run "$work/run" --steps 3 --batch 1 --crop 48 64 \
-  --unroll 2 --log-every 1 --ckpt-every 1 | tee "$work/resume.log"
+  --unroll 2 --log-every 1 --ckpt-every 1 --workers 1 | tee "$work/resume.log"
 grep -q "resumed .* at step 2" "$work/resume.log"
 
 echo "== export"

@@ -155,3 +155,64 @@ def test_training_steps_reduce_the_loss_on_a_fixed_window():
         losses.append(parts["l2"])
     assert len(outs) == fr - 1  # the prefilled frame is not predicted
     assert np.mean(losses[-5:]) < 0.3 * np.mean(losses[:3])
+
+
+class _FakeCache:
+    """A SampleCache stand-in: one scene, one stream, T frames of noise."""
+
+    def __init__(self, t=8, h=32, w=48):
+        rng = np.random.default_rng(3)
+        self.scenes = ["scene"]
+        self.streams = {"scene": ["s5_noise"]}
+        rgb = rng.random((t, h, w, 3)).astype(np.float32) + 0.05
+        self.sample = {
+            "input": np.concatenate([rgb, np.ones((t, h, w, 1), np.float32)], -1),
+            "target": rgb.copy(),
+            "depth": np.full((t, h, w), 3.0, np.float32),
+            "motion": np.zeros((t, h, w, 2), np.float32),
+            "mask_insert": np.zeros((t, h, w), np.float32),
+            "mask_shadow": np.zeros((t, h, w), np.float32),
+        }
+
+    def get(self, scene, stream):
+        return self.sample
+
+
+def _batch_cfg(**kw):
+    cfg = {
+        "batch": 3,
+        "context_frames": 4,
+        "unroll": 3,
+        "crop": [32, 48],
+        "p_no_history": 0.0,
+        "p_drop_insert": 0.0,
+        "p_full_prefill": 1.0,
+        "p_flicker": 0.0,
+    }
+    cfg.update(kw)
+    return cfg
+
+
+def test_batches_carry_a_full_history_before_the_window():
+    from training.train import make_batch
+
+    cache = _FakeCache()
+    for step in range(6):
+        b = make_batch(cache, np.random.default_rng([0, step]), _batch_cfg())
+        # K = 4 frames before the 3 trained ones, for every item of the batch.
+        assert b["prefill"] == 4 and b["input"].shape[1] == 7
+    b = make_batch(cache, np.random.default_rng(1), _batch_cfg(p_no_history=1.0))
+    assert b["prefill"] == 0 and b["input"].shape[1] == 1 and not b["temporal"]
+
+
+def test_flicker_changes_the_input_per_frame_and_not_the_target():
+    from training.train import make_batch
+
+    cache = _FakeCache()
+    # One item: the flicker's own draws come after everything else of it.
+    steady = make_batch(cache, np.random.default_rng(5), _batch_cfg(batch=1))
+    flicker = make_batch(cache, np.random.default_rng(5), _batch_cfg(batch=1, p_flicker=1.0))
+    assert torch.equal(steady["target"], flicker["target"])
+    ratio = (flicker["input"][:, :, :3] / steady["input"][:, :, :3]).mean(dim=(3, 4))  # [1, F, 3]
+    assert (ratio.std(dim=1) > 1e-3).all()  # a different gain every frame
+    assert torch.equal(flicker["input"][:, :, 3], steady["input"][:, :, 3])  # coverage untouched
