@@ -361,6 +361,13 @@ def add_args(ap: argparse.ArgumentParser) -> None:
         default=0,
         help="processes that make batches ahead (0: in the training loop; the scene list is then fixed at the start)",
     )
+    ap.add_argument(
+        "--time-limit",
+        type=float,
+        default=0.0,
+        help="seconds: the learning-rate schedule also follows the time and training ends when it is up "
+        "(a checkpoint is written; the steps reached then depend on the machine)",
+    )
     ap.add_argument("--cache-samples", type=int, default=64, help="(scene, stream) samples kept in memory")
     ap.add_argument("--ckpt-every", type=int, default=200)
     ap.add_argument("--log-every", type=int, default=20)
@@ -466,14 +473,16 @@ def main(argv: list[str] | None = None) -> int:
             batch = next(batches)
         rng = np.random.default_rng([cfg["seed"], step, 1])
         batch = {k: v.to(device) if isinstance(v, torch.Tensor) else v for k, v in batch.items()}
-        # Cosine learning rate with a short warm-up.
+        # Cosine learning rate with a short warm-up, over the steps or, with
+        # --time-limit, over whichever of steps and time runs out first.
+        progress = step / max(args.steps, 1)
+        if args.time_limit > 0:
+            progress = max(progress, (time.time() - t0) / args.time_limit)
+            if progress >= 1.0:
+                print(f"train: time limit of {args.time_limit:.0f} s reached at step {step}", flush=True)
+                break
         warmup = max(1, min(200, args.steps // 10))
-        lr = (
-            cfg["lr"]
-            * min(1.0, (step + 1) / warmup)
-            * 0.5
-            * (1 + math.cos(math.pi * min(step / max(args.steps, 1), 1.0)))
-        )
+        lr = cfg["lr"] * min(1.0, (step + 1) / warmup) * 0.5 * (1 + math.cos(math.pi * min(progress, 1.0)))
         for gparam in opt.param_groups:
             gparam["lr"] = lr
         loss, parts, _ = run_window(model, batch, cfg, rng)
