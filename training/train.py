@@ -285,13 +285,15 @@ def run_window(model: Enhancer, batch: dict, cfg: dict, rng: np.random.Generator
 # Checkpoints
 
 
-def save_checkpoint(path: Path, model, opt, step: int, cfg: dict) -> None:
+def save_checkpoint(path: Path, model, opt, step: int, cfg: dict, seconds: float = 0.0) -> None:
+    """Writes the checkpoint atomically; ``seconds``: training time so far, over all resumptions."""
     tmp = path.with_suffix(".tmp")
     torch.save(
         {
             "model": model.state_dict(),
             "opt": opt.state_dict(),
             "step": step,
+            "seconds": seconds,
             "cfg": cfg,
             "model_cfg": model.cfg.to_dict(),
         },
@@ -365,8 +367,14 @@ def add_args(ap: argparse.ArgumentParser) -> None:
         "--time-limit",
         type=float,
         default=0.0,
-        help="seconds: the learning-rate schedule also follows the time and training ends when it is up "
-        "(a checkpoint is written; the steps reached then depend on the machine)",
+        help="seconds of training over all resumptions: the learning-rate schedule also follows the time and "
+        "training ends when it is up (a checkpoint is written; the steps reached then depend on the machine)",
+    )
+    ap.add_argument(
+        "--stop-after",
+        type=float,
+        default=0.0,
+        help="seconds: end this run with a checkpoint after this long; rerunning continues the same schedule",
     )
     ap.add_argument("--cache-samples", type=int, default=64, help="(scene, stream) samples kept in memory")
     ap.add_argument("--ckpt-every", type=int, default=200)
@@ -408,6 +416,7 @@ def main(argv: list[str] | None = None) -> int:
     ckpt_path = args.run / "ckpt_last.pt"
     torch.manual_seed(args.seed)
     step = 0
+    seconds_before = 0.0
     if ckpt_path.exists():
         ck = load_checkpoint(ckpt_path)
         mcfg = ModelConfig.from_dict(ck["model_cfg"])
@@ -416,6 +425,7 @@ def main(argv: list[str] | None = None) -> int:
         opt = torch.optim.Adam(model.parameters(), lr=args.lr)
         opt.load_state_dict(ck["opt"])
         step = ck["step"]
+        seconds_before = float(ck.get("seconds", 0.0))
         cfg = {**ck["cfg"], **{k: cfg[k] for k in ("lr",)}}
         print(f"train: resumed {ckpt_path} at step {step}", flush=True)
     elif args.init:
@@ -477,10 +487,13 @@ def main(argv: list[str] | None = None) -> int:
         # --time-limit, over whichever of steps and time runs out first.
         progress = step / max(args.steps, 1)
         if args.time_limit > 0:
-            progress = max(progress, (time.time() - t0) / args.time_limit)
+            progress = max(progress, (seconds_before + time.time() - t0) / args.time_limit)
             if progress >= 1.0:
                 print(f"train: time limit of {args.time_limit:.0f} s reached at step {step}", flush=True)
                 break
+        if args.stop_after > 0 and time.time() - t0 >= args.stop_after:
+            print(f"train: stopping after {args.stop_after:.0f} s at step {step} (rerun to continue)", flush=True)
+            break
         warmup = max(1, min(200, args.steps // 10))
         lr = cfg["lr"] * min(1.0, (step + 1) / warmup) * 0.5 * (1 + math.cos(math.pi * min(progress, 1.0)))
         for gparam in opt.param_groups:
@@ -501,8 +514,8 @@ def main(argv: list[str] | None = None) -> int:
             log.write(json.dumps(rec) + "\n")
             log.flush()
         if step % args.ckpt_every == 0 or step == args.steps:
-            save_checkpoint(ckpt_path, model, opt, step, cfg)
-    save_checkpoint(ckpt_path, model, opt, step, cfg)
+            save_checkpoint(ckpt_path, model, opt, step, cfg, seconds_before + time.time() - t0)
+    save_checkpoint(ckpt_path, model, opt, step, cfg, seconds_before + time.time() - t0)
     print(f"train: done at step {step}; checkpoint {ckpt_path}", flush=True)
     return 0
 
