@@ -166,6 +166,45 @@ static void test_version(void) {
     CHECK(strcmp(hz_status_name(HZ_ERROR_CANCELLED), "HZ_ERROR_CANCELLED") == 0, "status name");
 }
 
+/* A session left at its defaults runs the embedded network when ONNX Runtime is
+   found (HARMONIZER_ORT_LIB, ORT_DYLIB_PATH or the project's .venv; the test
+   scripts set the first), else the classical backend (auto's fallback), saying
+   why in the first frame's report. With HARMONIZER_ORT_LIB set, it must be the
+   network. */
+static void test_default_backend(hz_device *device) {
+    size_t w = 64, h = 48, i, first_warnings = 0;
+    int t, must_be_neural = getenv("HARMONIZER_ORT_LIB") != NULL, neural;
+    hz_session *s = NULL;
+    float *out = alloc_floats(w * h * 4);
+    char name[64];
+    size_t len = 0;
+    CHECK_OK(hz_session_new(device, &s));
+    for (t = 0; t < 3; t++) {
+        frame_data f = make_frame(w, h, t);
+        frame_desc d;
+        hz_image o = image(out, w, h, 4, 0);
+        int finite = 1;
+        describe(&d, &f, t, 1);
+        CHECK_OK(hz_session_process(s, &d.frame, &o));
+        for (i = 0; i < w * h * 4; i++) finite &= isfinite(out[i]) && out[i] >= 0.0f;
+        CHECK(finite, "default backend, frame %d output finite and non-negative", t);
+        i = (h / 3 + h / 12) * w + (w / 3 + w / 12);
+        CHECK(f.coverage[i] == 0.0f && out[i * 4 + 3] > 0.99f, "default backend, frame %d hole alpha %f", t,
+              out[i * 4 + 3]);
+        if (t == 0) first_warnings = report_of(s).warning_count;
+        free_frame(&f);
+    }
+    CHECK_OK(hz_session_get_backend_name(s, name, sizeof name, &len));
+    neural = strcmp(name, "neural") == 0;
+    CHECK(neural || (!must_be_neural && strcmp(name, "classical") == 0 && first_warnings > 0),
+          "default backend %s (HARMONIZER_ORT_LIB %s, %zu warnings)", name, must_be_neural ? "set" : "not set",
+          first_warnings);
+    CHECK_OK(hz_session_get_model_name(s, name, sizeof name, &len));
+    CHECK(neural ? strcmp(name, "harmonizer-small") == 0 : len == 0, "default model '%s'", name);
+    free(out);
+    CHECK_OK(hz_session_free(s));
+}
+
 static void test_sequence(hz_device *device) {
     size_t w = 64, h = 48, i;
     int t;
@@ -611,6 +650,7 @@ int main(void) {
         CHECK(threads == 2, "threads %u", threads);
     }
     test_sequence(device);
+    test_default_backend(device);
     test_in_place_strided(device);
     test_nan_inf(device);
     test_bad_arguments(device);
