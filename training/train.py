@@ -450,6 +450,9 @@ def main(argv: list[str] | None = None) -> int:
         model = Enhancer(mcfg)
         opt = torch.optim.Adam(model.parameters(), lr=args.lr)
     device = torch.device(args.device)
+    if device.type == "cuda":
+        # Few distinct shapes (the crop and the patch sizes): let cuDNN pick its kernels.
+        torch.backends.cudnn.benchmark = True
     model.to(device)
     if ckpt_path.exists():
         # The optimizer state follows the parameters' device.
