@@ -361,7 +361,8 @@ def add_args(ap: argparse.ArgumentParser) -> None:
         "--workers",
         type=int,
         default=0,
-        help="processes that make batches ahead (0: in the training loop; the scene list is then fixed at the start)",
+        help="processes that make batches ahead (the scene list is then read once, at the start); "
+        "0: batches are made in the training loop",
     )
     ap.add_argument(
         "--time-limit",
