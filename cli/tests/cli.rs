@@ -31,38 +31,33 @@ fn sequence(dir: &Path, config: SynthConfig) -> (Sequence, String) {
 mod run {
     use super::*;
 
-    /// The acceptance run: 24 frames of 320x180 with holes, an
-    /// inserted object and flicker, classical backend. Thresholds: the
-    /// output's PSNR in holes is at least 6 dB above the input's, and its
-    /// warping error is below 0.8x the input's.
-    #[test]
-    fn classical_fills_holes_and_reduces_flicker() {
-        let dir = tempfile::tempdir().unwrap();
-        let (seq, input) = sequence(dir.path(), SynthConfig::default());
+    /// What one `harmonize run` over the acceptance sequence gave.
+    struct Acceptance {
+        hole_in: f64,
+        hole_out: f64,
+        warp_in: f64,
+        warp_out: f64,
+        stdout: String,
+        report: serde_json::Value,
+        output: FramePattern,
+    }
+
+    /// Runs `harmonize run` (with `extra` arguments) over the acceptance
+    /// sequence: 24 frames of 320x180 with holes, an inserted object and flicker.
+    fn run_acceptance(dir: &Path, extra: &[&str]) -> Acceptance {
+        let (seq, input) = sequence(dir, SynthConfig::default());
         let out = dir
-            .path()
             .join("out")
             .join("shot.####.exr")
             .to_string_lossy()
             .to_string();
-        let report = dir.path().join("report.json");
-        let o = harmonize(&[
-            "run",
-            &input,
-            "-o",
-            &out,
-            "--backend",
-            "classical",
-            "--threads",
-            "2",
-            "--report",
-            report.to_str().unwrap(),
-        ]);
+        let report = dir.join("report.json");
+        let mut args = vec!["run", &input, "-o", &out, "--threads", "2", "--report"];
+        args.push(report.to_str().unwrap());
+        args.extend_from_slice(extra);
+        let o = harmonize(&args);
         let (stdout, stderr) = text(&o);
         assert!(o.status.success(), "stdout: {stdout}\nstderr: {stderr}");
-        assert!(stdout.contains("24 frame(s)"), "{stdout}");
-        assert!(stdout.contains("sanitized color samples"), "{stdout}");
-
         let op = FramePattern::parse(&out).unwrap();
         let outs: Vec<Vec<f32>> = (1..=24)
             .map(|n| {
@@ -76,22 +71,45 @@ mod run {
             })
             .collect();
         let ins: Vec<Vec<f32>> = seq.frames.iter().map(|f| f.input.color.clone()).collect();
-        let (hole_in, hole_out) = (seq.psnr(&ins, 4, "holes"), seq.psnr(&outs, 4, "holes"));
-        let (we_in, we_out) = (seq.warping_error(&ins, 4), seq.warping_error(&outs, 4));
+        let a = Acceptance {
+            hole_in: seq.psnr(&ins, 4, "holes"),
+            hole_out: seq.psnr(&outs, 4, "holes"),
+            warp_in: seq.warping_error(&ins, 4),
+            warp_out: seq.warping_error(&outs, 4),
+            stdout,
+            report: serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap(),
+            output: op,
+        };
         eprintln!(
-            "holes PSNR {hole_in:.2} -> {hole_out:.2} dB; warping error {we_in:.5} -> {we_out:.5}"
+            "{extra:?}: holes PSNR {:.2} -> {:.2} dB; warping error {:.5} -> {:.5}",
+            a.hole_in, a.hole_out, a.warp_in, a.warp_out
+        );
+        a
+    }
+
+    /// The acceptance run, classical backend. Thresholds: the
+    /// output's PSNR in holes is at least 6 dB above the input's, and its
+    /// warping error is below 0.8x the input's.
+    #[test]
+    fn classical_fills_holes_and_reduces_flicker() {
+        let dir = tempfile::tempdir().unwrap();
+        let a = run_acceptance(dir.path(), &["--backend", "classical"]);
+        assert!(a.stdout.contains("24 frame(s)"), "{}", a.stdout);
+        assert!(a.stdout.contains("sanitized color samples"), "{}", a.stdout);
+        assert!(
+            a.hole_out > a.hole_in + 6.0,
+            "holes PSNR {:.2} -> {:.2}",
+            a.hole_in,
+            a.hole_out
         );
         assert!(
-            hole_out > hole_in + 6.0,
-            "holes PSNR {hole_in:.2} -> {hole_out:.2}"
-        );
-        assert!(
-            we_out < 0.8 * we_in,
-            "warping error {we_in:.5} -> {we_out:.5}"
+            a.warp_out < 0.8 * a.warp_in,
+            "warping error {:.5} -> {:.5}",
+            a.warp_in,
+            a.warp_out
         );
 
-        let r: serde_json::Value =
-            serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+        let r = &a.report;
         let frames = r["frames"].as_array().unwrap();
         assert_eq!(frames.len(), 24);
         assert_eq!(frames[0]["reset"], "first_frame");
@@ -104,9 +122,44 @@ mod run {
         assert_eq!(r["summary"]["frames"], 24);
         assert_eq!(r["summary"]["sanitized"], 0);
         // The header records the run.
-        let f = harmonizer_core::io::exr::ExrFile::open(&op.path(3), Some(3)).unwrap();
+        let f = harmonizer_core::io::exr::ExrFile::open(&a.output.path(3), Some(3)).unwrap();
         assert!(f.find("mask.insert").is_some(), "input channels kept");
     }
+
+    /// The same run with no backend named: the embedded network when ONNX
+    /// Runtime is found (the test scripts set `HARMONIZER_ORT_LIB`), which
+    /// must also fill the holes and lower the warping error.
+    #[test]
+    fn default_backend_is_the_embedded_network() {
+        if std::env::var_os("HARMONIZER_ORT_LIB").is_none() {
+            eprintln!("skipped: HARMONIZER_ORT_LIB is not set (scripts/test.sh sets it)");
+            return;
+        }
+        let dir = tempfile::tempdir().unwrap();
+        let a = run_acceptance(dir.path(), &[]);
+        let frames = a.report["frames"].as_array().unwrap();
+        assert_eq!(frames.len(), 24);
+        assert!(
+            frames.iter().all(|f| f["backend"] == "neural"),
+            "{frames:?}"
+        );
+        assert!(
+            a.hole_out > a.hole_in + 6.0,
+            "holes PSNR {:.2} -> {:.2}",
+            a.hole_in,
+            a.hole_out
+        );
+        assert!(
+            a.warp_out < WARP_RATIO_NEURAL * a.warp_in,
+            "warping error {:.5} -> {:.5}",
+            a.warp_in,
+            a.warp_out
+        );
+    }
+
+    /// Warping error of the embedded network over the input's that the
+    /// default-backend run must stay below.
+    const WARP_RATIO_NEURAL: f64 = 1.0;
 
     #[test]
     fn frame_range_gap_and_set() {
