@@ -82,7 +82,9 @@ pub struct Params {
     pub contact_shadows: bool,
     /// Shadow darkness, 0..=1 (`shadow_strength`).
     pub shadow_strength: f32,
-    /// Blend with the reprojected history to remove flicker (`stabilize`).
+    /// Blend with the reprojected history to remove flicker (`stabilize`):
+    /// the classical pipeline's last step, also run on the output of neural
+    /// models whose manifest asks for it (`stabilize: true`).
     pub stabilize: bool,
     /// Weight of the history in stabilization, 0..=0.98 (`temporal_blend`).
     pub temporal_blend: f32,

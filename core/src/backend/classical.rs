@@ -181,19 +181,29 @@ pub fn run_ops(
     }
     progress.report(0.7)?;
 
+    stabilize_with_history(img, input, stages);
+    progress.report(1.0)?;
+    Ok(())
+}
+
+/// The stabilization step of [`run_ops`] alone (when the session's
+/// `stabilize` is on, `temporal_blend` above 0 and there is history): `img`
+/// blended with history frame 0, clamped to the local color range. The
+/// neural backend runs it on its output for models that ask for it
+/// (manifest `stabilize`).
+pub fn stabilize_with_history(img: &mut Image, input: &BackendInput<'_>, stages: &mut Stages) {
+    let (params, history) = (input.params, input.history);
     if params.stabilize && params.temporal_blend > 0.0 && !history.is_empty() {
         // History frame 0 is reprojected row by row inside the blend pass
         // (the time is the stabilize stage's), never as a whole frame.
         stages.time("stabilize", || {
-            pool.install(|| {
+            input.pool.install(|| {
                 stabilize::stabilize_rows(img, params.temporal_blend, |y, out| {
                     history.reproject_row(0, y, out)
                 })
             })
         });
     }
-    progress.report(1.0)?;
-    Ok(())
 }
 
 impl Backend for Classical {

@@ -19,7 +19,8 @@
 //!   "encoding": { "kind": "log", "key": 0.18, "exposure": "frame", "log_range": 8.0 },
 //!   "tile_size": 256,
 //!   "tile_overlap": 32,
-//!   "spatial_multiple": 16
+//!   "spatial_multiple": 16,
+//!   "stabilize": true
 //! }
 //! ```
 
@@ -237,6 +238,13 @@ pub struct Manifest {
     /// measured at export; otherwise estimated from the channel counts.
     #[serde(default)]
     pub bytes_per_pixel: Option<usize>,
+    /// The network's output is meant to be stabilized over time: the neural
+    /// backend blends it with the reprojected previous result, clamped to
+    /// the local color range (the classical stabilization,
+    /// `crate::ops::stabilize`), whenever the session's `stabilize` parameter
+    /// is on (the default) and `temporal_blend` is above 0.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub stabilize: bool,
 }
 
 impl Manifest {
@@ -453,6 +461,7 @@ mod tests {
             tile_overlap: 8,
             spatial_multiple: 16,
             bytes_per_pixel: None,
+            stabilize: false,
         }
     }
 

@@ -673,6 +673,70 @@ fn classical_post_runs_the_classical_operations_on_the_network_output() {
 }
 
 #[test]
+fn manifest_stabilize_blends_the_network_output_with_its_history() {
+    // The identity model with `stabilize: true` in its manifest must give what
+    // the identity model followed by the classical operations gives when only
+    // stabilization is on (the identity leaves no hole, so the fill does
+    // nothing); with the session's `stabilize` off, the plain identity output.
+    let (w, h) = (96, 64);
+    let base = hdr_rgb(w, h, 41);
+    let frames: Vec<Vec<f32>> = (0..4)
+        .map(|i| {
+            base.iter()
+                .enumerate()
+                .map(|(j, v)| v * (1.0 + 0.1 * (((j * 7 + i * 13) % 11) as f32 / 11.0 - 0.5)))
+                .collect()
+        })
+        .collect();
+    let run = |device: Arc<Device>, set: &[(&str, ParamValue)]| {
+        let mut s = session(device, set);
+        frames
+            .iter()
+            .enumerate()
+            .map(|(i, rgb)| {
+                let mut input =
+                    FrameInput::new(ImageView::from_f32("color", rgb, w, h, 3).unwrap());
+                input.frame_index = Some(i as i64);
+                s.process(&input, None).unwrap()
+            })
+            .collect::<Vec<_>>()
+    };
+    let asks = || device_edited("identity", 0, |m| m["stabilize"] = true.into());
+    let stabilized = run(asks(), &[]);
+    let reference = run(
+        device_file("identity"),
+        &[
+            ("classical_post", ParamValue::Bool(true)),
+            ("harmonize", ParamValue::Bool(false)),
+            ("contact_shadows", ParamValue::Bool(false)),
+        ],
+    );
+    let off = run(asks(), &[("stabilize", ParamValue::Bool(false))]);
+    let plain = run(device_file("identity"), &[]);
+    for (i, ((s, report), (r, _))) in stabilized.iter().zip(&reference).enumerate() {
+        assert_eq!(s.data, r.data, "frame {i}: stabilized output");
+        let stages: Vec<&str> = report.stages.0.iter().map(|(n, _)| n.as_str()).collect();
+        assert_eq!(
+            stages.contains(&"stabilize"),
+            i > 0,
+            "frame {i}: {stages:?}"
+        );
+    }
+    for (i, ((o, _), (p, _))) in off.iter().zip(&plain).enumerate() {
+        assert_eq!(o.data, p.data, "frame {i}: stabilize off");
+    }
+    // Stabilization changed something (else the test proves nothing).
+    let moved = stabilized[3]
+        .0
+        .data
+        .iter()
+        .zip(&plain[3].0.data)
+        .filter(|(a, b)| (*a - *b).abs() > 1e-3)
+        .count();
+    assert!(moved > 100, "stabilization changed {moved} values");
+}
+
+#[test]
 fn missing_runtime_says_what_to_install() {
     let opts = DeviceOptions {
         ort_library: Some("/nonexistent/libonnxruntime.so.1.31.1".into()),

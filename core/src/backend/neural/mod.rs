@@ -845,7 +845,12 @@ impl Backend for Neural {
         stages: &mut Stages,
     ) -> Result<Image> {
         if !input.params.classical_post {
-            return self.run_frame(input, progress, stages);
+            let mut img = self.run_frame(input, progress, stages)?;
+            if self.model.manifest.stabilize {
+                // The model asks for temporal stabilization of its output.
+                crate::backend::classical::stabilize_with_history(&mut img, input, stages);
+            }
+            return Ok(img);
         }
         // `classical_post`: the classical operations (hole fill, insert
         // harmonization, contact shadow, stabilization) run on the network's
