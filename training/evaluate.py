@@ -145,6 +145,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--max-scenes", type=int, default=0)
     ap.add_argument("--figures", type=Path, help="also write a per-frame plot and before/after sheets (PNG) here")
+    ap.add_argument(
+        "--method",
+        action="append",
+        default=[],
+        metavar="NAME=ARGS",
+        help="another row: `harmonize run` arguments, space separated ({model} is the --model path); repeatable",
+    )
     args = ap.parse_args(argv)
     if not args.harmonize.exists():
         print(
@@ -163,6 +170,12 @@ def main(argv: list[str] | None = None) -> int:
         methods["neural"] = ["--backend", "neural", "--model", str(args.model)]
         methods["neural_k0"] = ["--backend", "neural", "--model", str(args.model), "--context", "0"]
         methods["neural_post"] = ["--backend", "neural", "--model", str(args.model), "--set", "classical_post=true"]
+    for m in args.method:
+        name, sep, rest = m.partition("=")
+        if not sep or not name:
+            print(f"evaluate: --method {m!r} is not NAME=ARGS", file=sys.stderr)
+            return 2
+        methods[name] = [a.replace("{model}", str(args.model)) for a in rest.split()]
     rows: list[dict] = []
     # Last frame of the first scene of each stream, per method, for the before/after sheets.
     shown: dict[str, dict[str, np.ndarray]] = {}
