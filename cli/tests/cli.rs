@@ -143,8 +143,9 @@ mod run {
             frames.iter().all(|f| f["backend"] == "neural"),
             "{frames:?}"
         );
+        // harmonizer-small 1.1.0 measured 10.71 -> 22.87 dB and 0.02413 -> 0.00766.
         assert!(
-            a.hole_out > a.hole_in + 6.0,
+            a.hole_out > a.hole_in + 10.0,
             "holes PSNR {:.2} -> {:.2}",
             a.hole_in,
             a.hole_out
@@ -159,7 +160,7 @@ mod run {
 
     /// Warping error of the embedded network over the input's that the
     /// default-backend run must stay below.
-    const WARP_RATIO_NEURAL: f64 = 1.0;
+    const WARP_RATIO_NEURAL: f64 = 0.5;
 
     #[test]
     fn frame_range_gap_and_set() {
