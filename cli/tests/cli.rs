@@ -42,6 +42,25 @@ mod run {
         output: FramePattern,
     }
 
+    impl Acceptance {
+        /// The output's PSNR in holes is at least `hole_gain` dB above the
+        /// input's, and its warping error below `warp_ratio` times the input's.
+        fn check(&self, hole_gain: f64, warp_ratio: f64) {
+            assert!(
+                self.hole_out > self.hole_in + hole_gain,
+                "holes PSNR {:.2} -> {:.2}",
+                self.hole_in,
+                self.hole_out
+            );
+            assert!(
+                self.warp_out < warp_ratio * self.warp_in,
+                "warping error {:.5} -> {:.5}",
+                self.warp_in,
+                self.warp_out
+            );
+        }
+    }
+
     /// Runs `harmonize run` (with `extra` arguments) over the acceptance
     /// sequence: 24 frames of 320x180 with holes, an inserted object and flicker.
     fn run_acceptance(dir: &Path, extra: &[&str]) -> Acceptance {
@@ -96,18 +115,7 @@ mod run {
         let a = run_acceptance(dir.path(), &["--backend", "classical"]);
         assert!(a.stdout.contains("24 frame(s)"), "{}", a.stdout);
         assert!(a.stdout.contains("sanitized color samples"), "{}", a.stdout);
-        assert!(
-            a.hole_out > a.hole_in + 6.0,
-            "holes PSNR {:.2} -> {:.2}",
-            a.hole_in,
-            a.hole_out
-        );
-        assert!(
-            a.warp_out < 0.8 * a.warp_in,
-            "warping error {:.5} -> {:.5}",
-            a.warp_in,
-            a.warp_out
-        );
+        a.check(6.0, 0.8);
 
         let r = &a.report;
         let frames = r["frames"].as_array().unwrap();
@@ -144,23 +152,8 @@ mod run {
             "{frames:?}"
         );
         // harmonizer-small 1.1.0 measured 10.71 -> 22.87 dB and 0.02413 -> 0.00766.
-        assert!(
-            a.hole_out > a.hole_in + 10.0,
-            "holes PSNR {:.2} -> {:.2}",
-            a.hole_in,
-            a.hole_out
-        );
-        assert!(
-            a.warp_out < WARP_RATIO_NEURAL * a.warp_in,
-            "warping error {:.5} -> {:.5}",
-            a.warp_in,
-            a.warp_out
-        );
+        a.check(10.0, 0.5);
     }
-
-    /// Warping error of the embedded network over the input's that the
-    /// default-backend run must stay below.
-    const WARP_RATIO_NEURAL: f64 = 0.5;
 
     #[test]
     fn frame_range_gap_and_set() {

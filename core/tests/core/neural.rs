@@ -584,6 +584,20 @@ fn cancel_between_tiles_leaves_the_session_unchanged() {
     assert_eq!(run_all(Some(1)), run_all(None));
 }
 
+/// Four RGB frames of one image with a little per-frame flicker (no scene
+/// cut, so the history is kept).
+fn flickering(w: usize, h: usize, seed: u64) -> Vec<Vec<f32>> {
+    let base = hdr_rgb(w, h, seed);
+    (0..4)
+        .map(|i| {
+            base.iter()
+                .enumerate()
+                .map(|(j, v)| v * (1.0 + 0.1 * (((j * 7 + i * 13) % 11) as f32 / 11.0 - 0.5)))
+                .collect()
+        })
+        .collect()
+}
+
 #[test]
 fn classical_post_runs_the_classical_operations_on_the_network_output() {
     // The identity model returns its input, so with `classical_post` the
@@ -591,16 +605,7 @@ fn classical_post_runs_the_classical_operations_on_the_network_output() {
     // the identity leaves no hole of its own), stabilization and harmonization
     // of the insert included; without it, as the input.
     let (w, h) = (96, 64);
-    // One image with a little per-frame flicker (no scene cut, so history is kept).
-    let base = hdr_rgb(w, h, 40);
-    let frames: Vec<Vec<f32>> = (0..4)
-        .map(|i| {
-            base.iter()
-                .enumerate()
-                .map(|(j, v)| v * (1.0 + 0.1 * (((j * 7 + i * 13) % 11) as f32 / 11.0 - 0.5)))
-                .collect()
-        })
-        .collect();
+    let frames = flickering(w, h, 40);
     let mask: Vec<f32> = (0..w * h)
         .map(|i| {
             let (x, y) = (i % w, i / w);
@@ -679,15 +684,7 @@ fn manifest_stabilize_blends_the_network_output_with_its_history() {
     // stabilization is on (the identity leaves no hole, so the fill does
     // nothing); with the session's `stabilize` off, the plain identity output.
     let (w, h) = (96, 64);
-    let base = hdr_rgb(w, h, 41);
-    let frames: Vec<Vec<f32>> = (0..4)
-        .map(|i| {
-            base.iter()
-                .enumerate()
-                .map(|(j, v)| v * (1.0 + 0.1 * (((j * 7 + i * 13) % 11) as f32 / 11.0 - 0.5)))
-                .collect()
-        })
-        .collect();
+    let frames = flickering(w, h, 41);
     let run = |device: Arc<Device>, set: &[(&str, ParamValue)]| {
         let mut s = session(device, set);
         frames
