@@ -73,7 +73,7 @@ def manifest_for(model: Enhancer, name: str, version: str, stabilize: bool = Tru
         "bytes_per_pixel": activation_bytes_per_pixel(model),
         # The runtime blends the output with its reprojected history, clamped
         # to the local color range (held-out warping error 0.0215 -> 0.0189 for
-        # harmonizer-small 1.1.0, PSNR 30.30 -> 30.58 dB).
+        # harmonizer-small 1.1.x, PSNR 30.30 -> 30.58 dB).
         "stabilize": stabilize,
     }
 
