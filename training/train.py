@@ -418,13 +418,12 @@ def main(argv: list[str] | None = None) -> int:
     torch.manual_seed(args.seed)
     step = 0
     seconds_before = 0.0
+    ck = None
     if ckpt_path.exists():
         ck = load_checkpoint(ckpt_path)
         mcfg = ModelConfig.from_dict(ck["model_cfg"])
         model = Enhancer(mcfg)
         model.load_state_dict(ck["model"])
-        opt = torch.optim.Adam(model.parameters(), lr=args.lr)
-        opt.load_state_dict(ck["opt"])
         step = ck["step"]
         seconds_before = float(ck.get("seconds", 0.0))
         cfg = {**ck["cfg"], **{k: cfg[k] for k in ("lr",)}}
@@ -434,7 +433,6 @@ def main(argv: list[str] | None = None) -> int:
         mcfg = ModelConfig.from_dict({**init["model_cfg"], "prior_fill": args.prior_fill})
         model = Enhancer(mcfg)
         model.load_state_dict(init["model"])
-        opt = torch.optim.Adam(model.parameters(), lr=args.lr)
         cfg["init"] = str(args.init)
         print(f"train: starting from the weights of {args.init} (step {init['step']})", flush=True)
     else:
@@ -449,14 +447,14 @@ def main(argv: list[str] | None = None) -> int:
             prior_fill=args.prior_fill,
         )
         model = Enhancer(mcfg)
-        opt = torch.optim.Adam(model.parameters(), lr=args.lr)
     device = torch.device(args.device)
     if device.type == "cuda":
         # Few distinct shapes (the crop and the patch sizes): let cuDNN pick its kernels.
         torch.backends.cudnn.benchmark = True
     model.to(device)
-    if ckpt_path.exists():
-        # The optimizer state follows the parameters' device.
+    # Made after the move, so a resumed optimizer state lands on the parameters' device.
+    opt = torch.optim.Adam(model.parameters(), lr=args.lr)
+    if ck is not None:
         opt.load_state_dict(ck["opt"])
     cache = SampleCache(scenes, args.cache_samples)
     log = open(args.run / "train.log", "a")
