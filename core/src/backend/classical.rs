@@ -198,8 +198,8 @@ pub fn stabilize_with_history(img: &mut Image, input: &BackendInput<'_>, stages:
         // (the time is the stabilize stage's), never as a whole frame.
         stages.time("stabilize", || {
             input.pool.install(|| {
-                stabilize::stabilize_rows(img, params.temporal_blend, |y, out| {
-                    history.reproject_row(0, y, out)
+                stabilize::stabilize_rows(img, params.temporal_blend, |y, rgba, valid| {
+                    history.reproject_row_rgba(0, y, rgba, valid)
                 })
             })
         });

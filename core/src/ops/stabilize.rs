@@ -95,28 +95,27 @@ pub fn stabilize(img: &mut Image, history: &ReprojectedFrame, blend: f32) {
     let (w, n) = (img.width, img.len());
     assert_eq!(history.color.len(), n, "history and frame sizes differ");
     let (hist, valid) = (&history.color.data, &history.valid);
-    stabilize_rows(img, blend, |y, [r, g, b, a, v]| {
+    stabilize_rows(img, blend, |y, rgba, v| {
         let s = y * w;
-        r.copy_from_slice(&hist[s..s + w]);
-        g.copy_from_slice(&hist[n + s..n + s + w]);
-        b.copy_from_slice(&hist[2 * n + s..2 * n + s + w]);
-        a.copy_from_slice(&hist[3 * n + s..3 * n + s + w]);
+        for (x, px) in rgba.iter_mut().enumerate() {
+            *px = std::array::from_fn(|c| hist[c * n + s + x]);
+        }
         v.copy_from_slice(&valid[s..s + w]);
     });
 }
 
-/// [`stabilize`] with the history given row by row: `history_row(y, out)`
-/// writes row `y` of the reprojected history's R, G, B, A and validity
-/// into the five row-long slices of `out` (as
-/// [`crate::temporal::HistoryView::reproject_row`] does), once per row, from
-/// the pool's threads. The history is never held as a whole frame.
+/// [`stabilize`] with the history given row by row: `history_row(y, rgba,
+/// valid)` writes row `y` of the reprojected history's RGBA (interleaved)
+/// and validity into the row-long slices `rgba` and `valid` (as
+/// [`crate::temporal::HistoryView::reproject_row_rgba`] does), once per row,
+/// from the pool's threads. The history is never held as a whole frame.
 ///
 /// One pass over the image: each band keeps a sliding window of three YCoCg
 /// rows, and the horizontal min/max is taken inside the blend loop. Rows
 /// without valid history are skipped (only the window rolls on).
 pub fn stabilize_rows<F>(img: &mut Image, blend: f32, history_row: F)
 where
-    F: Fn(usize, [&mut [f32]; 5]) + Sync,
+    F: Fn(usize, &mut [[f32; 4]], &mut [f32]) + Sync,
 {
     let (w, h) = (img.width, img.height);
     if blend <= 0.0 || w * h == 0 {
@@ -159,8 +158,9 @@ where
         let mut below = vec![0.0; 3 * w];
         let mut lo = vec![0.0; 3 * (w + 2)];
         let mut hi = vec![0.0; 3 * (w + 2)];
-        // One row of the history: R, G, B, A, validity.
-        let mut hrow = vec![0.0; 5 * w];
+        // One row of the history: RGBA and validity.
+        let mut hrgba = vec![[0.0; 4]; w];
+        let mut vv = vec![0.0; w];
         for dy in 0..rows {
             let y = y0 + dy;
             if dy + 1 < rows {
@@ -171,18 +171,8 @@ where
             } else {
                 below.copy_from_slice(&centre);
             }
-            {
-                let (hr, rest) = hrow.split_at_mut(w);
-                let (hg, rest) = rest.split_at_mut(w);
-                let (hb, rest) = rest.split_at_mut(w);
-                let (ha, vv) = rest.split_at_mut(w);
-                history_row(y, [hr, hg, hb, ha, vv]);
-            }
-            let (hr, rest) = hrow.split_at(w);
-            let (hg, rest) = rest.split_at(w);
-            let (hb, rest) = rest.split_at(w);
-            let (ha, vv) = rest.split_at(w);
-            if row_max(vv) > 0.0 {
+            history_row(y, &mut hrgba, &mut vv);
+            if row_max(&vv) > 0.0 {
                 vertical_min_max([&above, &centre, &below], w, &mut lo, &mut hi);
                 let row = dy * w..(dy + 1) * w;
                 let (rr, gr, br, ar) = (
@@ -193,11 +183,13 @@ where
                 );
                 let (ly, lco, lcg) = (shifted(&lo, 0, w), shifted(&lo, 1, w), shifted(&lo, 2, w));
                 let (hy, hco, hcg) = (shifted(&hi, 0, w), shifted(&hi, 1, w), shifted(&hi, 2, w));
+                let (hrgba, vv) = (&hrgba[..w], &vv[..w]);
                 for x in 0..w {
-                    let (cov, v, hav) = (ar[x], vv[x], ha[x]);
+                    let [hr, hg, hb, hav] = hrgba[x];
+                    let (cov, v) = (ar[x], vv[x]);
                     let ok = (cov > 0.0) & (v > 0.0) & (hav > MIN_HISTORY_ALPHA);
                     let k = cov / fmax(hav, MIN_HISTORY_ALPHA);
-                    let [ty, tco, tcg] = to_ycocg(hr[x] * k, hg[x] * k, hb[x] * k);
+                    let [ty, tco, tcg] = to_ycocg(hr * k, hg * k, hb * k);
                     let [cr, cg, cb] = from_ycocg(
                         fmin(fmax(ty, min3_at(ly, x)), max3_at(hy, x)),
                         fmin(fmax(tco, min3_at(lco, x)), max3_at(hco, x)),

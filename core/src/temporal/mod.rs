@@ -97,7 +97,9 @@ impl Sampler<'_> {
             j0 + n
         );
         match self.hop {
-            Some((src, frame)) => reproject::hop_color_row(src, frame, i, j0, out),
+            Some((src, frame)) => {
+                reproject::hop_color_row(src, frame, i, j0, &mut reproject::Planar(out))
+            }
             None => {
                 let [o0, o1, o2, o3, ov] = out;
                 for t in 0..n {
@@ -334,8 +336,7 @@ impl<'a> HistoryView<'a> {
     /// When `k >= self.len()`, `i` is not a row of the frame or a slice of
     /// `out` is shorter than a row.
     pub fn reproject_row(&self, k: usize, i: usize, out: [&mut [f32]; 5]) {
-        let (w, h) = (self.current.width(), self.current.height());
-        assert!(i < h, "row {i} outside the {w}x{h} frame");
+        let w = self.current.width();
         let [o0, o1, o2, o3, ov] = out;
         let out = [
             &mut o0[..w],
@@ -344,13 +345,37 @@ impl<'a> HistoryView<'a> {
             &mut o3[..w],
             &mut ov[..w],
         ];
+        self.row_into(k, i, &mut reproject::Planar(out));
+    }
+
+    /// [`HistoryView::reproject_row`] with the row's RGBA interleaved: pixel
+    /// `j` into `rgba[j]`, its validity into `valid[j]` (the same values).
+    ///
+    /// # Panics
+    /// As [`HistoryView::reproject_row`].
+    pub fn reproject_row_rgba(&self, k: usize, i: usize, rgba: &mut [[f32; 4]], valid: &mut [f32]) {
+        let w = self.current.width();
+        self.row_into(
+            k,
+            i,
+            &mut reproject::Interleaved {
+                rgba: &mut rgba[..w],
+                valid: &mut valid[..w],
+            },
+        );
+    }
+
+    /// Row `i` of history frame `k` into `out` (one row long).
+    fn row_into<O: reproject::RowOut>(&self, k: usize, i: usize, out: &mut O) {
+        let (w, h) = (self.current.width(), self.current.height());
+        assert!(i < h, "row {i} outside the {w}x{h} frame");
         let s = i * w..(i + 1) * w;
-        let copy = |r: &ReprojectedFrame, out: [&mut [f32]; 5]| {
-            let [o0, o1, o2, o3, ov] = out;
-            for (c, o) in [o0, o1, o2, o3].into_iter().enumerate() {
-                o.copy_from_slice(&r.color.plane(c)[s.clone()]);
+        let copy = |r: &ReprojectedFrame, out: &mut O| {
+            let (c, v) = (&r.color, &r.valid[s.clone()]);
+            let p: [&[f32]; 4] = std::array::from_fn(|ch| &c.plane(ch)[s.clone()]);
+            for j in 0..w {
+                out.put(j, [p[0][j], p[1][j], p[2][j], p[3][j]], v[j]);
             }
-            ov.copy_from_slice(&r.valid[s.clone()]);
         };
         if let Some(r) = self.cache.get(k).and_then(OnceLock::get) {
             return copy(r, out);
@@ -366,15 +391,13 @@ impl<'a> HistoryView<'a> {
                 map.color_row(frame, depth, i, out)
             }
             ReprojectionMode::Identity => {
-                let [o0, o1, o2, o3, ov] = out;
-                for (c, o) in [o0, o1, o2, o3].into_iter().enumerate() {
-                    frame.color.read_row(i, c, o);
+                for j in 0..w {
+                    out.put(j, frame.color.pixel(i * w + j), 1.0);
                 }
-                ov.fill(1.0);
             }
             ReprojectionMode::Unavailable => {
-                for o in out {
-                    o.fill(0.0);
+                for j in 0..w {
+                    out.put(j, [0.0; 4], 0.0);
                 }
             }
         }
@@ -586,6 +609,10 @@ mod tests {
                         let (c, rest) = rest.split_at_mut(w);
                         let (d, v) = rest.split_at_mut(w);
                         view.reproject_row(k, i, [a, b, c, d, v]);
+                        // The same row interleaved.
+                        let mut rgba = vec![[0.0f32; 4]; w];
+                        let mut rv = vec![0.0f32; w];
+                        view.reproject_row_rgba(k, i, &mut rgba, &mut rv);
                         // A run of the row through the sampler, at an offset.
                         let (j0, n) = (i % 5, w - i % 5 - i % 3);
                         let mut run = vec![0.0f32; 5 * n];
@@ -613,6 +640,8 @@ mod tests {
                                 want.valid[p].to_bits(),
                                 "{name}: k {k} row validity at ({j}, {i})"
                             );
+                            assert_eq!(rgba[j].map(f32::to_bits), wc, "{name}: k {k} rgba row");
+                            assert_eq!(rv[j].to_bits(), want.valid[p].to_bits(), "{name}: k {k}");
                             let (c, v) = view.sample(k, i, j);
                             assert_eq!(
                                 c.map(f32::to_bits),

@@ -27,24 +27,52 @@ use rayon::prelude::*;
 
 use super::{HistoryFrame, ReprojectedFrame};
 use crate::frame::{Image, PreparedFrame, Recycler};
-use crate::ops::{fmax, fmin};
+use crate::ops::fmin;
 
 /// Depth at or beyond this is empty (sky, holes): it only matches other empty depth.
 pub const FAR_DEPTH: f32 = 1e9;
 
 /// Relative tolerance of the disocclusion depth test: a history sample is the
-/// same surface when `|expected - seen| <= DEPTH_TOLERANCE * min(expected, seen)`.
+/// same surface when `seen` lies in `[expected / (1 + DEPTH_TOLERANCE),
+/// expected * (1 + DEPTH_TOLERANCE)]` (that is, `|expected - seen| <=
+/// DEPTH_TOLERANCE * min(expected, seen)`), see [`depth_window`].
 pub const DEPTH_TOLERANCE: f32 = 0.1;
 
-/// True when depth `seen` in a history frame is the surface expected at depth `expected`.
+/// The largest depth below [`FAR_DEPTH`].
+const NEAR_MAX: f32 = f32::from_bits(FAR_DEPTH.to_bits() - 1);
+
+/// The depths that are the surface expected at depth `expected`, as the
+/// closed interval `(lo, hi)`: `[FAR_DEPTH, inf]` for empty depth (it only
+/// matches empty depth), else `expected` divided and multiplied by `1 +
+/// DEPTH_TOLERANCE` (below [`FAR_DEPTH`]). NaN bounds for a NaN `expected`
+/// (nothing matches).
+#[inline(always)]
+pub fn depth_window(expected: f32) -> (f32, f32) {
+    let far = expected >= FAR_DEPTH;
+    let lo = expected * (1.0 / (1.0 + DEPTH_TOLERANCE));
+    let hi = fmin(expected * (1.0 + DEPTH_TOLERANCE), NEAR_MAX);
+    // Selects, not branches: the window is taken in vectorized loops.
+    (
+        if far { FAR_DEPTH } else { lo },
+        if far { f32::INFINITY } else { hi },
+    )
+}
+
+/// True when depth `seen` in a history frame is the surface expected at
+/// depth `expected` (inside [`depth_window`]; false when either is NaN).
 #[inline]
 pub fn depth_match(expected: f32, seen: f32) -> bool {
-    let far_e = expected >= FAR_DEPTH;
-    let far_s = seen >= FAR_DEPTH;
-    if far_e || far_s {
-        return far_e && far_s;
-    }
-    (expected - seen).abs() <= DEPTH_TOLERANCE * expected.min(seen)
+    let (lo, hi) = depth_window(expected);
+    (seen >= lo) & (seen <= hi)
+}
+
+/// True when the four depths `q[0], q[1], q[w], q[w + 1]` (a 2x2 block of
+/// bilinear taps) all lie in the window `lo..=hi` (false for a NaN).
+#[inline(always)]
+fn block_in_window(q: &[f32], w: usize, lo: f32, hi: f32) -> bool {
+    let (top, bottom) = (&q[..2], &q[w..w + 2]);
+    let inside = |s: f32| (s >= lo) & (s <= hi);
+    inside(top[0]) & inside(top[1]) & inside(bottom[0]) & inside(bottom[1])
 }
 
 /// The bilinear taps at one position that passed the frame and depth tests,
@@ -204,20 +232,9 @@ fn interior(
     let ay = fy - y0 as f32;
     let i = y0 * w + x0;
     if let Some(d) = depth {
-        let q = &d[i..i + w + 2];
-        let (a, b, c, e) = (q[0], q[1], q[w], q[w + 1]);
-        // `depth_match(expected, s)` holds on an interval of `s` (also in
-        // floating point: both sides of the test are monotonic in `s`), so
-        // all four taps pass exactly when the nearest and the farthest do.
-        // A NaN (not made by the library, which sanitizes depth) takes the
-        // general path.
-        if (a + b + c + e).is_nan() {
-            return None;
-        }
-        // No NaN here: plain compares give what `f32::min`/`max` give.
-        let lo = fmin(fmin(a, b), fmin(c, e));
-        let hi = fmax(fmax(a, b), fmax(c, e));
-        if !(depth_match(expected, lo) & depth_match(expected, hi)) {
+        // All four taps pass the test (`depth_match`) or none is taken here.
+        let (lo, hi) = depth_window(expected);
+        if !block_in_window(&d[i..], w, lo, hi) {
             return None;
         }
     }
@@ -250,6 +267,26 @@ fn bilerp4(rgba: &[[f32; 4]], i: usize, w: usize, wt: &[f32; 4]) -> [f32; 4] {
     std::array::from_fn(|ch| wt[0] * a[ch] + wt[1] * b[ch] + wt[2] * c[ch] + wt[3] * d[ch])
 }
 
+/// 1.5 * 2^23: an f32 in `(-2^22, 2^22)` plus this is rounded to an
+/// integer, which the sum's low mantissa bits hold.
+const ROUND_MAGIC: f32 = 12_582_912.0;
+
+/// Frame sides from this up never take [`Batch`]'s fast path
+/// ([`floor_small`] needs positions below 2^22).
+const SMALL_SIDE: usize = (1 << 22) - 1;
+
+/// `u as i32` (the floor) for `0 <= u < 2^22`, from float adds and a bit
+/// cast, so that a loop of it vectorizes (the saturating `as` is converted
+/// lane by lane); some `i32` for any other `u`, NaN included.
+#[inline(always)]
+fn floor_small(u: f32) -> i32 {
+    let t = u + ROUND_MAGIC;
+    // `u` rounded to the nearest integer, as f32 (exact) and as i32.
+    let r = t - ROUND_MAGIC;
+    let n = (t.to_bits() as i32).wrapping_sub(ROUND_MAGIC.to_bits() as i32);
+    n.wrapping_sub(i32::from(r > u))
+}
+
 /// Pixels per [`Batch`].
 const BATCH: usize = 64;
 
@@ -265,11 +302,12 @@ const COLUMNS: [f32; BATCH] = {
 };
 
 /// One run of up to [`BATCH`] pixels of a row: where they land in the
-/// history frame and, for those that take the interior fast path (all four
-/// taps inside and passing the depth test, validity so far > 0), the
-/// top-left tap and the fractions the weights come from, exactly as
-/// [`interior`] gives them. The work is split into short loops over the run
-/// so that most of the arithmetic vectorizes; the gathers are per pixel.
+/// history frame and, for those that may take the interior fast path (all
+/// four taps inside, validity so far > 0: `fast`), the top-left tap, the
+/// fractions the weights come from, exactly as [`interior`] gives them, and
+/// the window of the depth test ([`Batch::depth_passes`] decides the rest).
+/// The arithmetic runs in short loops over the run, which vectorize; the
+/// gathers are per pixel.
 struct Batch {
     x: [f32; BATCH],
     y: [f32; BATCH],
@@ -281,7 +319,6 @@ struct Batch {
     ay: [f32; BATCH],
     lo: [f32; BATCH],
     hi: [f32; BATCH],
-    test: [bool; BATCH],
 }
 
 impl Batch {
@@ -297,7 +334,6 @@ impl Batch {
             ay: [0.0; BATCH],
             lo: [0.0; BATCH],
             hi: [0.0; BATCH],
-            test: [false; BATCH],
         }
     }
 
@@ -357,74 +393,54 @@ impl Batch {
         at(i, j0, m, self);
         let (wf, hf) = (w as f32, h as f32);
         // 32-bit integer arithmetic vectorizes on every x86-64; frames of 4
-        // G pixels or more (or sides of 2 G) never take the fast path.
-        let small = w < i32::MAX as usize && h < i32::MAX as usize && w * h < u32::MAX as usize;
+        // G pixels or more (or sides of 4 M, see `floor_small`) never take
+        // the fast path.
+        let small = w < SMALL_SIDE && h < SMALL_SIDE && w * h < u32::MAX as usize;
         let (wi, hi) = (
             w.min(i32::MAX as usize) as i32,
             h.min(i32::MAX as usize) as i32,
         );
+        let (xmax, ymax) = (wi.wrapping_sub(1), hi.wrapping_sub(1));
         for t in 0..BATCH {
             let fx = self.x[t] - 0.5;
             let fy = self.y[t] - 0.5;
             // Also false for NaN positions; the same floor as `taps`.
             let inside = (fx >= 0.0) & (fy >= 0.0) & (fx < wf) & (fy < hf);
-            let x0 = ((fx + 1.0) as i32).wrapping_sub(1);
-            let y0 = ((fy + 1.0) as i32).wrapping_sub(1);
+            let x0 = floor_small(fx + 1.0).wrapping_sub(1);
+            let y0 = floor_small(fy + 1.0).wrapping_sub(1);
             self.ax[t] = fx - x0 as f32;
             self.ay[t] = fy - y0 as f32;
-            self.fast[t] = inside
-                & (x0 < wi.wrapping_sub(1))
-                & (y0 < hi.wrapping_sub(1))
-                & (self.v[t] > 0.0)
-                & (t < m)
-                & small;
-            // Clamped so that pixels off the fast path compute no overflow.
-            self.idx[t] = (y0.clamp(0, hi - 1) as u32)
-                .wrapping_mul(w as u32)
-                .wrapping_add(x0.clamp(0, wi - 1) as u32);
+            self.fast[t] = inside & (x0 < xmax) & (y0 < ymax) & (self.v[t] > 0.0) & (t < m) & small;
+            // Meaningful (and in range) for `fast` pixels only, which alone
+            // read it; wrapping, so the others compute no overflow.
+            self.idx[t] = (y0 as u32).wrapping_mul(w as u32).wrapping_add(x0 as u32);
         }
-        let Some(dp) = depth else {
+        if depth.is_none() {
             return;
-        };
-        for t in 0..m {
-            // Known expected depth: the depth test applies.
-            self.test[t] = self.fast[t] & !self.d[t].is_nan();
-            if self.test[t] {
-                let k = self.idx[t] as usize;
-                let q = &dp[k..k + w + 2];
-                let (a, b, c, e) = (q[0], q[1], q[w], q[w + 1]);
-                // See `interior`: the nearest and farthest taps decide; a NaN
-                // takes the general path.
-                let nan = (a + b + c + e).is_nan();
-                // Plain compares (no NaN here, or `lo` is NaN and fails):
-                // `f32::min` orders NaN at a cost of several instructions.
-                self.lo[t] = if nan {
-                    f32::NAN
-                } else {
-                    fmin(fmin(a, b), fmin(c, e))
-                };
-                self.hi[t] = fmax(fmax(b, a), fmax(c, e));
-            }
         }
-        for t in 0..m {
+        for t in 0..BATCH {
             let e = self.d[t];
-            let pass = depth_match_select(e, self.lo[t]) & depth_match_select(e, self.hi[t]);
-            self.fast[t] &= !self.test[t] | pass;
+            let (lo, hi) = depth_window(e);
+            // Unknown expected depth: no depth test (every depth passes; a
+            // NaN history depth, which the library does not make, fails and
+            // takes the general path, which gives the same values).
+            let unknown = e.is_nan();
+            self.lo[t] = if unknown { f32::NEG_INFINITY } else { lo };
+            self.hi[t] = if unknown { f32::INFINITY } else { hi };
         }
     }
-}
 
-/// [`depth_match`] without branches, for a known `expected` (not NaN); a NaN
-/// `seen` fails.
-#[inline(always)]
-fn depth_match_select(expected: f32, seen: f32) -> bool {
-    let far_e = expected >= FAR_DEPTH;
-    let far_s = seen >= FAR_DEPTH;
-    // With a NaN `seen` the difference is NaN and `near` false, whichever
-    // operand `fmin` returns; otherwise `fmin` is `f32::min` (up to the sign
-    // of a zero, which the product does not change).
-    let near = (expected - seen).abs() <= DEPTH_TOLERANCE * fmin(expected, seen);
-    (far_e & far_s) | (!(far_e | far_s) & near)
+    /// True when pixel `t`, which is `fast`, passes the depth test: all its
+    /// four taps in `depth` (the history frame's, row length `w`; `None`:
+    /// no test) inside its window. With `fast`, the interior fast path of
+    /// [`taps`] applies.
+    #[inline(always)]
+    fn depth_passes(&self, t: usize, depth: Option<&[f32]>, w: usize) -> bool {
+        match depth {
+            Some(d) => block_in_window(&d[self.idx[t] as usize..], w, self.lo[t], self.hi[t]),
+            None => true,
+        }
+    }
 }
 
 /// Runs `f(row, [row slices of each plane])` over all rows, in parallel on
@@ -649,88 +665,112 @@ impl SourceUser<ReprojectedFrame> for ColorHop<'_> {
         let [c0, c1, c2, c3] = planes4(&mut color);
         let planes = Planes::of(frame);
         par_rows(self.pool, [c0, c1, c2, c3, &mut valid], w, |i, out| {
-            color_row(at, &planes, i, 0..w, out)
+            color_row(at, &planes, i, 0..w, &mut Planar(out))
         });
         ReprojectedFrame { color, valid }
     }
 }
 
+/// Where a row (or a run of a row) of reprojected color goes: pixel `t`
+/// of the run gets RGBA `c` and validity `v`.
+pub(crate) trait RowOut {
+    /// Pixels in the run.
+    fn len(&self) -> usize;
+    /// Writes pixel `t` (`t < len()`).
+    fn put(&mut self, t: usize, c: [f32; 4], v: f32);
+}
+
+/// A run written as five planes: R, G, B, A and validity.
+pub(crate) struct Planar<'o>(pub(crate) [&'o mut [f32]; 5]);
+
+impl RowOut for Planar<'_> {
+    #[inline(always)]
+    fn len(&self) -> usize {
+        self.0.iter().map(|p| p.len()).min().unwrap_or(0)
+    }
+    #[inline(always)]
+    fn put(&mut self, t: usize, c: [f32; 4], v: f32) {
+        let [o0, o1, o2, o3, ov] = &mut self.0;
+        o0[t] = c[0];
+        o1[t] = c[1];
+        o2[t] = c[2];
+        o3[t] = c[3];
+        ov[t] = v;
+    }
+}
+
+/// A run written as interleaved RGBA pixels and a validity plane.
+pub(crate) struct Interleaved<'o> {
+    pub(crate) rgba: &'o mut [[f32; 4]],
+    pub(crate) valid: &'o mut [f32],
+}
+
+impl RowOut for Interleaved<'_> {
+    #[inline(always)]
+    fn len(&self) -> usize {
+        self.rgba.len().min(self.valid.len())
+    }
+    #[inline(always)]
+    fn put(&mut self, t: usize, c: [f32; 4], v: f32) {
+        self.rgba[t] = c;
+        self.valid[t] = v;
+    }
+}
+
 /// Row `i` of the color hop with positions from `at` into the history
-/// frame `planes`, columns `cols`: RGBA into `out[0..4]`, validity into
-/// `out[4]` (each at least `cols.len()` long; that many are written). Every
-/// pixel's values depend on that pixel alone (not on where a batch starts).
+/// frame `planes`, columns `cols`, into `out` (at least `cols.len()` long;
+/// that many pixels are written). Every pixel's values depend on that pixel
+/// alone (not on where a batch starts).
 #[inline(always)]
-fn color_row<S: Fn(usize, usize, usize, &mut Batch)>(
+fn color_row<S: Fn(usize, usize, usize, &mut Batch), O: RowOut>(
     at: &S,
     planes: &Planes<'_>,
     i: usize,
     cols: std::ops::Range<usize>,
-    out: [&mut [f32]; 5],
+    out: &mut O,
 ) {
     let (w, h) = (planes.w, planes.h);
     assert!(cols.end <= w, "columns {cols:?} outside a row of {w}");
-    let n = cols.len();
-    let [r0, r1, r2, r3, rv] = out;
-    let (r0, r1, r2, r3, rv) = (
-        &mut r0[..n],
-        &mut r1[..n],
-        &mut r2[..n],
-        &mut r3[..n],
-        &mut rv[..n],
-    );
+    assert!(out.len() >= cols.len(), "an output shorter than the run");
     let mut b = Batch::new();
     for j0 in cols.clone().step_by(BATCH) {
         let m = BATCH.min(cols.end - j0);
         b.fill(at, i, j0, m, w, h, planes.depth);
-        // This batch's outputs: stores without a bounds check each.
-        let s = j0 - cols.start..j0 - cols.start + m;
-        let (o0, o1, o2, o3, ov) = (
-            &mut r0[s.clone()],
-            &mut r1[s.clone()],
-            &mut r2[s.clone()],
-            &mut r3[s.clone()],
-            &mut rv[s],
-        );
+        let o = j0 - cols.start;
         for t in 0..m {
-            let (c, v) = if b.fast[t] {
+            let (c, v) = if b.fast[t] && b.depth_passes(t, planes.depth, w) {
                 let (k, wt) = (b.idx[t] as usize, &b.weights(t));
                 (bilerp4(planes.rgba, k, w, wt), b.v[t])
             } else {
                 planes.color(b.x[t], b.y[t], b.d[t], b.v[t])
             };
-            o0[t] = c[0];
-            o1[t] = c[1];
-            o2[t] = c[2];
-            o3[t] = c[3];
-            ov[t] = v;
+            out.put(o + t, c, v);
         }
     }
 }
 
 /// Row `i` of [`hop_color`] alone (the same bits), columns `j0..j0 + n`
-/// with `n` the length of `out[0]`: RGBA into `out[0..4]`, validity into
-/// `out[4]`.
-pub(crate) fn hop_color_row(
+/// with `n` the length of `out` ([`Planar`] or [`Interleaved`]).
+pub(crate) fn hop_color_row<O: RowOut>(
     src: Source<'_>,
     frame: &HistoryFrame,
     i: usize,
     j0: usize,
-    out: [&mut [f32]; 5],
+    out: &mut O,
 ) {
     src.with(frame.color.width, ColorRow { frame, i, j0, out });
 }
 
-struct ColorRow<'a, 'o> {
+struct ColorRow<'a, 'o, O> {
     frame: &'a HistoryFrame,
     i: usize,
     j0: usize,
-    out: [&'o mut [f32]; 5],
+    out: &'o mut O,
 }
 
-impl SourceUser<()> for ColorRow<'_, '_> {
+impl<O: RowOut> SourceUser<()> for ColorRow<'_, '_, O> {
     fn run<S: Fn(usize, usize, usize, &mut Batch) + Sync>(self, at: &S) {
-        let n = self.out[0].len();
-        let cols = self.j0..self.j0 + n;
+        let cols = self.j0..self.j0 + self.out.len();
         color_row(at, &Planes::of(self.frame), self.i, cols, self.out);
     }
 }
@@ -780,7 +820,7 @@ impl SourceUser<Chain> for ChainHop<'_> {
                     b.fill(at, i, j, BATCH.min(w - j), w, h, hdepth);
                 }
                 let (x, y, d, v) = (b.x[t], b.y[t], b.d[t], b.v[t]);
-                if b.fast[t] {
+                if b.fast[t] && b.depth_passes(t, hdepth, w) {
                     // The common case, bit-identical to the general one below.
                     let (k, wt) = (b.idx[t] as usize, &b.weights(t));
                     rx[j] = x + bilerp(mx, k, w, wt);
@@ -910,24 +950,20 @@ impl CameraMap {
     /// Row `i` of [`reproject_camera`] (the same bits): RGBA into
     /// `out[0..4]`, validity into `out[4]`, each one row long; `depth` is
     /// the current frame's.
-    pub(crate) fn color_row(
+    pub(crate) fn color_row<O: RowOut>(
         &self,
         frame: &HistoryFrame,
         depth: &[f32],
         i: usize,
-        out: [&mut [f32]; 5],
+        out: &mut O,
     ) {
         let w = self.wf as usize;
-        let [o0, o1, o2, o3, ov] = out;
+        assert!(out.len() >= w, "an output shorter than the row");
         let b = self.row(i);
         let drow = &depth[i * w..(i + 1) * w];
         for (j, &d) in drow.iter().enumerate() {
             let (c, v) = self.color(frame, b, j, d);
-            o0[j] = c[0];
-            o1[j] = c[1];
-            o2[j] = c[2];
-            o3[j] = c[3];
-            ov[j] = v;
+            out.put(j, c, v);
         }
     }
 
@@ -963,7 +999,7 @@ pub(crate) fn reproject_camera(
     let (mut color, mut valid) = outputs(w, h, rec);
     let [c0, c1, c2, c3] = planes4(&mut color);
     par_rows(pool, [c0, c1, c2, c3, &mut valid], w, |i, out| {
-        map.color_row(frame, depth, i, out)
+        map.color_row(frame, depth, i, &mut Planar(out))
     });
     ReprojectedFrame { color, valid }
 }
@@ -1127,6 +1163,47 @@ pub(crate) mod tests {
         assert!(!depth_match(10.0, 12.0));
         assert!(!depth_match(5.0, 1e10));
         assert!(depth_match(1e10, f32::MAX));
+        assert!(!depth_match(1e10, 5.0));
+        assert!(
+            !depth_match(9.5e8, 1e9),
+            "just below empty depth is not empty"
+        );
+        assert!(depth_match(0.0, 0.0) && !depth_match(0.0, 1e-6));
+        assert!(!depth_match(f32::NAN, 1.0) && !depth_match(1.0, f32::NAN));
+        // The window is `|expected - seen| <= DEPTH_TOLERANCE * min(expected,
+        // seen)` up to rounding at its ends.
+        let mut seed = 3;
+        for _ in 0..100_000 {
+            let e = 0.01 + 100.0 * rnd(&mut seed);
+            let s = e * (0.8 + 0.4 * rnd(&mut seed));
+            let ratio = (e - s).abs() / (DEPTH_TOLERANCE * e.min(s));
+            if (ratio - 1.0).abs() > 1e-5 {
+                assert_eq!(depth_match(e, s), ratio <= 1.0, "{e} {s}");
+            }
+        }
+    }
+
+    #[test]
+    fn floor_small_is_the_truncating_cast_below_2_pow_22() {
+        let mut seed = 5;
+        let check = |u: f32| assert_eq!(floor_small(u), u as i32, "{u}");
+        for k in 0..4096 {
+            let base = k as f32 * 1023.0;
+            for u in [base, base + 0.5, base + 0.999_999, base - 1e-3] {
+                check(u.max(0.0));
+            }
+            // Just below and above integers, where rounding to nearest differs.
+            check(f32::from_bits((k as f32 + 1.0).to_bits() - 1));
+            check(f32::from_bits((k as f32 + 1.0).to_bits() + 1));
+            check(rnd(&mut seed) * 4_194_303.0);
+        }
+        // The largest values it serves (positions in frames of sides below 2^22).
+        check(4_194_303.0);
+        check(f32::from_bits(4_194_304f32.to_bits() - 1));
+        // Anything else gives some value without a panic.
+        for u in [f32::NAN, f32::INFINITY, -1e30, 1e30, -5.5] {
+            std::hint::black_box(floor_small(u));
+        }
     }
 
     #[test]
