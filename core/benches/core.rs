@@ -137,6 +137,7 @@ fn tiling(c: &mut Criterion) {
                     history: &view,
                     params: &params,
                     pool: device.pool(),
+                    kept: None,
                 };
                 backend
                     .process(
@@ -201,6 +202,7 @@ fn classical(c: &mut Criterion) {
             history: view,
             params: &params,
             pool: &pool,
+            kept: None,
         };
         let mut carry = Carry::default();
         let mut progress = Progress::new(None);

@@ -2,7 +2,7 @@
 
 use std::sync::Arc;
 
-use crate::backend::{self, Backend, BackendInput, Carry, Progress, Stages};
+use crate::backend::{self, Backend, BackendInput, Carry, KeptColor, Progress, Stages};
 use crate::device::Device;
 use crate::error::{Error, Result};
 use crate::frame::{FrameInput, Image, ImageViewMut, PreparedFrame, Recycler, RgbaImage};
@@ -349,11 +349,23 @@ impl Session {
         } else {
             st.carry.clone()
         };
+        // The history's copy of the result, written by the backend's last
+        // pass when it can (nothing after the backend changes the result
+        // unless `strength` is below 1, see `apply_strength`).
+        let capacity = self.params.context_frames;
+        let kept = (capacity > 0).then(|| {
+            KeptColor::new(RgbaImage {
+                width: frame.width(),
+                height: frame.height(),
+                data: self.recycler.take(4 * frame.width() * frame.height()),
+            })
+        });
         let backend_input = BackendInput {
             frame: &frame,
             history: &view,
             params: &self.params,
             pool,
+            kept: kept.as_ref().filter(|_| self.params.strength >= 1.0),
         };
         progress.set_span(0.05, 0.95);
         let out = match rgba {
@@ -368,11 +380,18 @@ impl Session {
                 .backend
                 .process(&backend_input, &mut carry, &mut progress, &mut stages),
         };
+        let (kept, kept_filled) = match kept.map(KeptColor::into_inner) {
+            Some((buffer, filled)) => (buffer, filled),
+            None => (None, false),
+        };
         let mut out = match out {
             Ok(out) => out,
             Err(e) => {
                 drop(view);
                 frame.recycle(&self.recycler);
+                if let Some(k) = kept {
+                    self.recycler.give(k.data);
+                }
                 return Err(e);
             }
         };
@@ -386,12 +405,14 @@ impl Session {
         drop(view);
         if let Err(e) = done {
             frame.recycle(&self.recycler);
+            if let Some(k) = kept {
+                self.recycler.give(k.data);
+            }
             return Err(e);
         }
 
         // Commit: only now does the temporal state change.
         let t_commit = std::time::Instant::now();
-        let capacity = self.params.context_frames;
         let mut history = if reset.is_some() {
             History::default()
         } else {
@@ -416,15 +437,12 @@ impl Session {
         if let Some(n) = normal {
             rec.give(n.data);
         }
-        if capacity > 0 {
-            // Kept interleaved (see `HistoryFrame::color`); the buffer is
-            // one of the recycled frame-sized ones.
-            let mut kept = RgbaImage {
-                width: out.width,
-                height: out.height,
-                data: rec.take(4 * out.len()),
-            };
-            kept.set_planes(&out, Some(pool));
+        if let Some(mut kept) = kept {
+            // Kept interleaved (see `HistoryFrame::color`), written by the
+            // backend's last pass or copied here.
+            if !kept_filled {
+                kept.set_planes(&out, Some(pool));
+            }
             let evicted = history.push(
                 HistoryFrame {
                     color: kept,

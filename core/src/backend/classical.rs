@@ -190,18 +190,30 @@ pub fn run_ops(
 /// `stabilize` is on, `temporal_blend` above 0 and there is history): `img`
 /// blended with history frame 0, clamped to the local color range. The
 /// neural backend runs it on its output for models that ask for it
-/// (manifest `stabilize`).
+/// (manifest `stabilize`). It is the last change to `img`: the same pass
+/// writes the history's copy of the result when the session hands over its
+/// buffer (`input.kept`).
 pub fn stabilize_with_history(img: &mut Image, input: &BackendInput<'_>, stages: &mut Stages) {
     let (params, history) = (input.params, input.history);
     if params.stabilize && params.temporal_blend > 0.0 && !history.is_empty() {
         // History frame 0 is reprojected row by row inside the blend pass
         // (the time is the stabilize stage's), never as a whole frame.
         stages.time("stabilize", || {
+            let mut kept = input
+                .kept
+                .and_then(|k| k.take())
+                .filter(|k| (k.width, k.height) == (img.width, img.height));
             input.pool.install(|| {
-                stabilize::stabilize_rows(img, params.temporal_blend, |y, rgba, valid| {
-                    history.reproject_row_rgba(0, y, rgba, valid)
-                })
-            })
+                stabilize::stabilize_rows(
+                    img,
+                    params.temporal_blend,
+                    kept.as_mut().map(|k| &mut k.data[..]),
+                    |y, rgba, valid| history.reproject_row_rgba(0, y, rgba, valid),
+                )
+            });
+            if let (Some(slot), Some(k)) = (input.kept, kept) {
+                slot.filled(k);
+            }
         });
     }
 }

@@ -5,9 +5,10 @@ pub mod classical;
 pub mod neural;
 
 use std::collections::BTreeMap;
+use std::sync::Mutex;
 
 use crate::error::{Error, Result};
-use crate::frame::{Image, PreparedFrame};
+use crate::frame::{Image, PreparedFrame, RgbaImage};
 use crate::params::Params;
 use crate::temporal::HistoryView;
 
@@ -83,6 +84,44 @@ impl Stages {
     }
 }
 
+/// The buffer of the history's interleaved copy of the result, handed to
+/// the backend so that its last pass over the image can write it while the
+/// rows are in cache (the session copies the result itself otherwise).
+#[derive(Debug)]
+pub struct KeptColor {
+    slot: Mutex<(Option<RgbaImage>, bool)>,
+}
+
+impl KeptColor {
+    /// Wraps `buffer` (contents arbitrary), not filled yet.
+    pub fn new(buffer: RgbaImage) -> KeptColor {
+        KeptColor {
+            slot: Mutex::new((Some(buffer), false)),
+        }
+    }
+
+    /// Takes the buffer to write it (`None` when already taken); give it
+    /// back with [`KeptColor::filled`] once it holds the final result.
+    pub fn take(&self) -> Option<RgbaImage> {
+        let mut s = self.slot.lock().unwrap_or_else(|e| e.into_inner());
+        s.1 = false;
+        s.0.take()
+    }
+
+    /// Gives the buffer back holding the result exactly, interleaved (what
+    /// [`RgbaImage::set_planes`] of the backend's output would write): the
+    /// backend must not change its output after this.
+    pub fn filled(&self, buffer: RgbaImage) {
+        let mut s = self.slot.lock().unwrap_or_else(|e| e.into_inner());
+        *s = (Some(buffer), true);
+    }
+
+    /// The buffer and whether it holds the result.
+    pub fn into_inner(self) -> (Option<RgbaImage>, bool) {
+        self.slot.into_inner().unwrap_or_else(|e| e.into_inner())
+    }
+}
+
 /// Everything a backend sees for one frame.
 pub struct BackendInput<'a> {
     /// The current frame in planar form.
@@ -93,6 +132,9 @@ pub struct BackendInput<'a> {
     pub params: &'a Params,
     /// The device's thread pool; run parallel work inside `pool.install`.
     pub pool: &'a rayon::ThreadPool,
+    /// Where the history's copy of the result may be written by the last
+    /// pass over the image (`None`: the session copies it).
+    pub kept: Option<&'a KeptColor>,
 }
 
 /// A backend turns one prepared frame plus history into the enhanced frame.

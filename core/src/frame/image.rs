@@ -136,6 +136,17 @@ impl RgbaImage {
         out
     }
 
+    /// Writes the 4-plane `img` interleaved into `out` (`4 * img.len()`
+    /// samples: pixel `p` at `4 * p..4 * p + 4`), on the calling thread.
+    pub fn interleave_into(img: &Image, out: &mut [f32]) {
+        assert_eq!(img.channels, 4, "an RGBA image is made of 4 planes");
+        assert_eq!(out.len(), 4 * img.len(), "4 samples per pixel");
+        let [r, g, b, a] = [0, 1, 2, 3].map(|c| img.plane(c));
+        for (p, q) in out.as_chunks_mut::<4>().0.iter_mut().enumerate() {
+            *q = [r[p], g[p], b[p], a[p]];
+        }
+    }
+
     /// Overwrites every sample with the 4-plane `img` of the same size, in
     /// parallel on `pool` when given.
     pub fn set_planes(&mut self, img: &Image, pool: Option<&rayon::ThreadPool>) {

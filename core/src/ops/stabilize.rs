@@ -95,7 +95,7 @@ pub fn stabilize(img: &mut Image, history: &ReprojectedFrame, blend: f32) {
     let (w, n) = (img.width, img.len());
     assert_eq!(history.color.len(), n, "history and frame sizes differ");
     let (hist, valid) = (&history.color.data, &history.valid);
-    stabilize_rows(img, blend, |y, rgba, v| {
+    stabilize_rows(img, blend, None, |y, rgba, v| {
         let s = y * w;
         for (x, px) in rgba.iter_mut().enumerate() {
             *px = std::array::from_fn(|c| hist[c * n + s + x]);
@@ -112,13 +112,26 @@ pub fn stabilize(img: &mut Image, history: &ReprojectedFrame, blend: f32) {
 ///
 /// One pass over the image: each band keeps a sliding window of three YCoCg
 /// rows, and the horizontal min/max is taken inside the blend loop. Rows
-/// without valid history are skipped (only the window rolls on).
-pub fn stabilize_rows<F>(img: &mut Image, blend: f32, history_row: F)
+/// without valid history are skipped (only the window rolls on). With
+/// `kept` (`4 * width * height` samples), the result is also written there
+/// interleaved (pixel `p` at `4 * p..4 * p + 4`, as
+/// [`crate::frame::RgbaImage::set_planes`] writes it), every row, from the
+/// same pass.
+pub fn stabilize_rows<F>(img: &mut Image, blend: f32, kept: Option<&mut [f32]>, history_row: F)
 where
     F: Fn(usize, &mut [[f32; 4]], &mut [f32]) + Sync,
 {
     let (w, h) = (img.width, img.height);
-    if blend <= 0.0 || w * h == 0 {
+    if w * h == 0 {
+        return;
+    }
+    if let Some(k) = kept.as_deref() {
+        assert_eq!(k.len(), 4 * w * h, "kept holds 4 samples per pixel");
+    }
+    if blend <= 0.0 {
+        if let Some(k) = kept {
+            crate::frame::RgbaImage::interleave_into(img, k);
+        }
         return;
     }
     let bands = h.div_ceil(BAND_ROWS);
@@ -145,67 +158,90 @@ where
             })
             .collect()
     };
-    par_bands_mut(img, 0, h).for_each(|(y0, [r, g, b, a])| {
-        let bi = y0 / BAND_ROWS;
-        let rows = a.len() / w;
-        // Sliding window of YCoCg rows of the unmodified image.
-        let mut above = if y0 > 0 {
-            edges[bi - 1].1.clone()
-        } else {
-            edges[bi].0.clone()
-        };
-        let mut centre = edges[bi].0.clone();
-        let mut below = vec![0.0; 3 * w];
-        let mut lo = vec![0.0; 3 * (w + 2)];
-        let mut hi = vec![0.0; 3 * (w + 2)];
-        // One row of the history: RGBA and validity.
-        let mut hrgba = vec![[0.0; 4]; w];
-        let mut vv = vec![0.0; w];
-        for dy in 0..rows {
-            let y = y0 + dy;
-            if dy + 1 < rows {
-                let s = (dy + 1) * w..(dy + 2) * w;
-                row_ycocg(&r[s.clone()], &g[s.clone()], &b[s], &mut below);
-            } else if y + 1 < h {
-                below.copy_from_slice(&edges[bi + 1].0);
+    // The kept copy in the same bands as the image (or none for any band).
+    let kept_bands: Vec<Option<&mut [[f32; 4]]>> = match kept {
+        Some(k) => k
+            .as_chunks_mut::<4>()
+            .0
+            .chunks_mut(BAND_ROWS * w)
+            .map(Some)
+            .collect(),
+        None => (0..bands).map(|_| None).collect(),
+    };
+    par_bands_mut(img, 0, h)
+        .zip(kept_bands)
+        .for_each(|((y0, [r, g, b, a]), mut kept)| {
+            let bi = y0 / BAND_ROWS;
+            let rows = a.len() / w;
+            // Sliding window of YCoCg rows of the unmodified image.
+            let mut above = if y0 > 0 {
+                edges[bi - 1].1.clone()
             } else {
-                below.copy_from_slice(&centre);
-            }
-            history_row(y, &mut hrgba, &mut vv);
-            if row_max(&vv) > 0.0 {
-                vertical_min_max([&above, &centre, &below], w, &mut lo, &mut hi);
-                let row = dy * w..(dy + 1) * w;
-                let (rr, gr, br, ar) = (
-                    &mut r[row.clone()],
-                    &mut g[row.clone()],
-                    &mut b[row.clone()],
-                    &a[row],
-                );
-                let (ly, lco, lcg) = (shifted(&lo, 0, w), shifted(&lo, 1, w), shifted(&lo, 2, w));
-                let (hy, hco, hcg) = (shifted(&hi, 0, w), shifted(&hi, 1, w), shifted(&hi, 2, w));
-                let (hrgba, vv) = (&hrgba[..w], &vv[..w]);
-                for x in 0..w {
-                    let [hr, hg, hb, hav] = hrgba[x];
-                    let (cov, v) = (ar[x], vv[x]);
-                    let ok = (cov > 0.0) & (v > 0.0) & (hav > MIN_HISTORY_ALPHA);
-                    let k = cov / fmax(hav, MIN_HISTORY_ALPHA);
-                    let [ty, tco, tcg] = to_ycocg(hr * k, hg * k, hb * k);
-                    let [cr, cg, cb] = from_ycocg(
-                        fmin(fmax(ty, min3_at(ly, x)), max3_at(hy, x)),
-                        fmin(fmax(tco, min3_at(lco, x)), max3_at(hco, x)),
-                        fmin(fmax(tcg, min3_at(lcg, x)), max3_at(hcg, x)),
-                    );
-                    // Branch-free (vectorizable): weight 0 where the history is unusable.
-                    let wt = blend * v * fmin(hav, 1.0) * (ok as u32 as f32);
-                    rr[x] = fmax(rr[x] + wt * (cr - rr[x]), 0.0);
-                    gr[x] = fmax(gr[x] + wt * (cg - gr[x]), 0.0);
-                    br[x] = fmax(br[x] + wt * (cb - br[x]), 0.0);
+                edges[bi].0.clone()
+            };
+            let mut centre = edges[bi].0.clone();
+            let mut below = vec![0.0; 3 * w];
+            let mut lo = vec![0.0; 3 * (w + 2)];
+            let mut hi = vec![0.0; 3 * (w + 2)];
+            // One row of the history: RGBA and validity.
+            let mut hrgba = vec![[0.0; 4]; w];
+            let mut vv = vec![0.0; w];
+            for dy in 0..rows {
+                let y = y0 + dy;
+                if dy + 1 < rows {
+                    let s = (dy + 1) * w..(dy + 2) * w;
+                    row_ycocg(&r[s.clone()], &g[s.clone()], &b[s], &mut below);
+                } else if y + 1 < h {
+                    below.copy_from_slice(&edges[bi + 1].0);
+                } else {
+                    below.copy_from_slice(&centre);
                 }
+                history_row(y, &mut hrgba, &mut vv);
+                if row_max(&vv) > 0.0 {
+                    vertical_min_max([&above, &centre, &below], w, &mut lo, &mut hi);
+                    let row = dy * w..(dy + 1) * w;
+                    let (rr, gr, br, ar) = (
+                        &mut r[row.clone()],
+                        &mut g[row.clone()],
+                        &mut b[row.clone()],
+                        &a[row],
+                    );
+                    let (ly, lco, lcg) =
+                        (shifted(&lo, 0, w), shifted(&lo, 1, w), shifted(&lo, 2, w));
+                    let (hy, hco, hcg) =
+                        (shifted(&hi, 0, w), shifted(&hi, 1, w), shifted(&hi, 2, w));
+                    let (hrgba, vv) = (&hrgba[..w], &vv[..w]);
+                    for x in 0..w {
+                        let [hr, hg, hb, hav] = hrgba[x];
+                        let (cov, v) = (ar[x], vv[x]);
+                        let ok = (cov > 0.0) & (v > 0.0) & (hav > MIN_HISTORY_ALPHA);
+                        let k = cov / fmax(hav, MIN_HISTORY_ALPHA);
+                        let [ty, tco, tcg] = to_ycocg(hr * k, hg * k, hb * k);
+                        let [cr, cg, cb] = from_ycocg(
+                            fmin(fmax(ty, min3_at(ly, x)), max3_at(hy, x)),
+                            fmin(fmax(tco, min3_at(lco, x)), max3_at(hco, x)),
+                            fmin(fmax(tcg, min3_at(lcg, x)), max3_at(hcg, x)),
+                        );
+                        // Branch-free (vectorizable): weight 0 where the history is unusable.
+                        let wt = blend * v * fmin(hav, 1.0) * (ok as u32 as f32);
+                        rr[x] = fmax(rr[x] + wt * (cr - rr[x]), 0.0);
+                        gr[x] = fmax(gr[x] + wt * (cg - gr[x]), 0.0);
+                        br[x] = fmax(br[x] + wt * (cb - br[x]), 0.0);
+                    }
+                }
+                if let Some(kb) = kept.as_deref_mut() {
+                    // The finished row, still in cache, into the kept copy.
+                    let row = dy * w..(dy + 1) * w;
+                    let (rr, gr, br, ar) =
+                        (&r[row.clone()], &g[row.clone()], &b[row.clone()], &a[row]);
+                    for (x, px) in kb[dy * w..(dy + 1) * w].iter_mut().enumerate() {
+                        *px = [rr[x], gr[x], br[x], ar[x]];
+                    }
+                }
+                std::mem::swap(&mut above, &mut centre);
+                std::mem::swap(&mut centre, &mut below);
             }
-            std::mem::swap(&mut above, &mut centre);
-            std::mem::swap(&mut centre, &mut below);
-        }
-    });
+        });
 }
 
 #[cfg(test)]
@@ -296,6 +332,44 @@ mod tests {
             })
             .collect();
         check_against_reference(valid);
+    }
+
+    #[test]
+    fn the_kept_copy_is_the_interleaved_result() {
+        let (w, h) = (REF_W, REF_H);
+        let n = w * h;
+        // Valid history in some rows only, so skipped rows are kept too.
+        let valid: Vec<f32> = (0..n)
+            .map(|i| if (i / w) % 5 == 2 { 0.0 } else { noise(i, 4) })
+            .collect();
+        let cur = gray(w, h, |i| noise(i, 5) * 2.0);
+        let hist = gray(w, h, |i| noise(i, 6) * 2.0);
+        for blend in [0.7, 0.0] {
+            let mut plain = cur.clone();
+            stabilize(
+                &mut plain,
+                &ReprojectedFrame {
+                    color: hist.clone(),
+                    valid: valid.clone(),
+                },
+                blend,
+            );
+            let mut fused = cur.clone();
+            let mut kept = vec![f32::NAN; 4 * n];
+            stabilize_rows(&mut fused, blend, Some(&mut kept), |y, rgba, v| {
+                for (x, px) in rgba.iter_mut().enumerate() {
+                    *px = std::array::from_fn(|c| hist.data[c * n + y * w + x]);
+                }
+                v.copy_from_slice(&valid[y * w..(y + 1) * w]);
+            });
+            assert_eq!(fused, plain, "blend {blend}");
+            let want = crate::frame::RgbaImage::from_planes(&plain, None);
+            assert_eq!(
+                kept.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                want.data.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                "blend {blend}"
+            );
+        }
     }
 
     /// Compares with a straightforward out-of-place implementation.

@@ -612,6 +612,13 @@ impl<'a> Planes<'a> {
         }
     }
 
+    /// [`Planes::color`] kept out of line: the general path of the batched
+    /// loops, whose hot loop stays small without it.
+    #[inline(never)]
+    fn color_general(&self, x: f32, y: f32, d: f32, v: f32) -> ([f32; 4], f32) {
+        self.color(x, y, d, v)
+    }
+
     /// See [`color_pixel`].
     #[inline(always)]
     fn color(&self, x: f32, y: f32, d: f32, v: f32) -> ([f32; 4], f32) {
@@ -742,7 +749,7 @@ fn color_row<S: Fn(usize, usize, usize, &mut Batch), O: RowOut>(
                 let (k, wt) = (b.idx[t] as usize, &b.weights(t));
                 (bilerp4(planes.rgba, k, w, wt), b.v[t])
             } else {
-                planes.color(b.x[t], b.y[t], b.d[t], b.v[t])
+                planes.color_general(b.x[t], b.y[t], b.d[t], b.v[t])
             };
             out.put(o + t, c, v);
         }

@@ -391,6 +391,7 @@ fn run_backend(f: &Frame, params: &Params, carry: &mut Carry, dev: &Device) -> I
         history: &view,
         params,
         pool: dev.pool(),
+        kept: None,
     };
     let mut progress = Progress::new(None);
     let mut stages = Stages::default();

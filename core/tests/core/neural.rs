@@ -300,6 +300,7 @@ fn run_backend(
         history: &view,
         params,
         pool: device.pool(),
+        kept: None,
     };
     let backend = Neural {
         model: model.clone(),
