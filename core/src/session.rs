@@ -437,12 +437,21 @@ impl Session {
         if let Some(n) = normal {
             rec.give(n.data);
         }
-        if let Some(mut kept) = kept {
+        if capacity > 0 {
             // Kept interleaved (see `HistoryFrame::color`), written by the
             // backend's last pass or copied here.
-            if !kept_filled {
-                kept.set_planes(&out, Some(pool));
-            }
+            let kept = match kept {
+                Some(k) if kept_filled => k,
+                k => {
+                    let mut k = k.unwrap_or_else(|| RgbaImage {
+                        width: out.width,
+                        height: out.height,
+                        data: rec.take(4 * out.len()),
+                    });
+                    k.set_planes(&out, Some(pool));
+                    k
+                }
+            };
             let evicted = history.push(
                 HistoryFrame {
                     color: kept,
@@ -546,5 +555,62 @@ fn apply_strength(out: &mut Image, frame: &PreparedFrame, s: f32) {
             .zip(cov)
             .for_each(|(o, i)| *o = i + s * (*o - i)),
         None => a.iter_mut().for_each(|o| *o = 1.0 + s * (*o - 1.0)),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::device::DeviceOptions;
+    use crate::synth::{Scene, SynthConfig};
+
+    /// The history keeps exactly the result handed to the host, whether the
+    /// backend's last pass wrote the history's copy (classical, stabilize
+    /// on) or the session copied it (stabilize off, strength below 1,
+    /// bypass).
+    #[test]
+    fn the_history_holds_the_result_however_it_is_copied() {
+        let scene = Scene::new(SynthConfig {
+            width: 67,
+            height: 45,
+            frames: 4,
+            ..SynthConfig::default()
+        })
+        .unwrap();
+        let device = Device::new(DeviceOptions {
+            threads: 2,
+            ..DeviceOptions::default()
+        })
+        .unwrap();
+        let cases: [(&str, &[(&str, ParamValue)]); 4] = [
+            ("classical", &[]),
+            ("classical", &[("stabilize", ParamValue::Bool(false))]),
+            ("classical", &[("strength", ParamValue::Float(0.5))]),
+            ("bypass", &[]),
+        ];
+        for (backend, extra) in cases {
+            let mut params = Params::default();
+            params
+                .set("backend", &ParamValue::Str(backend.into()))
+                .unwrap();
+            for (k, v) in extra {
+                params.set(k, v).unwrap();
+            }
+            let mut session = Session::new(device.clone(), params).unwrap();
+            for t in 0..4 {
+                let f = scene.frame(1 + t);
+                let (out, _) = session.process(&f.input.frame_input(), None).unwrap();
+                let kept = &session.state.history.get(0).unwrap().color;
+                let want = RgbaImage::from_planes(&out, None);
+                assert!(
+                    kept.data
+                        .iter()
+                        .zip(&want.data)
+                        .all(|(a, b)| a.to_bits() == b.to_bits()),
+                    "{backend} {extra:?}: frame {t}"
+                );
+                session.recycle(out);
+            }
+        }
     }
 }

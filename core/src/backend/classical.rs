@@ -25,7 +25,7 @@
 
 use rayon::prelude::*;
 
-use super::{Backend, BackendInput, Carry, Progress, Stages};
+use super::{Backend, BackendInput, Carry, KeptColor, Progress, Stages};
 use crate::error::Result;
 use crate::frame::{Image, PreparedFrame};
 use crate::ops::{harmonize, inpaint, par_bands_mut, shadow, stabilize};
@@ -199,20 +199,20 @@ pub fn stabilize_with_history(img: &mut Image, input: &BackendInput<'_>, stages:
         // History frame 0 is reprojected row by row inside the blend pass
         // (the time is the stabilize stage's), never as a whole frame.
         stages.time("stabilize", || {
-            let mut kept = input
-                .kept
-                .and_then(|k| k.take())
-                .filter(|k| (k.width, k.height) == (img.width, img.height));
+            let mut kept = input.kept.and_then(KeptColor::take);
+            let fits = kept
+                .as_ref()
+                .is_some_and(|k| (k.width, k.height) == (img.width, img.height));
             input.pool.install(|| {
                 stabilize::stabilize_rows(
                     img,
                     params.temporal_blend,
-                    kept.as_mut().map(|k| &mut k.data[..]),
+                    kept.as_mut().filter(|_| fits).map(|k| &mut k.data[..]),
                     |y, rgba, valid| history.reproject_row_rgba(0, y, rgba, valid),
                 )
             });
             if let (Some(slot), Some(k)) = (input.kept, kept) {
-                slot.filled(k);
+                slot.give(k, fits);
             }
         });
     }

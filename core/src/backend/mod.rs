@@ -101,19 +101,19 @@ impl KeptColor {
     }
 
     /// Takes the buffer to write it (`None` when already taken); give it
-    /// back with [`KeptColor::filled`] once it holds the final result.
+    /// back with [`KeptColor::give`].
     pub fn take(&self) -> Option<RgbaImage> {
         let mut s = self.slot.lock().unwrap_or_else(|e| e.into_inner());
         s.1 = false;
         s.0.take()
     }
 
-    /// Gives the buffer back holding the result exactly, interleaved (what
-    /// [`RgbaImage::set_planes`] of the backend's output would write): the
-    /// backend must not change its output after this.
-    pub fn filled(&self, buffer: RgbaImage) {
+    /// Gives the buffer back; `filled` when it holds the result exactly,
+    /// interleaved (what [`RgbaImage::set_planes`] of the backend's output
+    /// would write): the backend must not change its output after that.
+    pub fn give(&self, buffer: RgbaImage, filled: bool) {
         let mut s = self.slot.lock().unwrap_or_else(|e| e.into_inner());
-        *s = (Some(buffer), true);
+        *s = (Some(buffer), filled);
     }
 
     /// The buffer and whether it holds the result.
