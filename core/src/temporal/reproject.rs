@@ -66,13 +66,15 @@ pub fn depth_match(expected: f32, seen: f32) -> bool {
     (seen >= lo) & (seen <= hi)
 }
 
-/// True when the four depths `q[0], q[1], q[w], q[w + 1]` (a 2x2 block of
-/// bilinear taps) all lie in the window `lo..=hi` (false for a NaN).
+/// True when the four depths at `i`, `i + 1`, `i + w`, `i + w + 1` of `d`
+/// (a 2x2 block of bilinear taps, rows of `w`) all lie in the window
+/// `lo..=hi` (false for a NaN).
 #[inline(always)]
-fn block_in_window(q: &[f32], w: usize, lo: f32, hi: f32) -> bool {
-    let (top, bottom) = (&q[..2], &q[w..w + 2]);
+fn block_in_window(d: &[f32], i: usize, w: usize, lo: f32, hi: f32) -> bool {
+    // One bounds check for the block; the four reads are then in range.
+    let q = &d[i..i + w + 2];
     let inside = |s: f32| (s >= lo) & (s <= hi);
-    inside(top[0]) & inside(top[1]) & inside(bottom[0]) & inside(bottom[1])
+    inside(q[0]) & inside(q[1]) & inside(q[w]) & inside(q[w + 1])
 }
 
 /// The bilinear taps at one position that passed the frame and depth tests,
@@ -234,7 +236,7 @@ fn interior(
     if let Some(d) = depth {
         // All four taps pass the test (`depth_match`) or none is taken here.
         let (lo, hi) = depth_window(expected);
-        if !block_in_window(&d[i..], w, lo, hi) {
+        if !block_in_window(d, i, w, lo, hi) {
             return None;
         }
     }
@@ -437,7 +439,7 @@ impl Batch {
     #[inline(always)]
     fn depth_passes(&self, t: usize, depth: Option<&[f32]>, w: usize) -> bool {
         match depth {
-            Some(d) => block_in_window(&d[self.idx[t] as usize..], w, self.lo[t], self.hi[t]),
+            Some(d) => block_in_window(d, self.idx[t] as usize, w, self.lo[t], self.hi[t]),
             None => true,
         }
     }
@@ -685,6 +687,9 @@ pub(crate) trait RowOut {
     fn len(&self) -> usize;
     /// Writes pixel `t` (`t < len()`).
     fn put(&mut self, t: usize, c: [f32; 4], v: f32);
+    /// Writes pixels `o..o + m` with `f(t)` for pixel `o + t` (`o + m <=
+    /// len()`), the run checked once rather than pixel by pixel.
+    fn put_run(&mut self, o: usize, m: usize, f: impl FnMut(usize) -> ([f32; 4], f32));
 }
 
 /// A run written as five planes: R, G, B, A and validity.
@@ -704,6 +709,22 @@ impl RowOut for Planar<'_> {
         o3[t] = c[3];
         ov[t] = v;
     }
+    #[inline(always)]
+    fn put_run(&mut self, o: usize, m: usize, mut f: impl FnMut(usize) -> ([f32; 4], f32)) {
+        let [o0, o1, o2, o3, ov] = &mut self.0;
+        let s = o..o + m;
+        let (o0, o1, o2, o3, ov) = (
+            &mut o0[s.clone()],
+            &mut o1[s.clone()],
+            &mut o2[s.clone()],
+            &mut o3[s.clone()],
+            &mut ov[s],
+        );
+        for t in 0..m {
+            let (c, v) = f(t);
+            (o0[t], o1[t], o2[t], o3[t], ov[t]) = (c[0], c[1], c[2], c[3], v);
+        }
+    }
 }
 
 /// A run written as interleaved RGBA pixels and a validity plane.
@@ -721,6 +742,13 @@ impl RowOut for Interleaved<'_> {
     fn put(&mut self, t: usize, c: [f32; 4], v: f32) {
         self.rgba[t] = c;
         self.valid[t] = v;
+    }
+    #[inline(always)]
+    fn put_run(&mut self, o: usize, m: usize, mut f: impl FnMut(usize) -> ([f32; 4], f32)) {
+        let (rgba, valid) = (&mut self.rgba[o..o + m], &mut self.valid[o..o + m]);
+        for t in 0..m {
+            (rgba[t], valid[t]) = f(t);
+        }
     }
 }
 
@@ -743,16 +771,14 @@ fn color_row<S: Fn(usize, usize, usize, &mut Batch), O: RowOut>(
     for j0 in cols.clone().step_by(BATCH) {
         let m = BATCH.min(cols.end - j0);
         b.fill(at, i, j0, m, w, h, planes.depth);
-        let o = j0 - cols.start;
-        for t in 0..m {
-            let (c, v) = if b.fast[t] && b.depth_passes(t, planes.depth, w) {
+        out.put_run(j0 - cols.start, m, |t| {
+            if b.fast[t] && b.depth_passes(t, planes.depth, w) {
                 let (k, wt) = (b.idx[t] as usize, &b.weights(t));
                 (bilerp4(planes.rgba, k, w, wt), b.v[t])
             } else {
                 planes.color_general(b.x[t], b.y[t], b.d[t], b.v[t])
-            };
-            out.put(o + t, c, v);
-        }
+            }
+        });
     }
 }
 
