@@ -380,10 +380,7 @@ impl Session {
                 .backend
                 .process(&backend_input, &mut carry, &mut progress, &mut stages),
         };
-        let (kept, kept_filled) = match kept.map(KeptColor::into_inner) {
-            Some((buffer, filled)) => (buffer, filled),
-            None => (None, false),
-        };
+        let (kept, kept_filled) = kept.map_or((None, false), KeptColor::into_inner);
         let mut out = match out {
             Ok(out) => out,
             Err(e) => {

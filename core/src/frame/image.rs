@@ -136,13 +136,14 @@ impl RgbaImage {
         out
     }
 
-    /// Writes the 4-plane `img` interleaved into `out` (`4 * img.len()`
-    /// samples: pixel `p` at `4 * p..4 * p + 4`), on the calling thread.
-    pub fn interleave_into(img: &Image, out: &mut [f32]) {
-        assert_eq!(img.channels, 4, "an RGBA image is made of 4 planes");
-        assert_eq!(out.len(), 4 * img.len(), "4 samples per pixel");
-        let [r, g, b, a] = [0, 1, 2, 3].map(|c| img.plane(c));
-        for (p, q) in out.as_chunks_mut::<4>().0.iter_mut().enumerate() {
+    /// Writes the samples of the planes `[r, g, b, a]` (each at least
+    /// `out.len()` long) interleaved into `out`: pixel `p` gets `[r[p],
+    /// g[p], b[p], a[p]]`. Any run of pixels: whole images, rows, chunks.
+    #[inline]
+    pub fn interleave(planes: [&[f32]; 4], out: &mut [[f32; 4]]) {
+        let n = out.len();
+        let [r, g, b, a] = planes.map(|p| &p[..n]);
+        for (p, q) in out.iter_mut().enumerate() {
             *q = [r[p], g[p], b[p], a[p]];
         }
     }
@@ -163,11 +164,9 @@ impl RgbaImage {
         let [r, g, b, a] = [0, 1, 2, 3].map(|c| img.plane(c));
         const CHUNK: usize = 1 << 14;
         let part = |(k, out): (usize, &mut [f32])| {
-            let s = k * CHUNK..k * CHUNK + out.len() / 4;
-            let (r, g, b, a) = (&r[s.clone()], &g[s.clone()], &b[s.clone()], &a[s]);
-            for (p, q) in out.chunks_exact_mut(4).enumerate() {
-                q.copy_from_slice(&[r[p], g[p], b[p], a[p]]);
-            }
+            let s = k * CHUNK..;
+            let planes = [&r[s.clone()], &g[s.clone()], &b[s.clone()], &a[s]];
+            RgbaImage::interleave(planes, out.as_chunks_mut::<4>().0);
         };
         match pool {
             Some(pool) => pool.install(|| {

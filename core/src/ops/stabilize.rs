@@ -12,7 +12,7 @@
 use rayon::prelude::*;
 
 use super::{fmax, fmin, par_bands_mut, row_max, BAND_ROWS};
-use crate::frame::Image;
+use crate::frame::{Image, RgbaImage};
 use crate::temporal::ReprojectedFrame;
 
 /// History alpha below this carries no usable color.
@@ -130,7 +130,8 @@ where
     }
     if blend <= 0.0 {
         if let Some(k) = kept {
-            crate::frame::RgbaImage::interleave_into(img, k);
+            let planes = [0, 1, 2, 3].map(|c| img.plane(c));
+            RgbaImage::interleave(planes, k.as_chunks_mut::<4>().0);
         }
         return;
     }
@@ -232,11 +233,13 @@ where
                 if let Some(kb) = kept.as_deref_mut() {
                     // The finished row, still in cache, into the kept copy.
                     let row = dy * w..(dy + 1) * w;
-                    let (rr, gr, br, ar) =
-                        (&r[row.clone()], &g[row.clone()], &b[row.clone()], &a[row]);
-                    for (x, px) in kb[dy * w..(dy + 1) * w].iter_mut().enumerate() {
-                        *px = [rr[x], gr[x], br[x], ar[x]];
-                    }
+                    let planes = [
+                        &r[row.clone()],
+                        &g[row.clone()],
+                        &b[row.clone()],
+                        &a[row.clone()],
+                    ];
+                    RgbaImage::interleave(planes, &mut kb[row]);
                 }
                 std::mem::swap(&mut above, &mut centre);
                 std::mem::swap(&mut centre, &mut below);

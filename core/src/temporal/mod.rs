@@ -373,9 +373,7 @@ impl<'a> HistoryView<'a> {
         let copy = |r: &ReprojectedFrame, out: &mut O| {
             let (c, v) = (&r.color, &r.valid[s.clone()]);
             let p: [&[f32]; 4] = std::array::from_fn(|ch| &c.plane(ch)[s.clone()]);
-            for j in 0..w {
-                out.put(j, [p[0][j], p[1][j], p[2][j], p[3][j]], v[j]);
-            }
+            out.put_run(0, w, |j| ([p[0][j], p[1][j], p[2][j], p[3][j]], v[j]));
         };
         if let Some(r) = self.cache.get(k).and_then(OnceLock::get) {
             return copy(r, out);
@@ -391,14 +389,10 @@ impl<'a> HistoryView<'a> {
                 map.color_row(frame, depth, i, out)
             }
             ReprojectionMode::Identity => {
-                for j in 0..w {
-                    out.put(j, frame.color.pixel(i * w + j), 1.0);
-                }
+                out.put_run(0, w, |j| (frame.color.pixel(i * w + j), 1.0));
             }
             ReprojectionMode::Unavailable => {
-                for j in 0..w {
-                    out.put(j, [0.0; 4], 0.0);
-                }
+                out.put_run(0, w, |_| ([0.0; 4], 0.0));
             }
         }
     }

@@ -614,13 +614,6 @@ impl<'a> Planes<'a> {
         }
     }
 
-    /// [`Planes::color`] kept out of line: the general path of the batched
-    /// loops, whose hot loop stays small without it.
-    #[inline(never)]
-    fn color_general(&self, x: f32, y: f32, d: f32, v: f32) -> ([f32; 4], f32) {
-        self.color(x, y, d, v)
-    }
-
     /// See [`color_pixel`].
     #[inline(always)]
     fn color(&self, x: f32, y: f32, d: f32, v: f32) -> ([f32; 4], f32) {
@@ -685,8 +678,6 @@ impl SourceUser<ReprojectedFrame> for ColorHop<'_> {
 pub(crate) trait RowOut {
     /// Pixels in the run.
     fn len(&self) -> usize;
-    /// Writes pixel `t` (`t < len()`).
-    fn put(&mut self, t: usize, c: [f32; 4], v: f32);
     /// Writes pixels `o..o + m` with `f(t)` for pixel `o + t` (`o + m <=
     /// len()`), the run checked once rather than pixel by pixel.
     fn put_run(&mut self, o: usize, m: usize, f: impl FnMut(usize) -> ([f32; 4], f32));
@@ -699,15 +690,6 @@ impl RowOut for Planar<'_> {
     #[inline(always)]
     fn len(&self) -> usize {
         self.0.iter().map(|p| p.len()).min().unwrap_or(0)
-    }
-    #[inline(always)]
-    fn put(&mut self, t: usize, c: [f32; 4], v: f32) {
-        let [o0, o1, o2, o3, ov] = &mut self.0;
-        o0[t] = c[0];
-        o1[t] = c[1];
-        o2[t] = c[2];
-        o3[t] = c[3];
-        ov[t] = v;
     }
     #[inline(always)]
     fn put_run(&mut self, o: usize, m: usize, mut f: impl FnMut(usize) -> ([f32; 4], f32)) {
@@ -737,11 +719,6 @@ impl RowOut for Interleaved<'_> {
     #[inline(always)]
     fn len(&self) -> usize {
         self.rgba.len().min(self.valid.len())
-    }
-    #[inline(always)]
-    fn put(&mut self, t: usize, c: [f32; 4], v: f32) {
-        self.rgba[t] = c;
-        self.valid[t] = v;
     }
     #[inline(always)]
     fn put_run(&mut self, o: usize, m: usize, mut f: impl FnMut(usize) -> ([f32; 4], f32)) {
@@ -776,7 +753,7 @@ fn color_row<S: Fn(usize, usize, usize, &mut Batch), O: RowOut>(
                 let (k, wt) = (b.idx[t] as usize, &b.weights(t));
                 (bilerp4(planes.rgba, k, w, wt), b.v[t])
             } else {
-                planes.color_general(b.x[t], b.y[t], b.d[t], b.v[t])
+                planes.color(b.x[t], b.y[t], b.d[t], b.v[t])
             }
         });
     }
@@ -994,10 +971,7 @@ impl CameraMap {
         assert!(out.len() >= w, "an output shorter than the row");
         let b = self.row(i);
         let drow = &depth[i * w..(i + 1) * w];
-        for (j, &d) in drow.iter().enumerate() {
-            let (c, v) = self.color(frame, b, j, d);
-            out.put(j, c, v);
-        }
+        out.put_run(0, w, |j| self.color(frame, b, j, drow[j]));
     }
 
     /// [`CameraMap::color`] at pixel (row `i`, column `j`) alone; equal to
