@@ -208,7 +208,10 @@ pub fn stabilize_with_history(img: &mut Image, input: &BackendInput<'_>, stages:
                     img,
                     params.temporal_blend,
                     kept.as_mut().filter(|_| fits).map(|k| &mut k.data[..]),
-                    |y, rgba, valid| history.reproject_row_rgba(0, y, rgba, valid),
+                    &stabilize::ViewRows {
+                        view: history,
+                        k: 0,
+                    },
                 )
             });
             if let (Some(slot), Some(k)) = (input.kept, kept) {

@@ -16,6 +16,18 @@ use rayon::prelude::*;
 
 use crate::frame::Image;
 
+/// Runs `op` compiled for the widest vector instructions this CPU has (AVX2
+/// and FMA on x86-64 where present, else the baseline), chosen at run time
+/// (detected once per process). Code inlined into `op`'s `with_simd` (which
+/// must be `#[inline(always)]`, as must the helpers it calls) is vectorized
+/// for that width. The arithmetic is the same IEEE operations in the same
+/// order on every path (Rust never fuses a multiply and an add), so the
+/// results are bit for bit those of the baseline.
+#[inline(always)]
+pub(crate) fn simd<Op: pulp::WithSimd>(op: Op) -> Op::Output {
+    pulp::Arch::new().dispatch(op)
+}
+
 /// Rows per parallel work item (fixed, so results never depend on threads).
 pub const BAND_ROWS: usize = 16;
 

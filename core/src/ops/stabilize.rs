@@ -11,9 +11,9 @@
 
 use rayon::prelude::*;
 
-use super::{fmax, fmin, par_bands_mut, row_max, BAND_ROWS};
+use super::{fmax, fmin, par_bands_mut, row_max, simd, BAND_ROWS};
 use crate::frame::{Image, RgbaImage};
-use crate::temporal::ReprojectedFrame;
+use crate::temporal::{HistoryView, ReprojectedFrame};
 
 /// History alpha below this carries no usable color.
 const MIN_HISTORY_ALPHA: f32 = 1e-4;
@@ -34,6 +34,7 @@ fn from_ycocg(y: f32, co: f32, cg: f32) -> [f32; 3] {
 }
 
 /// One row in YCoCg (3 planes of `w`).
+#[inline(always)]
 fn row_ycocg(r: &[f32], g: &[f32], b: &[f32], out: &mut [f32]) {
     let w = r.len();
     let (oy, rest) = out.split_at_mut(w);
@@ -49,6 +50,7 @@ fn row_ycocg(r: &[f32], g: &[f32], b: &[f32], out: &mut [f32]) {
 /// Vertical 3-tap min and max of three YCoCg rows (3 planes of `w`), into
 /// planes of `w + 2` padded by repeating the first and last value, so the
 /// horizontal 3-tap is three shifted slices with edges clamped.
+#[inline(always)]
 fn vertical_min_max(rows: [&[f32]; 3], w: usize, lo: &mut [f32], hi: &mut [f32]) {
     let [a0, a1, a2] = rows;
     for c in 0..3 {
@@ -85,6 +87,43 @@ fn shifted(v: &[f32], c: usize, w: usize) -> (&[f32], &[f32], &[f32]) {
     (&v[p..p + w], &v[p + 1..p + w + 1], &v[p + 2..p + w + 2])
 }
 
+/// Where [`stabilize_rows`] takes the history from, row by row.
+pub trait HistoryRows: Sync {
+    /// Writes row `y` of the reprojected history's RGBA (interleaved) and
+    /// validity into the row-long slices `rgba` and `valid`.
+    fn row(&self, y: usize, rgba: &mut [[f32; 4]], valid: &mut [f32]);
+}
+
+/// A function `f(y, rgba, valid)` as [`HistoryRows`].
+pub struct RowFn<F>(pub F);
+
+impl<F> HistoryRows for RowFn<F>
+where
+    F: Fn(usize, &mut [[f32; 4]], &mut [f32]) + Sync,
+{
+    #[inline(always)]
+    fn row(&self, y: usize, rgba: &mut [[f32; 4]], valid: &mut [f32]) {
+        (self.0)(y, rgba, valid)
+    }
+}
+
+/// History frame `k` of a view, reprojected row by row
+/// ([`HistoryView::reproject_row_rgba`]), as [`HistoryRows`]; inlined into
+/// the blend pass (and vectorized with it).
+pub struct ViewRows<'v, 'a> {
+    /// The view.
+    pub view: &'v HistoryView<'a>,
+    /// Which history frame.
+    pub k: usize,
+}
+
+impl HistoryRows for ViewRows<'_, '_> {
+    #[inline(always)]
+    fn row(&self, y: usize, rgba: &mut [[f32; 4]], valid: &mut [f32]) {
+        self.view.reproject_row_rgba(self.k, y, rgba, valid)
+    }
+}
+
 /// Blends `img` (4 planes, premultiplied) with `history` in place: weight
 /// `blend * validity`, history clamped to the 3x3 YCoCg range of `img`.
 /// Alpha is kept; pixels with A = 0 or without usable history keep their
@@ -95,19 +134,24 @@ pub fn stabilize(img: &mut Image, history: &ReprojectedFrame, blend: f32) {
     let (w, n) = (img.width, img.len());
     assert_eq!(history.color.len(), n, "history and frame sizes differ");
     let (hist, valid) = (&history.color.data, &history.valid);
-    stabilize_rows(img, blend, None, |y, rgba, v| {
-        let s = y * w;
-        for (x, px) in rgba.iter_mut().enumerate() {
-            *px = std::array::from_fn(|c| hist[c * n + s + x]);
-        }
-        v.copy_from_slice(&valid[s..s + w]);
-    });
+    stabilize_rows(
+        img,
+        blend,
+        None,
+        &RowFn(|y, rgba: &mut [[f32; 4]], v: &mut [f32]| {
+            let s = y * w;
+            for (x, px) in rgba.iter_mut().enumerate() {
+                *px = std::array::from_fn(|c| hist[c * n + s + x]);
+            }
+            v.copy_from_slice(&valid[s..s + w]);
+        }),
+    );
 }
 
-/// [`stabilize`] with the history given row by row: `history_row(y, rgba,
+/// [`stabilize`] with the history given row by row: `history.row(y, rgba,
 /// valid)` writes row `y` of the reprojected history's RGBA (interleaved)
 /// and validity into the row-long slices `rgba` and `valid` (as
-/// [`crate::temporal::HistoryView::reproject_row_rgba`] does), once per row,
+/// [`HistoryView::reproject_row_rgba`] does, [`ViewRows`]), once per row,
 /// from the pool's threads. The history is never held as a whole frame.
 ///
 /// One pass over the image: each band keeps a sliding window of three YCoCg
@@ -117,10 +161,24 @@ pub fn stabilize(img: &mut Image, history: &ReprojectedFrame, blend: f32) {
 /// interleaved (pixel `p` at `4 * p..4 * p + 4`, as
 /// [`crate::frame::RgbaImage::set_planes`] writes it), every row, from the
 /// same pass.
-pub fn stabilize_rows<F>(img: &mut Image, blend: f32, kept: Option<&mut [f32]>, history_row: F)
-where
-    F: Fn(usize, &mut [[f32; 4]], &mut [f32]) + Sync,
-{
+pub fn stabilize_rows<H: HistoryRows>(
+    img: &mut Image,
+    blend: f32,
+    kept: Option<&mut [f32]>,
+    history: &H,
+) {
+    stabilize_rows_on(img, blend, kept, history, true)
+}
+
+/// [`stabilize_rows`], its bands through [`simd`] when `vectorized` (else
+/// compiled for the baseline instruction set, which gives the same bits).
+fn stabilize_rows_on<H: HistoryRows>(
+    img: &mut Image,
+    blend: f32,
+    kept: Option<&mut [f32]>,
+    history: &H,
+    vectorized: bool,
+) {
     let (w, h) = (img.width, img.height);
     if w * h == 0 {
         return;
@@ -171,80 +229,144 @@ where
     };
     par_bands_mut(img, 0, h)
         .zip(kept_bands)
-        .for_each(|((y0, [r, g, b, a]), mut kept)| {
-            let bi = y0 / BAND_ROWS;
-            let rows = a.len() / w;
-            // Sliding window of YCoCg rows of the unmodified image.
-            let mut above = if y0 > 0 {
-                edges[bi - 1].1.clone()
-            } else {
-                edges[bi].0.clone()
+        .for_each(|((y0, [r, g, b, a]), kept)| {
+            let band = Band {
+                y0,
+                w,
+                h,
+                blend,
+                edges: &edges,
             };
-            let mut centre = edges[bi].0.clone();
-            let mut below = vec![0.0; 3 * w];
-            let mut lo = vec![0.0; 3 * (w + 2)];
-            let mut hi = vec![0.0; 3 * (w + 2)];
-            // One row of the history: RGBA and validity.
-            let mut hrgba = vec![[0.0; 4]; w];
-            let mut vv = vec![0.0; w];
-            for dy in 0..rows {
-                let y = y0 + dy;
-                if dy + 1 < rows {
-                    let s = (dy + 1) * w..(dy + 2) * w;
-                    row_ycocg(&r[s.clone()], &g[s.clone()], &b[s], &mut below);
-                } else if y + 1 < h {
-                    below.copy_from_slice(&edges[bi + 1].0);
-                } else {
-                    below.copy_from_slice(&centre);
-                }
-                history_row(y, &mut hrgba, &mut vv);
-                if row_max(&vv) > 0.0 {
-                    vertical_min_max([&above, &centre, &below], w, &mut lo, &mut hi);
-                    let row = dy * w..(dy + 1) * w;
-                    let (rr, gr, br, ar) = (
-                        &mut r[row.clone()],
-                        &mut g[row.clone()],
-                        &mut b[row.clone()],
-                        &a[row],
-                    );
-                    let (ly, lco, lcg) =
-                        (shifted(&lo, 0, w), shifted(&lo, 1, w), shifted(&lo, 2, w));
-                    let (hy, hco, hcg) =
-                        (shifted(&hi, 0, w), shifted(&hi, 1, w), shifted(&hi, 2, w));
-                    let (hrgba, vv) = (&hrgba[..w], &vv[..w]);
-                    for x in 0..w {
-                        let [hr, hg, hb, hav] = hrgba[x];
-                        let (cov, v) = (ar[x], vv[x]);
-                        let ok = (cov > 0.0) & (v > 0.0) & (hav > MIN_HISTORY_ALPHA);
-                        let k = cov / fmax(hav, MIN_HISTORY_ALPHA);
-                        let [ty, tco, tcg] = to_ycocg(hr * k, hg * k, hb * k);
-                        let [cr, cg, cb] = from_ycocg(
-                            fmin(fmax(ty, min3_at(ly, x)), max3_at(hy, x)),
-                            fmin(fmax(tco, min3_at(lco, x)), max3_at(hco, x)),
-                            fmin(fmax(tcg, min3_at(lcg, x)), max3_at(hcg, x)),
-                        );
-                        // Branch-free (vectorizable): weight 0 where the history is unusable.
-                        let wt = blend * v * fmin(hav, 1.0) * (ok as u32 as f32);
-                        rr[x] = fmax(rr[x] + wt * (cr - rr[x]), 0.0);
-                        gr[x] = fmax(gr[x] + wt * (cg - gr[x]), 0.0);
-                        br[x] = fmax(br[x] + wt * (cb - br[x]), 0.0);
-                    }
-                }
-                if let Some(kb) = kept.as_deref_mut() {
-                    // The finished row, still in cache, into the kept copy.
-                    let row = dy * w..(dy + 1) * w;
-                    let planes = [
-                        &r[row.clone()],
-                        &g[row.clone()],
-                        &b[row.clone()],
-                        &a[row.clone()],
-                    ];
-                    RgbaImage::interleave(planes, &mut kb[row]);
-                }
-                std::mem::swap(&mut above, &mut centre);
-                std::mem::swap(&mut centre, &mut below);
+            let job = BandJob {
+                band,
+                planes: [r, g, b, a],
+                kept,
+                history,
+            };
+            if vectorized {
+                simd(job)
+            } else {
+                pulp::WithSimd::with_simd(job, pulp::Scalar::new())
             }
         });
+}
+
+/// One band of [`stabilize_rows`]: rows `y0..` of a `w` x `h` image and the
+/// YCoCg edge rows of every band.
+struct Band<'e> {
+    y0: usize,
+    w: usize,
+    h: usize,
+    blend: f32,
+    edges: &'e [(Vec<f32>, Vec<f32>)],
+}
+
+/// A [`Band`] and its rows, run by [`simd`].
+struct BandJob<'e, 'p, H> {
+    band: Band<'e>,
+    planes: [&'p mut [f32]; 4],
+    kept: Option<&'p mut [[f32; 4]]>,
+    history: &'e H,
+}
+
+impl<H: HistoryRows> pulp::WithSimd for BandJob<'_, '_, H> {
+    type Output = ();
+
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, _: S) {
+        self.band.run(self.planes, self.kept, self.history)
+    }
+}
+
+impl Band<'_> {
+    /// Stabilizes the band's rows `[r, g, b, a]` in place (and writes
+    /// them to `kept`); inlined into [`simd`], so its loops are
+    /// vectorized for the CPU's widest instructions.
+    #[inline(always)]
+    fn run<H: HistoryRows>(
+        &self,
+        [r, g, b, a]: [&mut [f32]; 4],
+        mut kept: Option<&mut [[f32; 4]]>,
+        history: &H,
+    ) {
+        let Band {
+            y0,
+            w,
+            h,
+            blend,
+            edges,
+        } = *self;
+        let bi = y0 / BAND_ROWS;
+        let rows = a.len() / w;
+        // Sliding window of YCoCg rows of the unmodified image.
+        let mut above = if y0 > 0 {
+            edges[bi - 1].1.clone()
+        } else {
+            edges[bi].0.clone()
+        };
+        let mut centre = edges[bi].0.clone();
+        let mut below = vec![0.0; 3 * w];
+        let mut lo = vec![0.0; 3 * (w + 2)];
+        let mut hi = vec![0.0; 3 * (w + 2)];
+        // One row of the history: RGBA and validity.
+        let mut hrgba = vec![[0.0; 4]; w];
+        let mut vv = vec![0.0; w];
+        for dy in 0..rows {
+            let y = y0 + dy;
+            if dy + 1 < rows {
+                let s = (dy + 1) * w..(dy + 2) * w;
+                row_ycocg(&r[s.clone()], &g[s.clone()], &b[s], &mut below);
+            } else if y + 1 < h {
+                below.copy_from_slice(&edges[bi + 1].0);
+            } else {
+                below.copy_from_slice(&centre);
+            }
+            history.row(y, &mut hrgba, &mut vv);
+            if row_max(&vv) > 0.0 {
+                vertical_min_max([&above, &centre, &below], w, &mut lo, &mut hi);
+                let row = dy * w..(dy + 1) * w;
+                let (rr, gr, br, ar) = (
+                    &mut r[row.clone()],
+                    &mut g[row.clone()],
+                    &mut b[row.clone()],
+                    &a[row],
+                );
+                let (ly, lco, lcg) = (shifted(&lo, 0, w), shifted(&lo, 1, w), shifted(&lo, 2, w));
+                let (hy, hco, hcg) = (shifted(&hi, 0, w), shifted(&hi, 1, w), shifted(&hi, 2, w));
+                let (hrgba, vv) = (&hrgba[..w], &vv[..w]);
+                for x in 0..w {
+                    let [hr, hg, hb, hav] = hrgba[x];
+                    let (cov, v) = (ar[x], vv[x]);
+                    let ok = (cov > 0.0) & (v > 0.0) & (hav > MIN_HISTORY_ALPHA);
+                    let k = cov / fmax(hav, MIN_HISTORY_ALPHA);
+                    let [ty, tco, tcg] = to_ycocg(hr * k, hg * k, hb * k);
+                    let [cr, cg, cb] = from_ycocg(
+                        fmin(fmax(ty, min3_at(ly, x)), max3_at(hy, x)),
+                        fmin(fmax(tco, min3_at(lco, x)), max3_at(hco, x)),
+                        fmin(fmax(tcg, min3_at(lcg, x)), max3_at(hcg, x)),
+                    );
+                    // Branch-free (vectorizable): weight 0 where the history is unusable.
+                    let wt = blend * v * fmin(hav, 1.0) * (ok as u32 as f32);
+                    rr[x] = fmax(rr[x] + wt * (cr - rr[x]), 0.0);
+                    gr[x] = fmax(gr[x] + wt * (cg - gr[x]), 0.0);
+                    br[x] = fmax(br[x] + wt * (cb - br[x]), 0.0);
+                }
+            }
+            if let Some(kb) = kept.as_deref_mut() {
+                // The finished row, still in cache, into the kept copy.
+                let row = dy * w..(dy + 1) * w;
+                let planes = [
+                    &r[row.clone()],
+                    &g[row.clone()],
+                    &b[row.clone()],
+                    &a[row.clone()],
+                ];
+                RgbaImage::interleave(planes, &mut kb[row]);
+            }
+            std::mem::swap(&mut above, &mut centre);
+            std::mem::swap(&mut centre, &mut below);
+        }
+    }
 }
 
 #[cfg(test)]
@@ -337,6 +459,33 @@ mod tests {
         check_against_reference(valid);
     }
 
+    /// The pass compiled for the CPU's widest vectors (AVX2 here, where
+    /// present) and for the baseline give the same bits.
+    #[test]
+    fn vectorized_and_baseline_passes_agree_bit_for_bit() {
+        let (w, h) = (REF_W, REF_H);
+        let n = w * h;
+        let valid: Vec<f32> = (0..n)
+            .map(|i| if (i / w) % 6 == 1 { 0.0 } else { noise(i, 7) })
+            .collect();
+        let cur = gray(w, h, |i| noise(i, 8) * 3.0);
+        let hist = gray(w, h, |i| noise(i, 10) * 3.0);
+        let rows = RowFn(|y, rgba: &mut [[f32; 4]], v: &mut [f32]| {
+            for (x, px) in rgba.iter_mut().enumerate() {
+                *px = std::array::from_fn(|c| hist.data[c * n + y * w + x]);
+            }
+            v.copy_from_slice(&valid[y * w..(y + 1) * w]);
+        });
+        let run = |vectorized| {
+            let mut img = cur.clone();
+            let mut kept = vec![f32::NAN; 4 * n];
+            stabilize_rows_on(&mut img, 0.8, Some(&mut kept), &rows, vectorized);
+            let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+            (bits(&img.data), bits(&kept))
+        };
+        assert_eq!(run(true), run(false), "{:?}", pulp::Arch::new());
+    }
+
     #[test]
     fn the_kept_copy_is_the_interleaved_result() {
         let (w, h) = (REF_W, REF_H);
@@ -359,12 +508,13 @@ mod tests {
             );
             let mut fused = cur.clone();
             let mut kept = vec![f32::NAN; 4 * n];
-            stabilize_rows(&mut fused, blend, Some(&mut kept), |y, rgba, v| {
+            let rows = RowFn(|y, rgba: &mut [[f32; 4]], v: &mut [f32]| {
                 for (x, px) in rgba.iter_mut().enumerate() {
                     *px = std::array::from_fn(|c| hist.data[c * n + y * w + x]);
                 }
                 v.copy_from_slice(&valid[y * w..(y + 1) * w]);
             });
+            stabilize_rows(&mut fused, blend, Some(&mut kept), &rows);
             assert_eq!(fused, plain, "blend {blend}");
             let want = crate::frame::RgbaImage::from_planes(&plain, None);
             assert_eq!(

@@ -353,6 +353,7 @@ impl<'a> HistoryView<'a> {
     ///
     /// # Panics
     /// As [`HistoryView::reproject_row`].
+    #[inline(always)]
     pub fn reproject_row_rgba(&self, k: usize, i: usize, rgba: &mut [[f32; 4]], valid: &mut [f32]) {
         let w = self.current.width();
         self.row_into(
@@ -366,6 +367,7 @@ impl<'a> HistoryView<'a> {
     }
 
     /// Row `i` of history frame `k` into `out` (one row long).
+    #[inline(always)]
     fn row_into<O: reproject::RowOut>(&self, k: usize, i: usize, out: &mut O) {
         let (w, h) = (self.current.width(), self.current.height());
         assert!(i < h, "row {i} outside the {w}x{h} frame");
@@ -373,7 +375,11 @@ impl<'a> HistoryView<'a> {
         let copy = |r: &ReprojectedFrame, out: &mut O| {
             let (c, v) = (&r.color, &r.valid[s.clone()]);
             let p: [&[f32]; 4] = std::array::from_fn(|ch| &c.plane(ch)[s.clone()]);
-            out.put_run(0, w, |j| ([p[0][j], p[1][j], p[2][j], p[3][j]], v[j]));
+            out.put_run(
+                0,
+                w,
+                reproject::PixFn(|j| ([p[0][j], p[1][j], p[2][j], p[3][j]], v[j])),
+            );
         };
         if let Some(r) = self.cache.get(k).and_then(OnceLock::get) {
             return copy(r, out);
@@ -389,10 +395,14 @@ impl<'a> HistoryView<'a> {
                 map.color_row(frame, depth, i, out)
             }
             ReprojectionMode::Identity => {
-                out.put_run(0, w, |j| (frame.color.pixel(i * w + j), 1.0));
+                out.put_run(
+                    0,
+                    w,
+                    reproject::PixFn(|j| (frame.color.pixel(i * w + j), 1.0)),
+                );
             }
             ReprojectionMode::Unavailable => {
-                out.put_run(0, w, |_| ([0.0; 4], 0.0));
+                out.put_run(0, w, reproject::PixFn(|_| ([0.0; 4], 0.0)));
             }
         }
     }
@@ -528,6 +538,40 @@ mod tests {
         )
     }
 
+    /// Row `i` of [`crate::ops::stabilize::ViewRows`], run through
+    /// [`crate::ops::simd`].
+    struct VectorizedRow<'r, 'v, 'a> {
+        rows: crate::ops::stabilize::ViewRows<'v, 'a>,
+        i: usize,
+        rgba: &'r mut [[f32; 4]],
+        valid: &'r mut [f32],
+    }
+
+    impl pulp::WithSimd for VectorizedRow<'_, '_, '_> {
+        type Output = ();
+
+        #[inline(always)]
+        fn with_simd<S: pulp::Simd>(self, _: S) {
+            use crate::ops::stabilize::HistoryRows;
+            self.rows.row(self.i, self.rgba, self.valid)
+        }
+    }
+
+    /// The bits of samples, for exact comparisons.
+    trait Bits {
+        fn to_bits(&self) -> Vec<u32>;
+    }
+
+    impl Bits for (Vec<f32>, &Vec<f32>) {
+        fn to_bits(&self) -> Vec<u32> {
+            self.0
+                .iter()
+                .chain(self.1.iter())
+                .map(|v| v.to_bits())
+                .collect()
+        }
+    }
+
     /// Rows ([`HistoryView::reproject_row`]) and pixels
     /// ([`HistoryView::sample`]) taken before and after the whole frame is
     /// reprojected equal [`HistoryView::reproject`] bit for bit, in every mode.
@@ -607,6 +651,21 @@ mod tests {
                         let mut rgba = vec![[0.0f32; 4]; w];
                         let mut rv = vec![0.0f32; w];
                         view.reproject_row_rgba(k, i, &mut rgba, &mut rv);
+                        // And as the stabilization pass takes it: inlined
+                        // into code vectorized for the CPU's widest vectors.
+                        let mut vrgba = vec![[0.0f32; 4]; w];
+                        let mut vrv = vec![0.0f32; w];
+                        crate::ops::simd(VectorizedRow {
+                            rows: crate::ops::stabilize::ViewRows { view: &view, k },
+                            i,
+                            rgba: &mut vrgba,
+                            valid: &mut vrv,
+                        });
+                        assert_eq!(
+                            (vrgba.concat(), &vrv).to_bits(),
+                            (rgba.concat(), &rv).to_bits(),
+                            "{name}: k {k}: row {i} vectorized"
+                        );
                         // A run of the row through the sampler, at an offset.
                         let (j0, n) = (i % 5, w - i % 5 - i % 3);
                         let mut run = vec![0.0f32; 5 * n];

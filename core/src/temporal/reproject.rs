@@ -304,12 +304,12 @@ const COLUMNS: [f32; BATCH] = {
 };
 
 /// One run of up to [`BATCH`] pixels of a row: where they land in the
-/// history frame and, for those that may take the interior fast path (all
-/// four taps inside, validity so far > 0: `fast`), the top-left tap, the
-/// fractions the weights come from, exactly as [`interior`] gives them, and
-/// the window of the depth test ([`Batch::depth_passes`] decides the rest).
-/// The arithmetic runs in short loops over the run, which vectorize; the
-/// gathers are per pixel.
+/// history frame and, for those that take the interior fast path (all four
+/// taps inside, validity so far > 0, and all four passing the depth test of
+/// [`Batch::depth_test`]: `fast`), the top-left tap and the fractions the
+/// weights come from, exactly as [`interior`] gives them. The arithmetic
+/// runs in short loops over the run, which vectorize; the gathers are per
+/// pixel.
 struct Batch {
     x: [f32; BATCH],
     y: [f32; BATCH],
@@ -321,6 +321,9 @@ struct Batch {
     ay: [f32; BATCH],
     lo: [f32; BATCH],
     hi: [f32; BATCH],
+    /// The four depth taps (top-left, top-right, bottom-left, bottom-right)
+    /// of each pixel, gathered for the test in [`Batch::fill`].
+    taps: [[f32; BATCH]; 4],
 }
 
 impl Batch {
@@ -336,6 +339,7 @@ impl Batch {
             ay: [0.0; BATCH],
             lo: [0.0; BATCH],
             hi: [0.0; BATCH],
+            taps: [[0.0; BATCH]; 4],
         }
     }
 
@@ -382,7 +386,7 @@ impl Batch {
     /// history frame with depth `depth`.
     #[inline(always)]
     #[allow(clippy::too_many_arguments)]
-    fn fill<S: Fn(usize, usize, usize, &mut Batch)>(
+    fn fill<S: Positions>(
         &mut self,
         at: &S,
         i: usize,
@@ -392,7 +396,7 @@ impl Batch {
         h: usize,
         depth: Option<&[f32]>,
     ) {
-        at(i, j0, m, self);
+        at.fill(i, j0, m, self);
         let (wf, hf) = (w as f32, h as f32);
         // 32-bit integer arithmetic vectorizes on every x86-64; frames of 4
         // G pixels or more (or sides of 4 M, see `floor_small`) never take
@@ -417,9 +421,9 @@ impl Batch {
             // read it; wrapping, so the others compute no overflow.
             self.idx[t] = (y0 as u32).wrapping_mul(w as u32).wrapping_add(x0 as u32);
         }
-        if depth.is_none() {
+        let Some(depth) = depth else {
             return;
-        }
+        };
         for t in 0..BATCH {
             let e = self.d[t];
             let (lo, hi) = depth_window(e);
@@ -430,17 +434,38 @@ impl Batch {
             self.lo[t] = if unknown { f32::NEG_INFINITY } else { lo };
             self.hi[t] = if unknown { f32::INFINITY } else { hi };
         }
+        self.depth_test(depth, w);
     }
 
-    /// True when pixel `t`, which is `fast`, passes the depth test: all its
-    /// four taps in `depth` (the history frame's, row length `w`; `None`:
-    /// no test) inside its window. With `fast`, the interior fast path of
-    /// [`taps`] applies.
+    /// The depth test of the `fast` pixels, which stay `fast` only when all
+    /// four taps in `depth` (the history frame's, rows of `w`) lie inside
+    /// their window (as [`block_in_window`]); with `fast` after it, the
+    /// interior fast path of [`taps`] applies. The taps are gathered first
+    /// (independent loads, no branches), then compared in a loop that
+    /// vectorizes.
     #[inline(always)]
-    fn depth_passes(&self, t: usize, depth: Option<&[f32]>, w: usize) -> bool {
-        match depth {
-            Some(d) => block_in_window(d, self.idx[t] as usize, w, self.lo[t], self.hi[t]),
-            None => true,
+    fn depth_test(&mut self, depth: &[f32], w: usize) {
+        let Some(last) = depth.len().checked_sub(w + 2) else {
+            // Fewer than two rows: no pixel has four taps inside.
+            self.fast = [false; BATCH];
+            return;
+        };
+        let [t0, t1, t2, t3] = &mut self.taps;
+        for t in 0..BATCH {
+            // `fast` pixels are in range (their block is inside the frame);
+            // the others read the first block and are not tested.
+            let i = if self.fast[t] {
+                self.idx[t] as usize
+            } else {
+                0
+            };
+            let q = &depth[i.min(last)..i.min(last) + w + 2];
+            (t0[t], t1[t], t2[t], t3[t]) = (q[0], q[1], q[w], q[w + 1]);
+        }
+        for t in 0..BATCH {
+            let (lo, hi) = (self.lo[t], self.hi[t]);
+            let inside = |s: f32| (s >= lo) & (s <= hi);
+            self.fast[t] &= inside(t0[t]) & inside(t1[t]) & inside(t2[t]) & inside(t3[t]);
         }
     }
 }
@@ -536,43 +561,80 @@ impl Source<'_> {
         }
     }
 
-    /// Runs `f` with a function `span(i, j0, m, batch)` that writes, for
-    /// the pixels `j0..j0 + m` of row `i` (`m <= BATCH`), what
-    /// [`Source::at`] gives into `batch.x`, `.y`, `.d` and `.v` (the
-    /// same values, a row slice at a time); one monomorphized loop per kind
-    /// of source.
+    /// Runs `f` with a [`Positions`] that writes, for the pixels `j0..j0 +
+    /// m` of row `i` (`m <= BATCH`), what [`Source::at`] gives into
+    /// `batch.x`, `.y`, `.d` and `.v` (the same values, a row slice at a
+    /// time); one monomorphized loop per kind of source.
     #[inline(always)]
     fn with<R>(self, w: usize, f: impl SourceUser<R>) -> R {
         match self {
             Source::Current { motion, depth } => {
                 let (mx, my) = (motion.plane(0), motion.plane(1));
                 match depth {
-                    Some(d) => f.run(&move |i: usize, j0: usize, m: usize, b: &mut Batch| {
-                        let p = i * w + j0;
-                        b.current_span(i, j0, &mx[p..p + m], &my[p..p + m]);
-                        b.d[..m].copy_from_slice(&d[p..p + m]);
-                    }),
-                    None => f.run(&move |i: usize, j0: usize, m: usize, b: &mut Batch| {
-                        let p = i * w + j0;
-                        b.current_span(i, j0, &mx[p..p + m], &my[p..p + m]);
-                        b.d[..m].fill(f32::NAN);
-                    }),
+                    Some(d) => f.run(&CurrentAt { mx, my, d, w }),
+                    None => f.run(&CurrentAt { mx, my, d: (), w }),
                 }
             }
-            Source::Chain(c) => f.run(&move |i: usize, j0: usize, m: usize, b: &mut Batch| {
-                let p = i * w + j0..i * w + j0 + m;
-                b.x[..m].copy_from_slice(&c.x[p.clone()]);
-                b.y[..m].copy_from_slice(&c.y[p.clone()]);
-                b.d[..m].copy_from_slice(&c.depth[p.clone()]);
-                b.v[..m].copy_from_slice(&c.valid[p]);
-            }),
+            Source::Chain(c) => f.run(&ChainAt { c, w }),
         }
+    }
+}
+
+/// Fills a [`Batch`]'s positions, expected depths and validities for pixels
+/// `j0..j0 + m` of row `i` (see [`Source::with`]). Every method is inlined,
+/// so the loops are vectorized with the pass they run in.
+trait Positions: Sync {
+    fn fill(&self, i: usize, j0: usize, m: usize, b: &mut Batch);
+}
+
+/// The current frame's motion vectors, with its depth `d` (a slice) or
+/// without (`()`: unknown expected depth).
+struct CurrentAt<'a, D> {
+    mx: &'a [f32],
+    my: &'a [f32],
+    d: D,
+    w: usize,
+}
+
+impl Positions for CurrentAt<'_, &[f32]> {
+    #[inline(always)]
+    fn fill(&self, i: usize, j0: usize, m: usize, b: &mut Batch) {
+        let p = i * self.w + j0;
+        b.current_span(i, j0, &self.mx[p..p + m], &self.my[p..p + m]);
+        b.d[..m].copy_from_slice(&self.d[p..p + m]);
+    }
+}
+
+impl Positions for CurrentAt<'_, ()> {
+    #[inline(always)]
+    fn fill(&self, i: usize, j0: usize, m: usize, b: &mut Batch) {
+        let p = i * self.w + j0;
+        b.current_span(i, j0, &self.mx[p..p + m], &self.my[p..p + m]);
+        b.d[..m].fill(f32::NAN);
+    }
+}
+
+/// A chain into a history frame.
+struct ChainAt<'a> {
+    c: &'a Chain,
+    w: usize,
+}
+
+impl Positions for ChainAt<'_> {
+    #[inline(always)]
+    fn fill(&self, i: usize, j0: usize, m: usize, b: &mut Batch) {
+        let (c, w) = (self.c, self.w);
+        let p = i * w + j0..i * w + j0 + m;
+        b.x[..m].copy_from_slice(&c.x[p.clone()]);
+        b.y[..m].copy_from_slice(&c.y[p.clone()]);
+        b.d[..m].copy_from_slice(&c.depth[p.clone()]);
+        b.v[..m].copy_from_slice(&c.valid[p]);
     }
 }
 
 /// A loop generic over how positions are found (see [`Source::with`]).
 trait SourceUser<R> {
-    fn run<S: Fn(usize, usize, usize, &mut Batch) + Sync>(self, at: &S) -> R;
+    fn run<S: Positions>(self, at: &S) -> R;
 }
 
 /// Samples history frame `frame`'s color at the positions of `src`; buffers
@@ -612,6 +674,14 @@ impl<'a> Planes<'a> {
             w: hist.width,
             h: hist.height,
         }
+    }
+
+    /// [`Planes::color`] as a call: the few pixels off the fast path keep
+    /// the batch loop small enough to be inlined whole (into the vectorized
+    /// pass of [`crate::ops::simd`]).
+    #[inline(never)]
+    fn color_out_of_line(&self, x: f32, y: f32, d: f32, v: f32) -> ([f32; 4], f32) {
+        self.color(x, y, d, v)
     }
 
     /// See [`color_pixel`].
@@ -660,7 +730,7 @@ fn outputs(w: usize, h: usize, rec: Option<&Recycler>) -> (Image, Vec<f32>) {
 }
 
 impl SourceUser<ReprojectedFrame> for ColorHop<'_> {
-    fn run<S: Fn(usize, usize, usize, &mut Batch) + Sync>(self, at: &S) -> ReprojectedFrame {
+    fn run<S: Positions>(self, at: &S) -> ReprojectedFrame {
         let frame = self.frame;
         let (w, h) = (frame.color.width, frame.color.height);
         let (mut color, mut valid) = outputs(w, h, self.rec);
@@ -680,7 +750,42 @@ pub(crate) trait RowOut {
     fn len(&self) -> usize;
     /// Writes pixels `o..o + m` with `f(t)` for pixel `o + t` (`o + m <=
     /// len()`), the run checked once rather than pixel by pixel.
-    fn put_run(&mut self, o: usize, m: usize, f: impl FnMut(usize) -> ([f32; 4], f32));
+    fn put_run(&mut self, o: usize, m: usize, f: impl Pixels);
+}
+
+/// The RGBA and validity of pixel `t` of a run ([`RowOut::put_run`]).
+pub(crate) trait Pixels {
+    fn get(&mut self, t: usize) -> ([f32; 4], f32);
+}
+
+/// A function of the pixel as [`Pixels`].
+pub(crate) struct PixFn<F>(pub(crate) F);
+
+impl<F: FnMut(usize) -> ([f32; 4], f32)> Pixels for PixFn<F> {
+    #[inline(always)]
+    fn get(&mut self, t: usize) -> ([f32; 4], f32) {
+        (self.0)(t)
+    }
+}
+
+/// The pixels of a filled [`Batch`]: the fast path inline, the others
+/// through [`Planes::color_out_of_line`].
+struct BatchPixels<'b, 'p> {
+    b: &'b Batch,
+    planes: &'b Planes<'p>,
+}
+
+impl Pixels for BatchPixels<'_, '_> {
+    #[inline(always)]
+    fn get(&mut self, t: usize) -> ([f32; 4], f32) {
+        let (b, planes) = (self.b, self.planes);
+        if b.fast[t] {
+            let (k, wt) = (b.idx[t] as usize, &b.weights(t));
+            (bilerp4(planes.rgba, k, planes.w, wt), b.v[t])
+        } else {
+            planes.color_out_of_line(b.x[t], b.y[t], b.d[t], b.v[t])
+        }
+    }
 }
 
 /// A run written as five planes: R, G, B, A and validity.
@@ -692,7 +797,7 @@ impl RowOut for Planar<'_> {
         self.0.iter().map(|p| p.len()).min().unwrap_or(0)
     }
     #[inline(always)]
-    fn put_run(&mut self, o: usize, m: usize, mut f: impl FnMut(usize) -> ([f32; 4], f32)) {
+    fn put_run(&mut self, o: usize, m: usize, mut f: impl Pixels) {
         let [o0, o1, o2, o3, ov] = &mut self.0;
         let s = o..o + m;
         let (o0, o1, o2, o3, ov) = (
@@ -703,7 +808,7 @@ impl RowOut for Planar<'_> {
             &mut ov[s],
         );
         for t in 0..m {
-            let (c, v) = f(t);
+            let (c, v) = f.get(t);
             (o0[t], o1[t], o2[t], o3[t], ov[t]) = (c[0], c[1], c[2], c[3], v);
         }
     }
@@ -721,10 +826,10 @@ impl RowOut for Interleaved<'_> {
         self.rgba.len().min(self.valid.len())
     }
     #[inline(always)]
-    fn put_run(&mut self, o: usize, m: usize, mut f: impl FnMut(usize) -> ([f32; 4], f32)) {
+    fn put_run(&mut self, o: usize, m: usize, mut f: impl Pixels) {
         let (rgba, valid) = (&mut self.rgba[o..o + m], &mut self.valid[o..o + m]);
         for t in 0..m {
-            (rgba[t], valid[t]) = f(t);
+            (rgba[t], valid[t]) = f.get(t);
         }
     }
 }
@@ -734,7 +839,7 @@ impl RowOut for Interleaved<'_> {
 /// that many pixels are written). Every pixel's values depend on that pixel
 /// alone (not on where a batch starts).
 #[inline(always)]
-fn color_row<S: Fn(usize, usize, usize, &mut Batch), O: RowOut>(
+fn color_row<S: Positions, O: RowOut>(
     at: &S,
     planes: &Planes<'_>,
     i: usize,
@@ -748,19 +853,13 @@ fn color_row<S: Fn(usize, usize, usize, &mut Batch), O: RowOut>(
     for j0 in cols.clone().step_by(BATCH) {
         let m = BATCH.min(cols.end - j0);
         b.fill(at, i, j0, m, w, h, planes.depth);
-        out.put_run(j0 - cols.start, m, |t| {
-            if b.fast[t] && b.depth_passes(t, planes.depth, w) {
-                let (k, wt) = (b.idx[t] as usize, &b.weights(t));
-                (bilerp4(planes.rgba, k, w, wt), b.v[t])
-            } else {
-                planes.color(b.x[t], b.y[t], b.d[t], b.v[t])
-            }
-        });
+        out.put_run(j0 - cols.start, m, BatchPixels { b: &b, planes });
     }
 }
 
 /// Row `i` of [`hop_color`] alone (the same bits), columns `j0..j0 + n`
 /// with `n` the length of `out` ([`Planar`] or [`Interleaved`]).
+#[inline(always)]
 pub(crate) fn hop_color_row<O: RowOut>(
     src: Source<'_>,
     frame: &HistoryFrame,
@@ -779,7 +878,8 @@ struct ColorRow<'a, 'o, O> {
 }
 
 impl<O: RowOut> SourceUser<()> for ColorRow<'_, '_, O> {
-    fn run<S: Fn(usize, usize, usize, &mut Batch) + Sync>(self, at: &S) {
+    #[inline(always)]
+    fn run<S: Positions>(self, at: &S) {
         let cols = self.j0..self.j0 + self.out.len();
         color_row(at, &Planes::of(self.frame), self.i, cols, self.out);
     }
@@ -803,7 +903,7 @@ struct ChainHop<'a> {
 }
 
 impl SourceUser<Chain> for ChainHop<'_> {
-    fn run<S: Fn(usize, usize, usize, &mut Batch) + Sync>(self, at: &S) -> Chain {
+    fn run<S: Positions>(self, at: &S) -> Chain {
         let frame = self.frame;
         let (w, h) = (frame.color.width, frame.color.height);
         let n = w * h;
@@ -830,7 +930,7 @@ impl SourceUser<Chain> for ChainHop<'_> {
                     b.fill(at, i, j, BATCH.min(w - j), w, h, hdepth);
                 }
                 let (x, y, d, v) = (b.x[t], b.y[t], b.d[t], b.v[t]);
-                if b.fast[t] && b.depth_passes(t, hdepth, w) {
+                if b.fast[t] {
                     // The common case, bit-identical to the general one below.
                     let (k, wt) = (b.idx[t] as usize, &b.weights(t));
                     rx[j] = x + bilerp(mx, k, w, wt);
@@ -971,7 +1071,7 @@ impl CameraMap {
         assert!(out.len() >= w, "an output shorter than the row");
         let b = self.row(i);
         let drow = &depth[i * w..(i + 1) * w];
-        out.put_run(0, w, |j| self.color(frame, b, j, drow[j]));
+        out.put_run(0, w, PixFn(|j| self.color(frame, b, j, drow[j])));
     }
 
     /// [`CameraMap::color`] at pixel (row `i`, column `j`) alone; equal to
