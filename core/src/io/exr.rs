@@ -544,7 +544,21 @@ impl LoadedFrame {
             }
         }
         let image = &self.file.image;
-        write_atomic(path, |tmp| image.write().to_file(tmp)).map_err(|e| {
+        write_atomic(path, |tmp| -> std::result::Result<(), String> {
+            // In memory first: the exr crate writes the attributes it does
+            // not know (the input's own and `harmonizer:*`) in hash-map
+            // order, which changes from run to run; sorted, equal images
+            // give equal files.
+            let mut buf = std::io::Cursor::new(Vec::new());
+            image
+                .write()
+                .to_buffered(&mut buf)
+                .map_err(|e| e.to_string())?;
+            let mut bytes = buf.into_inner();
+            sort_header_attributes(&mut bytes)?;
+            std::fs::write(tmp, bytes).map_err(|e| e.to_string())
+        })
+        .map_err(|e| {
             Error::Io(format!(
                 "{where_}: cannot write output {}: {}",
                 path.display(),
@@ -552,6 +566,83 @@ impl LoadedFrame {
             ))
         })
     }
+}
+
+/// Sorts the attributes of every header of the OpenEXR file in `bytes` by
+/// name, in place, as OpenEXR itself writes them. Each header keeps its
+/// length, so the offset tables after the headers stay valid. An error names
+/// what is malformed (nothing is changed then).
+pub fn sort_header_attributes(bytes: &mut [u8]) -> std::result::Result<(), String> {
+    const MAGIC: [u8; 4] = [0x76, 0x2f, 0x31, 0x01];
+    const MULTIPART: u32 = 0x1000;
+    if bytes.len() < 8 || bytes[..4] != MAGIC {
+        return Err("not an OpenEXR file".into());
+    }
+    let flags = u32::from_le_bytes([bytes[4], bytes[5], bytes[6], bytes[7]]);
+    let multipart = flags & MULTIPART != 0;
+    // Every header as (start, end, attributes as (name, byte range)).
+    let mut headers = Vec::new();
+    let mut pos = 8;
+    loop {
+        let start = pos;
+        let mut attrs: Vec<(&[u8], std::ops::Range<usize>)> = Vec::new();
+        loop {
+            let at = |p: usize| -> std::result::Result<u8, String> {
+                bytes
+                    .get(p)
+                    .copied()
+                    .ok_or_else(|| format!("header truncated at byte {p}"))
+            };
+            if at(pos)? == 0 {
+                break;
+            }
+            let nul = |from: usize| {
+                bytes[from..]
+                    .iter()
+                    .position(|&b| b == 0)
+                    .map(|i| from + i)
+                    .ok_or_else(|| format!("unterminated attribute name or type at byte {from}"))
+            };
+            let name_end = nul(pos)?;
+            let type_end = nul(name_end + 1)?;
+            let size_at = type_end + 1;
+            let size = bytes
+                .get(size_at..size_at + 4)
+                .map(|b| i32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+                .ok_or_else(|| format!("attribute size truncated at byte {size_at}"))?;
+            let end = usize::try_from(size)
+                .ok()
+                .and_then(|n| (size_at + 4).checked_add(n))
+                .filter(|&e| e <= bytes.len())
+                .ok_or_else(|| format!("attribute at byte {pos} has a bad size {size}"))?;
+            attrs.push((&bytes[pos..name_end], pos..end));
+            pos = end;
+        }
+        // `pos` is at the header's terminating null byte.
+        let empty = attrs.is_empty();
+        if !empty {
+            headers.push((start, pos, attrs));
+        }
+        pos += 1;
+        if !multipart || empty {
+            break;
+        }
+    }
+    let sorted: Vec<(usize, usize, Vec<u8>)> = headers
+        .into_iter()
+        .map(|(start, end, mut attrs)| {
+            attrs.sort_by(|a, b| a.0.cmp(b.0));
+            let out: Vec<u8> = attrs
+                .iter()
+                .flat_map(|(_, r)| bytes[r.clone()].iter().copied())
+                .collect();
+            (start, end, out)
+        })
+        .collect();
+    for (start, end, out) in sorted {
+        bytes[start..end].copy_from_slice(&out);
+    }
+    Ok(())
 }
 
 /// Refuses an output path that names the input file.

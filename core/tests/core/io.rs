@@ -430,6 +430,66 @@ fn blender_multipart_round_trip() {
     );
 }
 
+/// Writing the same enhanced frame twice gives the same bytes (the exr
+/// crate would write the attributes it does not know in hash-map order,
+/// which changes between runs), with every header's attributes sorted by
+/// name, and the file still reads back whole.
+#[test]
+fn enhanced_files_are_byte_identical_with_sorted_attributes() {
+    let dir = tempfile::tempdir().unwrap();
+    let (w, h) = (8, 6);
+    let src = dir.path().join("shot.0001.exr");
+    write_blender(&src, "Shot Layer", w, h, &camera());
+    let meta = OutputMeta {
+        backend: "classical".into(),
+        reset: "first_frame".into(),
+    };
+    let mut files = Vec::new();
+    for k in 0..4 {
+        // A new read each time: new hash maps of attributes.
+        let mut f = LoadedFrame::read(&src, Some(1), &LayoutOptions::default()).unwrap();
+        let out = dir.path().join(format!("out{k}.0001.exr"));
+        f.write_enhanced(&enhanced(w, h, 0.5), &out, &meta).unwrap();
+        files.push(std::fs::read(&out).unwrap());
+    }
+    assert!(
+        files.windows(2).all(|p| p[0] == p[1]),
+        "same bytes every time"
+    );
+    // In each part's header the four attributes come in name order.
+    let find = |from: usize, name: &str| {
+        files[0][from..]
+            .windows(name.len() + 1)
+            .position(|w| w[..name.len()] == *name.as_bytes() && w[name.len()] == 0)
+            .map(|i| from + i)
+    };
+    let names = [
+        "harmonizer:backend",
+        "harmonizer:frame",
+        "harmonizer:reset",
+        "harmonizer:version",
+    ];
+    let parts = read_all(&src).layer_data.len();
+    assert!(parts > 1, "a multi-part file");
+    let mut from = 0;
+    for _ in 0..parts {
+        let at: Vec<usize> = names.iter().map(|n| find(from, n).unwrap()).collect();
+        assert!(at.windows(2).all(|p| p[0] < p[1]), "sorted: {at:?}");
+        from = at[3] + 1;
+    }
+    assert_eq!(find(from, names[0]), None, "one set per part");
+    let (a, b) = (read_all(&src), read_all(&dir.path().join("out0.0001.exr")));
+    assert_eq!(a.layer_data.len(), b.layer_data.len());
+    for (la, lb) in a.layer_data.iter().zip(&b.layer_data) {
+        assert_eq!(la.attributes.layer_name, lb.attributes.layer_name);
+        assert_eq!(la.channel_data.list.len(), lb.channel_data.list.len());
+    }
+    let mut junk = b"not an exr".to_vec();
+    assert!(harmonizer_core::io::exr::sort_header_attributes(&mut junk).is_err());
+    let mut cut = files[0][..40].to_vec();
+    assert!(harmonizer_core::io::exr::sort_header_attributes(&mut cut).is_err());
+}
+
 #[test]
 fn bad_inputs_name_file_frame_and_channel() {
     let dir = tempfile::tempdir().unwrap();
