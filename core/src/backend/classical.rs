@@ -78,6 +78,20 @@ pub fn run_ops(
     progress: &mut Progress<'_>,
     stages: &mut Stages,
 ) -> Result<()> {
+    run_ops_on(img, input, carry, progress, stages, false)
+}
+
+/// [`run_ops`]; `alpha_is_coverage`: `img`'s alpha is the frame's coverage
+/// (1 where absent), so the holes found while preparing the frame
+/// ([`crate::frame::Scan`]) are the image's and need no new search.
+fn run_ops_on(
+    img: &mut Image,
+    input: &BackendInput<'_>,
+    carry: &mut Carry,
+    progress: &mut Progress<'_>,
+    stages: &mut Stages,
+    alpha_is_coverage: bool,
+) -> Result<()> {
     let frame = input.frame;
     let params = input.params;
     let pool = input.pool;
@@ -85,7 +99,14 @@ pub fn run_ops(
     let (w, h) = (img.width, img.height);
 
     if params.fill_holes {
-        let mut holes = stages.time("inpaint", || pool.install(|| inpaint::find_holes(img)));
+        let scanned = frame
+            .scan
+            .filter(|_| alpha_is_coverage)
+            .map(|s| s.holes.map(|(rect, count)| inpaint::Holes { rect, count }));
+        let mut holes = match scanned {
+            Some(holes) => holes,
+            None => stages.time("inpaint", || pool.install(|| inpaint::find_holes(img))),
+        };
         let mut k = 0;
         while let Some(hh) = holes {
             // Older frames only while much is missing: reprojecting one costs
@@ -129,11 +150,14 @@ pub fn run_ops(
 
     // The insert's bounding box, shared by harmonization and the shadow.
     let insert = match &frame.insert_mask {
-        Some(mask) if params.harmonize || params.contact_shadows => stages
-            .time("harmonize", || {
+        Some(mask) if params.harmonize || params.contact_shadows => match frame.scan {
+            // Found while the mask was prepared.
+            Some(scan) => scan.insert,
+            None => stages.time("harmonize", || {
                 pool.install(|| harmonize::insert_rect(mask, w, h))
-            })
-            .map(|rect| (mask, rect)),
+            }),
+        }
+        .map(|rect| (mask, rect)),
         _ => None,
     };
     match insert {
@@ -263,7 +287,9 @@ impl Backend for Classical {
         stages: &mut Stages,
     ) -> Result<Image> {
         progress.report(0.05)?;
-        run_ops(&mut img, input, carry, progress, stages)?;
+        // The image is the frame's color with its coverage as alpha
+        // (handed over, or made by `rgba_into`).
+        run_ops_on(&mut img, input, carry, progress, stages, true)?;
         Ok(img)
     }
 }

@@ -6,6 +6,8 @@ use rayon::prelude::*;
 
 use super::{Camera, Image, ImageView, Recycler};
 use crate::error::{Error, Result};
+use crate::ops::inpaint::FULL;
+use crate::ops::Rect;
 
 /// Reads the first `img.channels` channels of `view` into the planes of
 /// `img` (every sample is overwritten), row by row with all channels of a row
@@ -19,7 +21,51 @@ fn read_image(
     fix: impl Fn(usize, &mut f32) -> bool + Sync,
 ) -> usize {
     let channels = img.channels;
-    read_image_with(pool, view, img, channels, Vec::new(), fix, |_, _| 0).0
+    read_image_with(pool, view, img, channels, Vec::new(), fix, |_, _| {
+        Found::default()
+    })
+    .0
+}
+
+/// What a row pass ([`read_image_with`]'s `rest`) found besides the samples
+/// it replaced: a count, and the bounding box of some pixels with their
+/// number. Merging is order-free, so the result does not depend on threads.
+#[derive(Debug, Clone, Copy, Default)]
+struct Found {
+    n: usize,
+    bbox: Option<(Rect, usize)>,
+}
+
+impl Found {
+    fn merge(self, o: Found) -> Found {
+        Found {
+            n: self.n + o.n,
+            bbox: match (self.bbox, o.bbox) {
+                (Some((a, c)), Some((b, d))) => Some((a.union(&b), c + d)),
+                (a, b) => a.or(b),
+            },
+        }
+    }
+
+    /// Row `y`'s pixels where `pred` holds (after a cheap whole-row test
+    /// `row_has`), as [`crate::ops::bbox_above`] finds them.
+    fn row(y: usize, row: &[f32], row_has: bool, pred: impl Fn(f32) -> bool) -> Found {
+        let bbox = row_has
+            .then(|| crate::ops::row_span(row, pred))
+            .flatten()
+            .map(|(x0, x1, count)| {
+                (
+                    Rect {
+                        x0,
+                        y0: y,
+                        x1,
+                        y1: y + 1,
+                    },
+                    count,
+                )
+            });
+        Found { n: 0, bbox }
+    }
 }
 
 /// The most planes [`read_image_with`] fills in one row pass (RGBA and the
@@ -30,8 +76,8 @@ const MAX_PLANES: usize = 5;
 /// `read` planes of `img`; `rest(y, rows)` then gets row `y` of every plane
 /// (those of `img`, then those of `extra`, each a frame-sized plane) in the
 /// same row task, so work on the row (writing the planes after the read
-/// ones, counting) needs no second pass over the frame. Returns the number
-/// of replaced samples and the sum of what `rest` returned.
+/// ones, counting, finding) needs no second pass over the frame. Returns the
+/// number of replaced samples and what `rest` found, merged.
 fn read_image_with(
     pool: Option<&rayon::ThreadPool>,
     view: &ImageView<'_>,
@@ -39,11 +85,11 @@ fn read_image_with(
     read: usize,
     extra: Vec<&mut [f32]>,
     fix: impl Fn(usize, &mut f32) -> bool + Sync,
-    rest: impl Fn(usize, &mut [&mut [f32]]) -> usize + Sync,
-) -> (usize, usize) {
+    rest: impl Fn(usize, &mut [&mut [f32]]) -> Found + Sync,
+) -> (usize, Found) {
     let (w, h) = (img.width, img.height);
     if w == 0 || h == 0 {
-        return (0, 0);
+        return (0, Found::default());
     }
     let mut planes: Vec<_> = img
         .data
@@ -62,7 +108,7 @@ fn read_image_with(
             std::array::from_fn(|_| next.next().unwrap_or_default())
         })
         .collect();
-    let row = |(y, mut outs): (usize, [&mut [f32]; MAX_PLANES])| -> (usize, usize) {
+    let row = |(y, mut outs): (usize, [&mut [f32]; MAX_PLANES])| -> (usize, Found) {
         let outs = &mut outs[..count];
         let mut bad = 0;
         view.read_row_channels(y, &mut outs[..read]);
@@ -73,16 +119,20 @@ fn read_image_with(
         }
         (bad, rest(y, outs))
     };
-    let add = |a: (usize, usize), b: (usize, usize)| (a.0 + b.0, a.1 + b.1);
+    let add = |a: (usize, Found), b: (usize, Found)| (a.0 + b.0, a.1.merge(b.1));
     match pool {
         Some(pool) => pool.install(|| {
             rows.into_par_iter()
                 .enumerate()
                 .with_min_len(8)
                 .map(row)
-                .reduce(|| (0, 0), add)
+                .reduce(|| (0, Found::default()), add)
         }),
-        None => rows.into_iter().enumerate().map(row).fold((0, 0), add),
+        None => rows
+            .into_iter()
+            .enumerate()
+            .map(row)
+            .fold((0, Found::default()), add),
     }
 }
 
@@ -195,6 +245,24 @@ pub struct PreparedFrame {
     /// Motion vectors longer than the image in either axis (a wrong scale
     /// or AOV), counted after scaling.
     pub huge_motion: usize,
+    /// What preparing found while the rows were in cache (`None`: not
+    /// scanned, for a frame made another way; the pipeline then looks
+    /// itself).
+    pub scan: Option<Scan>,
+}
+
+/// Where the holes and the insert are, found by [`PreparedFrame`]'s
+/// preparation.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Scan {
+    /// The bounding box and number of the pixels whose coverage is below
+    /// [`FULL`] (what [`crate::ops::inpaint::find_holes`] finds in the
+    /// coverage); `None` when there are none or no coverage.
+    pub holes: Option<(Rect, usize)>,
+    /// The bounding box of the insert mask's pixels above 0 (what
+    /// [`crate::ops::harmonize::insert_rect`] finds); `None` when there are
+    /// none or no mask.
+    pub insert: Option<Rect>,
 }
 
 impl PreparedFrame {
@@ -325,6 +393,28 @@ impl PreparedFrame {
             None => Image::zeros(w, h, ch),
         };
         let mut sanitized_aovs = 0usize;
+        // The insert mask, clamped to [0, 1] (NaN is 0, counted), and the
+        // bounding box of its pixels above 0 (`ops::harmonize::insert_rect`).
+        let mut insert = None;
+        let insert_mask = input.insert_mask.as_ref().map(|v| {
+            let mut img = take(1);
+            let (bad, found) = read_image_with(
+                pool,
+                v,
+                &mut img,
+                1,
+                Vec::new(),
+                |_, x| {
+                    let nan = x.is_nan();
+                    *x = if nan { 0.0 } else { clamp(*x, 0.0, 1.0) };
+                    nan
+                },
+                |y, rows| Found::row(y, rows[0], crate::ops::row_max(rows[0]) > 0.0, |v| v > 0.0),
+            );
+            sanitized_aovs += bad;
+            insert = found.bbox.map(|(r, _)| r);
+            img.data
+        });
         // NaN becomes `bad` (counted), everything else is clamped to [lo, hi].
         let mut read_planes = |v: &Option<ImageView<'_>>, ch: usize, lo: f32, hi: f32, bad: f32| {
             v.as_ref().map(|v| {
@@ -351,7 +441,7 @@ impl PreparedFrame {
         let mut color = take(color_planes);
         // The `fix` functions are written without branches (selects), so
         // their loops vectorize.
-        let (sanitized, cov_bad) = read_image_with(
+        let (sanitized, cov_found) = read_image_with(
             pool,
             &input.color,
             &mut color,
@@ -365,11 +455,15 @@ impl PreparedFrame {
             },
             |y, rows| {
                 // Rows: R, G, B, then A when `rgba`, then the coverage when given.
-                let mut bad = 0;
+                let mut found = Found::default();
                 if let Some(v) = cov_view {
                     let c = &mut *rows[color_planes];
                     v.read_row(y, 0, c);
-                    bad = c.iter_mut().map(|x| u32::from(cov_fix(x))).sum::<u32>() as usize;
+                    let bad = c.iter_mut().map(|x| u32::from(cov_fix(x))).sum::<u32>() as usize;
+                    // The holes (what `ops::inpaint::find_holes` finds),
+                    // while the row is in cache.
+                    found = Found::row(y, c, crate::ops::row_min(c) < FULL, |v| v < FULL);
+                    found.n = bad;
                 }
                 if rgba {
                     // The coverage, or 1 where there is none.
@@ -379,10 +473,11 @@ impl PreparedFrame {
                         None => head[3].fill(1.0),
                     }
                 }
-                bad
+                found
             },
         );
-        let insert_mask = read_planes(&input.insert_mask, 1, 0.0, 1.0, 0.0).map(|i| i.data);
+        let (cov_bad, holes) = (cov_found.n, cov_found.bbox);
+
         let mut depth = read_planes(&input.depth, 1, 0.0, f32::MAX, f32::MAX).map(|i| i.data);
         let normal = if normals {
             read_planes(&input.normal, 3, -f32::MAX, f32::MAX, 0.0)
@@ -407,16 +502,17 @@ impl PreparedFrame {
                     nan
                 },
                 // Vectors longer than the image, counted on the row just read.
-                |_, rows| {
-                    rows[0]
+                |_, rows| Found {
+                    n: rows[0]
                         .iter()
                         .zip(rows[1].iter())
                         .map(|(x, y)| u32::from((x.abs() > wf) | (y.abs() > hf)))
-                        .sum::<u32>() as usize
+                        .sum::<u32>() as usize,
+                    bbox: None,
                 },
             );
             sanitized_aovs += bad;
-            huge_motion = huge;
+            huge_motion = huge.n;
             img
         });
         if depth_kind == DepthKind::Euclidean {
@@ -448,6 +544,7 @@ impl PreparedFrame {
             motion,
             normal,
             insert_mask,
+            scan: Some(Scan { holes, insert }),
             camera: input.camera,
             frame_index: input.frame_index,
             sanitized,

@@ -8,5 +8,5 @@ mod view;
 
 pub use camera::Camera;
 pub use image::{Image, Recycler, RgbaImage};
-pub use input::{DepthKind, FrameInput, PreparedFrame};
+pub use input::{DepthKind, FrameInput, PreparedFrame, Scan};
 pub use view::{ImageView, ImageViewMut, PixelFormat};

@@ -196,22 +196,12 @@ fn bbox_where(
                 if !row_has(row) {
                     continue;
                 }
-                let mut first = None;
-                let mut last = 0;
-                let mut count = 0;
-                for (x, &v) in row.iter().enumerate() {
-                    if pred(v) {
-                        first.get_or_insert(x);
-                        last = x;
-                        count += 1;
-                    }
-                }
-                if let Some(x0) = first {
+                if let Some((x0, x1, count)) = row_span(row, &pred) {
                     let y = i * BAND_ROWS + dy;
                     let r = Rect {
                         x0,
                         y0: y,
-                        x1: last + 1,
+                        x1,
                         y1: y + 1,
                     };
                     out = Some(match out {
@@ -248,6 +238,23 @@ pub fn fmax(a: f32, b: f32) -> f32 {
     } else {
         b
     }
+}
+
+/// The first and one-past-last column of `row` where `pred` holds, and how
+/// many columns it holds at; `None` where it holds nowhere.
+#[inline]
+pub fn row_span(row: &[f32], pred: impl Fn(f32) -> bool) -> Option<(usize, usize, usize)> {
+    let mut first = None;
+    let mut last = 0;
+    let mut count = 0;
+    for (x, &v) in row.iter().enumerate() {
+        if pred(v) {
+            first.get_or_insert(x);
+            last = x;
+            count += 1;
+        }
+    }
+    first.map(|x0| (x0, last + 1, count))
 }
 
 /// The smallest value of a row (vectorizable: 8 independent lanes).

@@ -625,6 +625,7 @@ mod tests {
                 sanitized: 0,
                 sanitized_aovs: 0,
                 huge_motion: 0,
+                scan: None,
             };
             let full = HistoryView::new(&history, &current, 3, &pool);
             for k in 0..full.len() {

@@ -381,6 +381,52 @@ impl Frame {
     }
 }
 
+/// The holes and the insert box found while preparing a frame are exactly
+/// what the pipeline's own searches find (`find_holes` on the RGBA image,
+/// `insert_rect` on the prepared mask), with soft borders, NaN coverage and
+/// mask samples, and any thread count.
+#[test]
+fn holes_and_insert_found_while_preparing_equal_the_searches() {
+    use harmonizer_core::backend::classical::rgba_from_frame;
+    use harmonizer_core::ops::{harmonize::insert_rect, inpaint::find_holes};
+    let insert = Insert {
+        x0: 70,
+        shift: (1.0, 1.0, 1.0),
+    };
+    for (t, holes) in HOLES.iter().enumerate() {
+        let mut f = render(Look {
+            holes,
+            insert: Some(insert),
+            ..Look::default()
+        });
+        // NaN samples (sanitized to 0) and a stray mask pixel.
+        f.coverage[7 * W + 3 + t] = f32::NAN;
+        f.mask[2 * W + 150 - t] = f32::NAN;
+        f.mask[H * W - 1 - 9 * t] = 0.25;
+        for threads in [1, 2] {
+            let dev = device(threads);
+            let p = PreparedFrame::from_input_on(&f.input(t as i64), DepthKind::Planar, dev.pool())
+                .unwrap();
+            let scan = p.scan.expect("scanned while prepared");
+            let want = find_holes(&rgba_from_frame(&p)).map(|h| (h.rect, h.count));
+            assert!(want.is_some(), "frame {t} has holes");
+            assert_eq!(scan.holes, want, "frame {t}, {threads} threads: holes");
+            let mask = p.insert_mask.as_deref().unwrap();
+            assert_eq!(
+                scan.insert,
+                insert_rect(mask, W, H),
+                "frame {t}, {threads} threads: insert box"
+            );
+        }
+    }
+    // No coverage and no mask: nothing found.
+    let f = render(Look::default());
+    let mut input = f.input(0);
+    input.coverage = None;
+    let p = PreparedFrame::from_input(&input, DepthKind::Planar).unwrap();
+    assert_eq!(p.scan.map(|s| (s.holes, s.insert)), Some((None, None)));
+}
+
 /// Runs the classical backend directly with a carry the test can read.
 fn run_backend(f: &Frame, params: &Params, carry: &mut Carry, dev: &Device) -> Image {
     let prepared = PreparedFrame::from_input(&f.input(0), DepthKind::Planar).unwrap();
