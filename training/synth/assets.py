@@ -31,7 +31,7 @@ class AssetError(RuntimeError):
 
 
 def parse_properties(text: str) -> dict[str, str]:
-    """Parses a Java ``.properties`` file (comments, continuations, ``\\uXXXX``)."""
+    """Parses a Java ``.properties`` file (comments, continuations, ``\\u`` escapes of four hex digits)."""
     props: dict[str, str] = {}
     logical: list[str] = []
     pending = ""

@@ -40,30 +40,14 @@ impl Found {
     fn merge(self, o: Found) -> Found {
         Found {
             n: self.n + o.n,
-            bbox: match (self.bbox, o.bbox) {
-                (Some((a, c)), Some((b, d))) => Some((a.union(&b), c + d)),
-                (a, b) => a.or(b),
-            },
+            bbox: crate::ops::merge_boxes(self.bbox, o.bbox),
         }
     }
 
     /// Row `y`'s pixels where `pred` holds (after a cheap whole-row test
     /// `row_has`), as [`crate::ops::bbox_above`] finds them.
     fn row(y: usize, row: &[f32], row_has: bool, pred: impl Fn(f32) -> bool) -> Found {
-        let bbox = row_has
-            .then(|| crate::ops::row_span(row, pred))
-            .flatten()
-            .map(|(x0, x1, count)| {
-                (
-                    Rect {
-                        x0,
-                        y0: y,
-                        x1,
-                        y1: y + 1,
-                    },
-                    count,
-                )
-            });
+        let bbox = row_has.then(|| crate::ops::row_box(y, row, pred)).flatten();
         Found { n: 0, bbox }
     }
 }
@@ -134,6 +118,16 @@ fn read_image_with(
             .map(row)
             .fold((0, Found::default()), add),
     }
+}
+
+/// An AOV sample made usable: NaN becomes `bad`, anything else is clamped
+/// to `[lo, hi]`; true when it was NaN (counted). Branch-free, so loops of
+/// it vectorize.
+#[inline(always)]
+fn sanitize(x: &mut f32, lo: f32, hi: f32, bad: f32) -> bool {
+    let nan = x.is_nan();
+    *x = if nan { bad } else { clamp(*x, lo, hi) };
+    nan
 }
 
 /// `x.clamp(lo, hi)` (the same results, NaN passes through) without its
@@ -404,11 +398,7 @@ impl PreparedFrame {
                 &mut img,
                 1,
                 Vec::new(),
-                |_, x| {
-                    let nan = x.is_nan();
-                    *x = if nan { 0.0 } else { clamp(*x, 0.0, 1.0) };
-                    nan
-                },
+                |_, x| sanitize(x, 0.0, 1.0, 0.0),
                 |y, rows| Found::row(y, rows[0], crate::ops::row_max(rows[0]) > 0.0, |v| v > 0.0),
             );
             sanitized_aovs += bad;
@@ -419,22 +409,14 @@ impl PreparedFrame {
         let mut read_planes = |v: &Option<ImageView<'_>>, ch: usize, lo: f32, hi: f32, bad: f32| {
             v.as_ref().map(|v| {
                 let mut img = take(ch);
-                sanitized_aovs += read_image(pool, v, &mut img, |_, x| {
-                    let nan = x.is_nan();
-                    *x = if nan { bad } else { clamp(*x, lo, hi) };
-                    nan
-                });
+                sanitized_aovs += read_image(pool, v, &mut img, |_, x| sanitize(x, lo, hi, bad));
                 img
             })
         };
         // Coverage: NaN becomes 0 (counted), the rest is clamped to [0, 1].
         // It is read in the color pass, row by row beside the color, so
         // the alpha plane is its copy while the row is still in cache.
-        let cov_fix = |x: &mut f32| {
-            let nan = x.is_nan();
-            *x = if nan { 0.0 } else { clamp(*x, 0.0, 1.0) };
-            nan
-        };
+        let cov_fix = |x: &mut f32| sanitize(x, 0.0, 1.0, 0.0);
         let cov_view = input.coverage.as_ref();
         let mut coverage = cov_view.map(|_| take(1).data);
         let color_planes = if rgba { 4 } else { 3 };

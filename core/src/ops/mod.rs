@@ -196,27 +196,12 @@ fn bbox_where(
                 if !row_has(row) {
                     continue;
                 }
-                if let Some((x0, x1, count)) = row_span(row, &pred) {
-                    let y = i * BAND_ROWS + dy;
-                    let r = Rect {
-                        x0,
-                        y0: y,
-                        x1,
-                        y1: y + 1,
-                    };
-                    out = Some(match out {
-                        Some((o, c)) => (o.union(&r), c + count),
-                        None => (r, count),
-                    });
-                }
+                out = merge_boxes(out, row_box(i * BAND_ROWS + dy, row, &pred));
             }
             out
         })
         .collect();
-    parts
-        .into_iter()
-        .flatten()
-        .reduce(|(a, n), (b, m)| (a.union(&b), n + m))
+    parts.into_iter().fold(None, merge_boxes)
 }
 
 /// `min` for finite values as one instruction (`f32::min` also orders NaN,
@@ -240,10 +225,10 @@ pub fn fmax(a: f32, b: f32) -> f32 {
     }
 }
 
-/// The first and one-past-last column of `row` where `pred` holds, and how
-/// many columns it holds at; `None` where it holds nowhere.
+/// The pixels of row `y` where `pred` holds: their (one-row) bounding box
+/// and number; `None` where it holds nowhere.
 #[inline]
-pub fn row_span(row: &[f32], pred: impl Fn(f32) -> bool) -> Option<(usize, usize, usize)> {
+pub fn row_box(y: usize, row: &[f32], pred: impl Fn(f32) -> bool) -> Option<(Rect, usize)> {
     let mut first = None;
     let mut last = 0;
     let mut count = 0;
@@ -254,7 +239,25 @@ pub fn row_span(row: &[f32], pred: impl Fn(f32) -> bool) -> Option<(usize, usize
             count += 1;
         }
     }
-    first.map(|x0| (x0, last + 1, count))
+    first.map(|x0| {
+        let r = Rect {
+            x0,
+            y0: y,
+            x1: last + 1,
+            y1: y + 1,
+        };
+        (r, count)
+    })
+}
+
+/// Two sets of found pixels (bounding box and number) as one: the boxes'
+/// union, the numbers added. Order-free, so reductions of it do not depend
+/// on the thread count.
+pub fn merge_boxes(a: Option<(Rect, usize)>, b: Option<(Rect, usize)>) -> Option<(Rect, usize)> {
+    match (a, b) {
+        (Some((a, n)), Some((b, m))) => Some((a.union(&b), n + m)),
+        (a, b) => a.or(b),
+    }
 }
 
 /// The smallest value of a row (vectorizable: 8 independent lanes).

@@ -94,16 +94,16 @@ pub trait HistoryRows: Sync {
     fn row(&self, y: usize, rgba: &mut [[f32; 4]], valid: &mut [f32]);
 }
 
-/// A function `f(y, rgba, valid)` as [`HistoryRows`].
-pub struct RowFn<F>(pub F);
-
-impl<F> HistoryRows for RowFn<F>
-where
-    F: Fn(usize, &mut [[f32; 4]], &mut [f32]) + Sync,
-{
+/// A whole reprojected frame, row by row.
+impl HistoryRows for ReprojectedFrame {
     #[inline(always)]
     fn row(&self, y: usize, rgba: &mut [[f32; 4]], valid: &mut [f32]) {
-        (self.0)(y, rgba, valid)
+        let (w, n) = (self.color.width, self.color.len());
+        let s = y * w;
+        for (x, px) in rgba.iter_mut().enumerate() {
+            *px = std::array::from_fn(|c| self.color.data[c * n + s + x]);
+        }
+        valid.copy_from_slice(&self.valid[s..s + w]);
     }
 }
 
@@ -131,21 +131,12 @@ impl HistoryRows for ViewRows<'_, '_> {
 ///
 /// See [`stabilize_rows`], which takes the history row by row.
 pub fn stabilize(img: &mut Image, history: &ReprojectedFrame, blend: f32) {
-    let (w, n) = (img.width, img.len());
-    assert_eq!(history.color.len(), n, "history and frame sizes differ");
-    let (hist, valid) = (&history.color.data, &history.valid);
-    stabilize_rows(
-        img,
-        blend,
-        None,
-        &RowFn(|y, rgba: &mut [[f32; 4]], v: &mut [f32]| {
-            let s = y * w;
-            for (x, px) in rgba.iter_mut().enumerate() {
-                *px = std::array::from_fn(|c| hist[c * n + s + x]);
-            }
-            v.copy_from_slice(&valid[s..s + w]);
-        }),
+    assert_eq!(
+        (history.color.width, history.color.len()),
+        (img.width, img.len()),
+        "history and frame sizes differ"
     );
+    stabilize_rows(img, blend, None, history);
 }
 
 /// [`stabilize`] with the history given row by row: `history.row(y, rgba,
@@ -230,15 +221,12 @@ fn stabilize_rows_on<H: HistoryRows>(
     par_bands_mut(img, 0, h)
         .zip(kept_bands)
         .for_each(|((y0, [r, g, b, a]), kept)| {
-            let band = Band {
+            let job = BandJob {
                 y0,
                 w,
                 h,
                 blend,
                 edges: &edges,
-            };
-            let job = BandJob {
-                band,
                 planes: [r, g, b, a],
                 kept,
                 history,
@@ -251,19 +239,16 @@ fn stabilize_rows_on<H: HistoryRows>(
         });
 }
 
-/// One band of [`stabilize_rows`]: rows `y0..` of a `w` x `h` image and the
-/// YCoCg edge rows of every band.
-struct Band<'e> {
+/// One band of [`stabilize_rows`]: rows `y0..` (`planes`, and their place
+/// in `kept`) of a `w` x `h` image, with the YCoCg edge rows of every band;
+/// run by [`simd`], so its loops are vectorized for the CPU's widest
+/// instructions.
+struct BandJob<'e, 'p, H> {
     y0: usize,
     w: usize,
     h: usize,
     blend: f32,
     edges: &'e [(Vec<f32>, Vec<f32>)],
-}
-
-/// A [`Band`] and its rows, run by [`simd`].
-struct BandJob<'e, 'p, H> {
-    band: Band<'e>,
     planes: [&'p mut [f32]; 4],
     kept: Option<&'p mut [[f32; 4]]>,
     history: &'e H,
@@ -274,28 +259,16 @@ impl<H: HistoryRows> pulp::WithSimd for BandJob<'_, '_, H> {
 
     #[inline(always)]
     fn with_simd<S: pulp::Simd>(self, _: S) {
-        self.band.run(self.planes, self.kept, self.history)
-    }
-}
-
-impl Band<'_> {
-    /// Stabilizes the band's rows `[r, g, b, a]` in place (and writes
-    /// them to `kept`); inlined into [`simd`], so its loops are
-    /// vectorized for the CPU's widest instructions.
-    #[inline(always)]
-    fn run<H: HistoryRows>(
-        &self,
-        [r, g, b, a]: [&mut [f32]; 4],
-        mut kept: Option<&mut [[f32; 4]]>,
-        history: &H,
-    ) {
-        let Band {
+        let BandJob {
             y0,
             w,
             h,
             blend,
             edges,
-        } = *self;
+            planes: [r, g, b, a],
+            mut kept,
+            history,
+        } = self;
         let bi = y0 / BAND_ROWS;
         let rows = a.len() / w;
         // Sliding window of YCoCg rows of the unmodified image.
@@ -469,13 +442,10 @@ mod tests {
             .map(|i| if (i / w) % 6 == 1 { 0.0 } else { noise(i, 7) })
             .collect();
         let cur = gray(w, h, |i| noise(i, 8) * 3.0);
-        let hist = gray(w, h, |i| noise(i, 10) * 3.0);
-        let rows = RowFn(|y, rgba: &mut [[f32; 4]], v: &mut [f32]| {
-            for (x, px) in rgba.iter_mut().enumerate() {
-                *px = std::array::from_fn(|c| hist.data[c * n + y * w + x]);
-            }
-            v.copy_from_slice(&valid[y * w..(y + 1) * w]);
-        });
+        let rows = ReprojectedFrame {
+            color: gray(w, h, |i| noise(i, 10) * 3.0),
+            valid,
+        };
         let run = |vectorized| {
             let mut img = cur.clone();
             let mut kept = vec![f32::NAN; 4 * n];
@@ -496,24 +466,12 @@ mod tests {
             .collect();
         let cur = gray(w, h, |i| noise(i, 5) * 2.0);
         let hist = gray(w, h, |i| noise(i, 6) * 2.0);
+        let rows = ReprojectedFrame { color: hist, valid };
         for blend in [0.7, 0.0] {
             let mut plain = cur.clone();
-            stabilize(
-                &mut plain,
-                &ReprojectedFrame {
-                    color: hist.clone(),
-                    valid: valid.clone(),
-                },
-                blend,
-            );
+            stabilize(&mut plain, &rows, blend);
             let mut fused = cur.clone();
             let mut kept = vec![f32::NAN; 4 * n];
-            let rows = RowFn(|y, rgba: &mut [[f32; 4]], v: &mut [f32]| {
-                for (x, px) in rgba.iter_mut().enumerate() {
-                    *px = std::array::from_fn(|c| hist.data[c * n + y * w + x]);
-                }
-                v.copy_from_slice(&valid[y * w..(y + 1) * w]);
-            });
             stabilize_rows(&mut fused, blend, Some(&mut kept), &rows);
             assert_eq!(fused, plain, "blend {blend}");
             let want = crate::frame::RgbaImage::from_planes(&plain, None);

@@ -557,21 +557,6 @@ mod tests {
         }
     }
 
-    /// The bits of samples, for exact comparisons.
-    trait Bits {
-        fn to_bits(&self) -> Vec<u32>;
-    }
-
-    impl Bits for (Vec<f32>, &Vec<f32>) {
-        fn to_bits(&self) -> Vec<u32> {
-            self.0
-                .iter()
-                .chain(self.1.iter())
-                .map(|v| v.to_bits())
-                .collect()
-        }
-    }
-
     /// Rows ([`HistoryView::reproject_row`]) and pixels
     /// ([`HistoryView::sample`]) taken before and after the whole frame is
     /// reprojected equal [`HistoryView::reproject`] bit for bit, in every mode.
@@ -662,9 +647,13 @@ mod tests {
                             rgba: &mut vrgba,
                             valid: &mut vrv,
                         });
+                        let bits = |c: &[[f32; 4]], v: &[f32]| {
+                            let all = c.iter().flatten().chain(v);
+                            all.map(|x| x.to_bits()).collect::<Vec<_>>()
+                        };
                         assert_eq!(
-                            (vrgba.concat(), &vrv).to_bits(),
-                            (rgba.concat(), &rv).to_bits(),
+                            bits(&vrgba, &vrv),
+                            bits(&rgba, &rv),
                             "{name}: k {k}: row {i} vectorized"
                         );
                         // A run of the row through the sampler, at an offset.
