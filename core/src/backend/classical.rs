@@ -107,6 +107,8 @@ fn run_ops_on(
             Some(holes) => holes,
             None => stages.time("inpaint", || pool.install(|| inpaint::find_holes(img))),
         };
+        // The pixels still missing, once a history frame has filled some.
+        let mut missing: Option<Vec<(u32, u32)>> = None;
         let mut k = 0;
         while let Some(hh) = holes {
             // Older frames only while much is missing: reprojecting one costs
@@ -126,10 +128,10 @@ fn run_ops_on(
                 });
             }
             // Only the hole pixels of history frame `k` are reprojected.
-            holes = stages.time("inpaint", || {
+            let left = stages.time("inpaint", || {
                 let at = history.sampler(k);
                 pool.install(|| {
-                    inpaint::fill_from_history_with(
+                    inpaint::fill_from_history_listing(
                         img,
                         hh.rect,
                         |i, j| at.at(i, j),
@@ -137,12 +139,19 @@ fn run_ops_on(
                     )
                 })
             });
+            (holes, missing) = match left {
+                Some((hh, list)) => (Some(hh), Some(list)),
+                None => (None, None),
+            };
             k += 1;
         }
         if let Some(hh) = holes {
             let window = inpaint::fill_window(hh.rect, w, h);
             stages.time("inpaint", || {
-                pool.install(|| inpaint::push_pull(img, window))
+                pool.install(|| match &missing {
+                    Some(list) => inpaint::push_pull_at(img, window, list),
+                    None => inpaint::push_pull(img, window),
+                })
             });
         }
     }

@@ -84,10 +84,42 @@ where
     F: Fn(usize, usize) -> ([f32; 4], f32) + Sync,
     S: Fn(usize, usize, [&mut [f32]; 5]) + Sync,
 {
+    fill_from_history_on(img, rect, sample, span, false).map(|(holes, _)| holes)
+}
+
+/// [`fill_from_history_with`], also returning the pixels still missing
+/// ((column, row), in row order), as [`push_pull_at`] takes them.
+pub fn fill_from_history_listing<F, S>(
+    img: &mut Image,
+    rect: Rect,
+    sample: F,
+    span: S,
+) -> Option<(Holes, Vec<(u32, u32)>)>
+where
+    F: Fn(usize, usize) -> ([f32; 4], f32) + Sync,
+    S: Fn(usize, usize, [&mut [f32]; 5]) + Sync,
+{
+    fill_from_history_on(img, rect, sample, span, true)
+}
+
+/// [`fill_from_history_with`]; with `listing`, the remaining hole pixels
+/// too (else an empty list).
+fn fill_from_history_on<F, S>(
+    img: &mut Image,
+    rect: Rect,
+    sample: F,
+    span: S,
+    listing: bool,
+) -> Option<(Holes, Vec<(u32, u32)>)>
+where
+    F: Fn(usize, usize) -> ([f32; 4], f32) + Sync,
+    S: Fn(usize, usize, [&mut [f32]; 5]) + Sync,
+{
     let w = img.width;
-    let parts: Vec<Option<(Rect, usize)>> = par_bands_mut(img, rect.y0, rect.y1)
+    let parts: Vec<(Option<(Rect, usize)>, Vec<(u32, u32)>)> = par_bands_mut(img, rect.y0, rect.y1)
         .map(|(y0, [r, g, b, a])| {
             let mut found: Option<(Rect, usize)> = None;
+            let mut list = Vec::new();
             let rows = a.len() / w;
             // One run of history: R, G, B, A, validity (`w` each).
             let mut run = Vec::new();
@@ -147,6 +179,9 @@ where
                         a[i] = 1.0;
                     } else {
                         a[i] = cov_new;
+                        if listing {
+                            list.push((x as u32, y as u32));
+                        }
                         first.get_or_insert(x);
                         last = x;
                         count += 1;
@@ -165,14 +200,16 @@ where
                     });
                 }
             }
-            found
+            (found, list)
         })
         .collect();
-    parts
-        .into_iter()
-        .flatten()
-        .reduce(|(a, n), (b, m)| (a.union(&b), n + m))
-        .map(|(rect, count)| Holes { rect, count })
+    let mut all = Vec::new();
+    let mut found: Option<(Rect, usize)> = None;
+    for (f, list) in parts {
+        found = crate::ops::merge_boxes(found, f);
+        all.extend(list);
+    }
+    found.map(|(rect, count)| (Holes { rect, count }, all))
 }
 
 /// The window push-pull works in for holes inside `holes`: the holes' box
@@ -365,8 +402,38 @@ pub fn push_pull(img: &mut Image, window: Rect) {
         return;
     }
     let holes = window_holes(img, window);
+    push_pull_in(img, window, &holes);
+}
+
+/// [`push_pull`] with the hole pixels given: `holes` are all the pixels of
+/// `window` with A below [`FULL`], (column, row) in the image (as
+/// [`fill_from_history_listing`] lists them), so the window is not searched.
+///
+/// # Panics
+/// When a pixel of `holes` is outside `window`.
+pub fn push_pull_at(img: &mut Image, window: Rect, holes: &[(u32, u32)]) {
+    if window.is_empty() {
+        return;
+    }
+    let (x0, y0) = (window.x0 as u32, window.y0 as u32);
+    let local: Vec<(u32, u32)> = holes
+        .iter()
+        .map(|&(x, y)| {
+            assert!(
+                window.contains(x as usize, y as usize),
+                "hole ({x}, {y}) outside the window {window:?}"
+            );
+            (x - x0, y - y0)
+        })
+        .collect();
+    push_pull_in(img, window, &local);
+}
+
+/// [`push_pull`] with the window's holes (in the window's coordinates):
+/// sparse or dense by their share of the window.
+fn push_pull_in(img: &mut Image, window: Rect, holes: &[(u32, u32)]) {
     if holes.len() * SPARSE_RATIO < window.width() * window.height() {
-        push_pull_sparse(img, window, &holes);
+        push_pull_sparse(img, window, holes);
     } else {
         push_pull_dense(img, window);
     }
@@ -595,6 +662,59 @@ mod tests {
                         .all(|(a, b)| a.to_bits() == b.to_bits()));
                 }
             }
+        }
+    }
+
+    #[test]
+    fn listed_holes_are_the_missing_pixels_and_push_pull_at_them_is_push_pull() {
+        let (w, h) = (301, 173);
+        for density in [2, 30, 400] {
+            let img = holey(w, h, 5, density);
+            // Valid history on a checkerboard of 7x7 cells, partly transparent.
+            let hist = ReprojectedFrame {
+                color: rgba(w, h, |x, y| [0.1 * (x % 5) as f32, 0.3, 0.05 * (y % 9) as f32, 0.75]),
+                valid: (0..w * h)
+                    .map(|i| if (i % w / 7 + i / w / 7) % 2 == 0 { 0.8 } else { 0.0 })
+                    .collect(),
+            };
+            let rect = find_holes(&img).unwrap().rect;
+            let mut filled = img.clone();
+            let n = filled.len();
+            let (hc, hv) = (&hist.color.data, &hist.valid);
+            let sample = |y: usize, x: usize| {
+                let p = y * w + x;
+                ([hc[p], hc[n + p], hc[2 * n + p], hc[3 * n + p]], hv[p])
+            };
+            let span = |y: usize, x0: usize, out: [&mut [f32]; 5]| {
+                let [o0, o1, o2, o3, ov] = out;
+                for (t, o) in [o0, o1, o2, o3].into_iter().enumerate() {
+                    for (k, v) in o.iter_mut().enumerate() {
+                        *v = sample(y, x0 + k).0[t];
+                    }
+                }
+                for (k, v) in ov.iter_mut().enumerate() {
+                    *v = sample(y, x0 + k).1;
+                }
+            };
+            let (left, list) = fill_from_history_listing(&mut filled, rect, sample, span).unwrap();
+            // The same fill and holes as without the list.
+            let mut plain = img.clone();
+            assert_eq!(fill_from_history(&mut plain, &hist, rect), Some(left));
+            assert!(plain.data.iter().zip(&filled.data).all(|(a, b)| a.to_bits() == b.to_bits()));
+            // The list is every pixel still missing, in row order.
+            let expected: Vec<(u32, u32)> = (0..h)
+                .flat_map(|y| (0..w).map(move |x| (x, y)))
+                .filter(|&(x, y)| filled.at(x, y, 3) < FULL)
+                .map(|(x, y)| (x as u32, y as u32))
+                .collect();
+            assert_eq!(list, expected, "density {density}");
+            assert_eq!(list.len(), left.count);
+            let window = fill_window(left.rect, w, h);
+            let mut at = filled.clone();
+            push_pull_at(&mut at, window, &list);
+            push_pull(&mut filled, window);
+            assert!(at.data.iter().zip(&filled.data).all(|(a, b)| a.to_bits() == b.to_bits()));
+            assert!(find_holes(&at).is_none());
         }
     }
 
