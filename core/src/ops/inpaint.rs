@@ -66,6 +66,9 @@ pub fn fill_from_history(img: &mut Image, history: &ReprojectedFrame, rect: Rect
 /// (`fill_from_history_with`'s `span`), shorter ones pixel by pixel.
 const MIN_RUN: usize = 8;
 
+/// Stretches of a row without holes are skipped this many pixels at a time.
+const SKIP: usize = 16;
+
 /// [`fill_from_history`] with the history given pixel by pixel or in runs
 /// of a row: `sample(row, column)` is the reprojected history's RGBA and
 /// validity there, and `span(row, x0, out)` writes the same for columns
@@ -116,7 +119,7 @@ where
     S: Fn(usize, usize, [&mut [f32]; 5]) + Sync,
 {
     let w = img.width;
-    let parts: Vec<(Option<(Rect, usize)>, Vec<(u32, u32)>)> = par_bands_mut(img, rect.y0, rect.y1)
+    let parts: Vec<_> = par_bands_mut(img, rect.y0, rect.y1)
         .map(|(y0, [r, g, b, a])| {
             let mut found: Option<(Rect, usize)> = None;
             let mut list = Vec::new();
@@ -134,10 +137,21 @@ where
                 // Columns `run_at..run_end` of the row are in `run`; the
                 // short run being sampled pixel by pixel ends at `short_end`.
                 let (mut run_at, mut run_end, mut short_end) = (0, 0, 0);
-                for x in rect.x0..rect.x1 {
+                let mut x = rect.x0;
+                while x < rect.x1 {
                     let i = dy * w + x;
                     let cov = a[i];
                     if cov >= FULL {
+                        // Stretches without holes are skipped a chunk at a
+                        // time (a test that vectorizes).
+                        x += 1;
+                        while x + SKIP <= rect.x1 {
+                            let s = dy * w + x;
+                            if super::row_min(&a[s..s + SKIP]) < FULL {
+                                break;
+                            }
+                            x += SKIP;
+                        }
                         continue;
                     }
                     if x >= run_end && x >= short_end {
@@ -186,6 +200,7 @@ where
                         last = x;
                         count += 1;
                     }
+                    x += 1;
                 }
                 if let Some(x0) = first {
                     let r = Rect {
@@ -672,9 +687,17 @@ mod tests {
             let img = holey(w, h, 5, density);
             // Valid history on a checkerboard of 7x7 cells, partly transparent.
             let hist = ReprojectedFrame {
-                color: rgba(w, h, |x, y| [0.1 * (x % 5) as f32, 0.3, 0.05 * (y % 9) as f32, 0.75]),
+                color: rgba(w, h, |x, y| {
+                    [0.1 * (x % 5) as f32, 0.3, 0.05 * (y % 9) as f32, 0.75]
+                }),
                 valid: (0..w * h)
-                    .map(|i| if (i % w / 7 + i / w / 7) % 2 == 0 { 0.8 } else { 0.0 })
+                    .map(|i| {
+                        if (i % w / 7 + i / w / 7) % 2 == 0 {
+                            0.8
+                        } else {
+                            0.0
+                        }
+                    })
                     .collect(),
             };
             let rect = find_holes(&img).unwrap().rect;
@@ -700,7 +723,31 @@ mod tests {
             // The same fill and holes as without the list.
             let mut plain = img.clone();
             assert_eq!(fill_from_history(&mut plain, &hist, rect), Some(left));
-            assert!(plain.data.iter().zip(&filled.data).all(|(a, b)| a.to_bits() == b.to_bits()));
+            assert!(plain
+                .data
+                .iter()
+                .zip(&filled.data)
+                .all(|(a, b)| a.to_bits() == b.to_bits()));
+            // And as the compositing written pixel by pixel.
+            let mut naive = img.clone();
+            for p in 0..n {
+                let cov = naive.data[3 * n + p];
+                let ([hr, hg, hb, ha], v) = sample(p / w, p % w);
+                if cov >= FULL || v <= 0.0 || ha <= 0.0 {
+                    continue;
+                }
+                let k = (1.0 - cov) * v;
+                for (c, hv) in [hr, hg, hb].into_iter().enumerate() {
+                    naive.data[c * n + p] += k * hv;
+                }
+                let c = (cov + k * ha).min(1.0);
+                naive.data[3 * n + p] = if c >= FULL { 1.0 } else { c };
+            }
+            assert!(naive
+                .data
+                .iter()
+                .zip(&filled.data)
+                .all(|(a, b)| a.to_bits() == b.to_bits()));
             // The list is every pixel still missing, in row order.
             let expected: Vec<(u32, u32)> = (0..h)
                 .flat_map(|y| (0..w).map(move |x| (x, y)))
@@ -713,7 +760,11 @@ mod tests {
             let mut at = filled.clone();
             push_pull_at(&mut at, window, &list);
             push_pull(&mut filled, window);
-            assert!(at.data.iter().zip(&filled.data).all(|(a, b)| a.to_bits() == b.to_bits()));
+            assert!(at
+                .data
+                .iter()
+                .zip(&filled.data)
+                .all(|(a, b)| a.to_bits() == b.to_bits()));
             assert!(find_holes(&at).is_none());
         }
     }

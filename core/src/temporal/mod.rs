@@ -97,9 +97,13 @@ impl Sampler<'_> {
             j0 + n
         );
         match self.hop {
-            Some((src, frame)) => {
-                reproject::hop_color_row(src, frame, i, j0, &mut reproject::Planar(out))
-            }
+            Some((src, frame)) => crate::ops::simd(SpanJob {
+                src,
+                frame,
+                i,
+                j0,
+                out,
+            }),
             None => {
                 let [o0, o1, o2, o3, ov] = out;
                 for t in 0..n {
@@ -108,6 +112,32 @@ impl Sampler<'_> {
                 }
             }
         }
+    }
+}
+
+/// [`Sampler::span`]'s hop, compiled for the CPU's widest vectors
+/// ([`crate::ops::simd`]).
+struct SpanJob<'v, 'o> {
+    src: Source<'v>,
+    frame: &'v HistoryFrame,
+    i: usize,
+    j0: usize,
+    out: [&'o mut [f32]; 5],
+}
+
+impl pulp::WithSimd for SpanJob<'_, '_> {
+    type Output = ();
+
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, _: S) {
+        let SpanJob {
+            src,
+            frame,
+            i,
+            j0,
+            out,
+        } = self;
+        reproject::hop_color_row(src, frame, i, j0, &mut reproject::Planar(out))
     }
 }
 
