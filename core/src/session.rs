@@ -561,6 +561,94 @@ mod tests {
     use crate::device::DeviceOptions;
     use crate::synth::{Scene, SynthConfig};
 
+    /// The classical backend without its in-place path: the frame's color
+    /// is copied into a working image (`Backend::process`).
+    struct Copying(crate::backend::classical::Classical);
+
+    impl Backend for Copying {
+        fn name(&self) -> &str {
+            "classical"
+        }
+
+        fn process(
+            &self,
+            input: &BackendInput<'_>,
+            carry: &mut Carry,
+            progress: &mut Progress<'_>,
+            stages: &mut Stages,
+        ) -> Result<Image> {
+            self.0.process(input, carry, progress, stages)
+        }
+    }
+
+    /// Working in place on the prepared color (its coverage kept only as
+    /// the alpha, holes and insert found while preparing) gives the bits of
+    /// working on a copy, frame after frame: holes (some punched, partly
+    /// covered, into the background around the insert, where the
+    /// harmonization measures), an insert, motion.
+    #[test]
+    fn in_place_and_copying_paths_give_the_same_bits() {
+        let scene = Scene::new(SynthConfig {
+            width: 160,
+            height: 96,
+            frames: 6,
+            ..SynthConfig::default()
+        })
+        .unwrap();
+        let device = Device::new(DeviceOptions {
+            threads: 2,
+            ..DeviceOptions::default()
+        })
+        .unwrap();
+        let mut params = Params::default();
+        params
+            .set("backend", &ParamValue::Str("classical".into()))
+            .unwrap();
+        let mut in_place = Session::new(device.clone(), params.clone()).unwrap();
+        let mut copying = Session::new(device, params).unwrap();
+        copying.backend = Box::new(Copying(crate::backend::classical::Classical));
+        assert!(in_place.backend.works_in_place() && !copying.backend.works_in_place());
+        for t in 0..6 {
+            let mut f = scene.frame(1 + t).input;
+            let w = f.width;
+            let insert = crate::ops::bbox_above(&f.insert_mask, w, f.height, 0.0)
+                .expect("an insert")
+                .0;
+            // Partly covered pixels beside the insert and in every third
+            // row of it (the harmonization weighs both by coverage).
+            let beside =
+                (insert.x0.saturating_sub(12)..insert.x0).chain(insert.x1..(insert.x1 + 12).min(w));
+            for y in insert.y0..insert.y1 {
+                let across = if y % 3 == 0 {
+                    insert.x0..insert.x1
+                } else {
+                    0..0
+                };
+                for x in beside.clone().chain(across) {
+                    let p = y * w + x;
+                    f.coverage[p] = 0.25;
+                    for c in 0..4 {
+                        f.color[4 * p + c] *= 0.25;
+                    }
+                }
+            }
+            let (a, ra) = in_place.process(&f.frame_input(), None).unwrap();
+            let (b, rb) = copying.process(&f.frame_input(), None).unwrap();
+            assert_eq!((ra.reset, ra.history_used), (rb.reset, rb.history_used));
+            assert!(
+                a.data
+                    .iter()
+                    .zip(&b.data)
+                    .all(|(x, y)| x.to_bits() == y.to_bits()),
+                "frame {t}"
+            );
+            assert_eq!(
+                in_place.state.carry.values, copying.state.carry.values,
+                "frame {t}: the smoothed harmonization"
+            );
+        }
+    }
+
     /// The history keeps exactly the result handed to the host, whether the
     /// backend's last pass wrote the history's copy (classical, stabilize
     /// on) or the session copied it (stabilize off, strength below 1,
