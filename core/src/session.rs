@@ -424,12 +424,17 @@ impl Session {
             insert_mask,
             camera,
             frame_index,
+            scan,
             ..
         } = frame;
+        let width = color.width;
         let rec = &self.recycler;
         rec.give(color.data);
-        for b in [coverage, insert_mask].into_iter().flatten() {
-            rec.give(b);
+        if let Some(mask) = insert_mask {
+            crate::frame::recycle_mask(rec, mask, width, scan);
+        }
+        if let Some(c) = coverage {
+            rec.give(c);
         }
         if let Some(n) = normal {
             rec.give(n.data);

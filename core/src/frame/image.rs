@@ -204,9 +204,23 @@ impl RgbaImage {
 /// done on them. A session gives its spent buffers back here and takes them
 /// again for the next frame. A buffer taken has the requested length and
 /// *arbitrary* contents: the taker overwrites every sample.
+///
+/// One more buffer is kept apart, known to be zero outside a rectangle
+/// ([`Recycler::take_zeroed`], [`Recycler::give_zeroed`]): a sparse plane
+/// (the insert mask) is then prepared by clearing and writing only where
+/// it is not zero, not the whole frame.
 #[derive(Debug, Default)]
 pub struct Recycler {
     free: std::sync::Mutex<Vec<Vec<f32>>>,
+    zeroed: std::sync::Mutex<Option<Zeroed>>,
+}
+
+/// A buffer of rows of `width` samples, zero outside `dirty`.
+#[derive(Debug)]
+struct Zeroed {
+    data: Vec<f32>,
+    width: usize,
+    dirty: Option<crate::ops::Rect>,
 }
 
 impl Recycler {
@@ -256,11 +270,66 @@ impl Recycler {
     pub fn keep_frame_size(&self, len: usize) {
         let mut free = self.free.lock().unwrap_or_else(|e| e.into_inner());
         free.retain(|b| len > 0 && b.len() % len == 0 && b.len() / len <= 5);
+        let mut zeroed = self.zeroed.lock().unwrap_or_else(|e| e.into_inner());
+        if zeroed.as_ref().is_some_and(|z| z.data.len() != len) {
+            *zeroed = None;
+        }
+    }
+
+    /// A buffer of `width * height` zeros: the one kept by
+    /// [`Recycler::give_zeroed`] when it has that shape (cleared where it
+    /// was not zero), else newly allocated.
+    pub fn take_zeroed(&self, width: usize, height: usize) -> Vec<f32> {
+        let kept = self
+            .zeroed
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .take()
+            .filter(|z| z.width == width && z.data.len() == width * height);
+        match kept {
+            Some(Zeroed {
+                mut data, dirty, ..
+            }) => {
+                if let Some(r) = dirty {
+                    for y in r.y0..r.y1 {
+                        data[y * width + r.x0..y * width + r.x1].fill(0.0);
+                    }
+                }
+                data
+            }
+            None => vec![0.0; width * height],
+        }
+    }
+
+    /// Keeps `buf` (rows of `width` samples, every sample outside `dirty`
+    /// exactly +0.0; `None`: all of them) for [`Recycler::take_zeroed`],
+    /// in place of the one kept before.
+    ///
+    /// # Panics
+    /// When `dirty` is not inside the buffer.
+    pub fn give_zeroed(&self, buf: Vec<f32>, width: usize, dirty: Option<crate::ops::Rect>) {
+        if buf.is_empty() || width == 0 {
+            return;
+        }
+        if let Some(r) = dirty {
+            assert!(
+                r.x1 <= width && r.y1 * width <= buf.len(),
+                "dirty {r:?} outside a buffer of {} rows of {width}",
+                buf.len() / width
+            );
+        }
+        *self.zeroed.lock().unwrap_or_else(|e| e.into_inner()) = Some(Zeroed {
+            data: buf,
+            width,
+            dirty,
+        });
     }
 
     /// Bytes held.
     pub fn bytes(&self) -> usize {
         let free = self.free.lock().unwrap_or_else(|e| e.into_inner());
-        free.iter().map(|b| b.len() * 4).sum()
+        let zeroed = self.zeroed.lock().unwrap_or_else(|e| e.into_inner());
+        free.iter().map(|b| b.len() * 4).sum::<usize>()
+            + zeroed.as_ref().map_or(0, |z| z.data.len() * 4)
     }
 }

@@ -120,6 +120,121 @@ fn read_image_with(
     }
 }
 
+/// Gives a prepared frame's insert mask back to `recycler`: as a buffer
+/// of zeros outside the insert's box when the frame was scanned while
+/// prepared (`scan`, see [`Scan::insert`]), else as any buffer.
+pub(crate) fn recycle_mask(recycler: &Recycler, mask: Vec<f32>, width: usize, scan: Option<Scan>) {
+    match scan {
+        Some(scan) => recycler.give_zeroed(mask, width, scan.insert),
+        None => recycler.give(mask),
+    }
+}
+
+/// An insert-mask sample made usable: NaN is 0 (true: counted), the rest
+/// clamped to `[0, 1]`, and -0 is +0 (so every pixel outside the box of
+/// those above 0 is exactly +0).
+#[inline(always)]
+fn sanitize_mask(x: &mut f32) -> bool {
+    let nan = sanitize(x, 0.0, 1.0, 0.0);
+    *x += 0.0;
+    nan
+}
+
+/// The first pass over an insert mask: the samples [`sanitize_mask`]
+/// counts, and the bounding box of those above 0 (after sanitizing), row
+/// by row in parallel on `pool` when given; nothing is written.
+fn scan_mask(pool: Option<&rayon::ThreadPool>, view: &ImageView<'_>) -> (usize, Option<Rect>) {
+    let (w, h) = (view.width(), view.height());
+    let rows = |ys: std::ops::Range<usize>| -> (usize, Found) {
+        let mut copy = Vec::new();
+        let mut acc = (0, Found::default());
+        for y in ys {
+            // The host's row itself when packed, else a copy.
+            let row = match view.packed_row(y) {
+                Some(row) => row,
+                None => {
+                    copy.resize(w, 0.0);
+                    view.read_row(y, 0, &mut copy);
+                    &copy[..]
+                }
+            };
+            // Sanitized, a sample is above 0 exactly when it was (NaN and
+            // negatives become 0, the rest is clamped to at most 1): one
+            // read-only pass counts the NaN and the samples above 0.
+            let (bad, above) = row.iter().fold((0u32, 0u32), |(n, p), &v| {
+                (n + u32::from(v.is_nan()), p + u32::from(v > 0.0))
+            });
+            let bbox = (above > 0).then(|| {
+                // Searched from both ends: a row of the insert is mostly outside it.
+                let x0 = row.iter().position(|&v| v > 0.0).unwrap_or(0);
+                let x1 = row.iter().rposition(|&v| v > 0.0).map_or(w, |x| x + 1);
+                (
+                    Rect {
+                        x0,
+                        y0: y,
+                        x1,
+                        y1: y + 1,
+                    },
+                    above as usize,
+                )
+            });
+            acc = (acc.0 + bad as usize, acc.1.merge(Found { n: 0, bbox }));
+        }
+        acc
+    };
+    const ROWS: usize = 16;
+    let add = |a: (usize, Found), b: (usize, Found)| (a.0 + b.0, a.1.merge(b.1));
+    let chunks = h.div_ceil(ROWS);
+    let chunk = |c: usize| rows(c * ROWS..((c + 1) * ROWS).min(h));
+    let (bad, found) = match pool {
+        Some(pool) => pool.install(|| {
+            (0..chunks)
+                .into_par_iter()
+                .map(chunk)
+                .reduce(|| (0, Found::default()), add)
+        }),
+        None => (0..chunks).map(chunk).fold((0, Found::default()), add),
+    };
+    (bad, found.bbox.map(|(r, _)| r))
+}
+
+/// The second pass: the insert mask's samples inside `rect`, sanitized,
+/// into `out` (rows of the view's width, zero elsewhere).
+fn copy_mask_box(
+    pool: Option<&rayon::ThreadPool>,
+    view: &ImageView<'_>,
+    out: &mut [f32],
+    rect: Rect,
+) {
+    let w = view.width();
+    let band = |(i, rows): (usize, &mut [f32])| {
+        let mut copy = Vec::new();
+        for (k, o) in rows.chunks_mut(w).enumerate() {
+            let y = rect.y0 + 16 * i + k;
+            // The host's row itself when packed, else a copy.
+            let row = match view.packed_row(y) {
+                Some(row) => row,
+                None => {
+                    copy.resize(w, 0.0);
+                    view.read_row(y, 0, &mut copy);
+                    &copy[..]
+                }
+            };
+            let (src, dst) = (&row[rect.x0..rect.x1], &mut o[rect.x0..rect.x1]);
+            for (&s, d) in src.iter().zip(dst) {
+                let mut v = s;
+                sanitize_mask(&mut v);
+                *d = v;
+            }
+        }
+    };
+    let rows = &mut out[rect.y0 * w..rect.y1 * w];
+    match pool {
+        Some(pool) => pool.install(|| rows.par_chunks_mut(16 * w).enumerate().for_each(band)),
+        None => rows.chunks_mut(16 * w).enumerate().for_each(band),
+    }
+}
+
 /// An AOV sample made usable: NaN becomes `bad`, anything else is clamped
 /// to `[lo, hi]`; true when it was NaN (counted). Branch-free, so loops of
 /// it vectorize.
@@ -320,11 +435,12 @@ impl PreparedFrame {
 
     /// Gives the frame's buffers to `recycler`.
     pub fn recycle(self, recycler: &Recycler) {
+        let width = self.color.width;
         recycler.give(self.color.data);
-        for b in [self.coverage, self.depth, self.insert_mask]
-            .into_iter()
-            .flatten()
-        {
+        if let Some(mask) = self.insert_mask {
+            recycle_mask(recycler, mask, width, self.scan);
+        }
+        for b in [self.coverage, self.depth].into_iter().flatten() {
             recycler.give(b);
         }
         for img in [self.motion, self.normal].into_iter().flatten() {
@@ -387,23 +503,24 @@ impl PreparedFrame {
             None => Image::zeros(w, h, ch),
         };
         let mut sanitized_aovs = 0usize;
-        // The insert mask, clamped to [0, 1] (NaN is 0, counted), and the
-        // bounding box of its pixels above 0 (`ops::harmonize::insert_rect`).
+        // The insert mask, clamped to [0, 1] (NaN is 0, counted; zeros are
+        // +0), and the bounding box of its pixels above 0
+        // (`ops::harmonize::insert_rect`): found in a first pass that only
+        // reads, then only the box is written into a buffer of zeros (an
+        // insert usually covers a small part of the frame).
         let mut insert = None;
         let insert_mask = input.insert_mask.as_ref().map(|v| {
-            let mut img = take(1);
-            let (bad, found) = read_image_with(
-                pool,
-                v,
-                &mut img,
-                1,
-                Vec::new(),
-                |_, x| sanitize(x, 0.0, 1.0, 0.0),
-                |y, rows| Found::row(y, rows[0], crate::ops::row_max(rows[0]) > 0.0, |v| v > 0.0),
-            );
+            let (bad, found) = scan_mask(pool, v);
             sanitized_aovs += bad;
-            insert = found.bbox.map(|(r, _)| r);
-            img.data
+            insert = found;
+            let mut data = match recycler {
+                Some(r) => r.take_zeroed(w, h),
+                None => vec![0.0; w * h],
+            };
+            if let Some(r) = found {
+                copy_mask_box(pool, v, &mut data, r);
+            }
+            data
         });
         // NaN becomes `bad` (counted), everything else is clamped to [lo, hi].
         let mut read_planes = |v: &Option<ImageView<'_>>, ch: usize, lo: f32, hi: f32, bad: f32| {

@@ -8,5 +8,6 @@ mod view;
 
 pub use camera::Camera;
 pub use image::{Image, Recycler, RgbaImage};
+pub(crate) use input::recycle_mask;
 pub use input::{DepthKind, FrameInput, PreparedFrame, Scan};
 pub use view::{ImageView, ImageViewMut, PixelFormat};

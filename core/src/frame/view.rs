@@ -251,6 +251,18 @@ impl<'a> ImageView<'a> {
         }
     }
 
+    /// Row `y` of a single-channel f32 image whose samples are packed
+    /// (pixel stride 4 bytes) and aligned, borrowed; `None` for any other
+    /// layout (read it with [`ImageView::read_row`]).
+    pub fn packed_row(&self, y: usize) -> Option<&'a [f32]> {
+        let l = &self.layout;
+        if l.format != PixelFormat::F32 || l.pixel_stride != 4 || y >= l.height {
+            return None;
+        }
+        let start = l.index(0, y, 0) / 4;
+        aligned::<f32>(self.data)?.get(start..start + l.width)
+    }
+
     /// Copies channel `c` of row `y` into `out` (length = width).
     pub fn read_row(&self, y: usize, c: usize, out: &mut [f32]) {
         let l = &self.layout;

@@ -427,6 +427,84 @@ fn holes_and_insert_found_while_preparing_equal_the_searches() {
     assert_eq!(p.scan.map(|s| (s.holes, s.insert)), Some((None, None)));
 }
 
+/// The insert mask is prepared by writing only its box into a recycled
+/// buffer of zeros: frame after frame, with the insert moving, the box
+/// growing and shrinking, no insert at all and odd samples (NaN, negative,
+/// -0, above 1, a strided host layout), every prepared sample is the host's
+/// sanitized, and the box is the search's.
+#[test]
+fn insert_masks_prepared_in_recycled_buffers_are_the_sanitized_masks() {
+    use harmonizer_core::frame::Recycler;
+    use harmonizer_core::ops::harmonize::insert_rect;
+    let dev = device(2);
+    let rec = Recycler::new();
+    let boxes: [Option<(usize, usize, usize, usize)>; 6] = [
+        Some((10, 5, 60, 40)),
+        Some((100, 50, 130, 70)),
+        Some((0, 0, W, H)),
+        None,
+        Some((150, 80, 151, 81)),
+        Some((20, 30, 90, 31)),
+    ];
+    let f = render(Look::default());
+    for (t, b) in boxes.iter().enumerate() {
+        let mut mask = vec![0.0f32; W * H];
+        // Outside the box: zeros of both signs, negatives and NaN.
+        for (p, m) in mask.iter_mut().enumerate() {
+            *m = match p % 7 {
+                0 => -0.0,
+                1 => -0.5,
+                2 if p % 3 == 0 => f32::NAN,
+                _ => 0.0,
+            };
+        }
+        if let Some((x0, y0, x1, y1)) = *b {
+            for y in y0..y1 {
+                for x in x0..x1 {
+                    mask[y * W + x] = match (x + 3 * y) % 6 {
+                        0 => -0.0,
+                        1 => f32::NAN,
+                        k => (k - 2) as f32 * 0.5, // 0 to 1.5
+                    };
+                }
+            }
+        }
+        // Every other sample of an interleaved buffer (strided rows).
+        let strided: Vec<f32> = mask.iter().flat_map(|&m| [m, 9.0]).collect();
+        for layout in [0, 1] {
+            let mut input = f.input(t as i64);
+            input.insert_mask = Some(match layout {
+                0 => ImageView::from_f32("insert_mask", &mask, W, H, 1).unwrap(),
+                _ => ImageView::from_f32("insert_mask", &strided, W, H, 2).unwrap(),
+            });
+            let p = PreparedFrame::from_input_recycled(
+                &input,
+                DepthKind::Planar,
+                dev.pool(),
+                &rec,
+                false,
+                layout == 0,
+            )
+            .unwrap();
+            let got = p.insert_mask.as_deref().unwrap();
+            for (i, (&g, &m)) in got.iter().zip(&mask).enumerate() {
+                let want = if m.is_nan() {
+                    0.0
+                } else {
+                    m.clamp(0.0, 1.0) + 0.0
+                };
+                assert_eq!(
+                    g.to_bits(),
+                    want.to_bits(),
+                    "frame {t}, layout {layout}: sample {i}"
+                );
+            }
+            assert_eq!(p.scan.unwrap().insert, insert_rect(got, W, H), "frame {t}");
+            p.recycle(&rec);
+        }
+    }
+}
+
 /// Runs the classical backend directly with a carry the test can read.
 fn run_backend(f: &Frame, params: &Params, carry: &mut Carry, dev: &Device) -> Image {
     let prepared = PreparedFrame::from_input(&f.input(0), DepthKind::Planar).unwrap();
