@@ -566,6 +566,23 @@ mod tests {
     use crate::device::DeviceOptions;
     use crate::synth::{Scene, SynthConfig};
 
+    /// A synthetic sequence of `frames` frames and a device of 2 threads.
+    fn scene_and_device(width: usize, height: usize, frames: usize) -> (Scene, Arc<Device>) {
+        let scene = Scene::new(SynthConfig {
+            width,
+            height,
+            frames,
+            ..SynthConfig::default()
+        })
+        .unwrap();
+        let device = Device::new(DeviceOptions {
+            threads: 2,
+            ..DeviceOptions::default()
+        })
+        .unwrap();
+        (scene, device)
+    }
+
     /// The classical backend without its in-place path: the frame's color
     /// is copied into a working image (`Backend::process`).
     struct Copying(crate::backend::classical::Classical);
@@ -593,18 +610,7 @@ mod tests {
     /// harmonization measures), an insert, motion.
     #[test]
     fn in_place_and_copying_paths_give_the_same_bits() {
-        let scene = Scene::new(SynthConfig {
-            width: 160,
-            height: 96,
-            frames: 6,
-            ..SynthConfig::default()
-        })
-        .unwrap();
-        let device = Device::new(DeviceOptions {
-            threads: 2,
-            ..DeviceOptions::default()
-        })
-        .unwrap();
+        let (scene, device) = scene_and_device(160, 96, 6);
         let mut params = Params::default();
         params
             .set("backend", &ParamValue::Str("classical".into()))
@@ -660,18 +666,7 @@ mod tests {
     /// bypass).
     #[test]
     fn the_history_holds_the_result_however_it_is_copied() {
-        let scene = Scene::new(SynthConfig {
-            width: 67,
-            height: 45,
-            frames: 4,
-            ..SynthConfig::default()
-        })
-        .unwrap();
-        let device = Device::new(DeviceOptions {
-            threads: 2,
-            ..DeviceOptions::default()
-        })
-        .unwrap();
+        let (scene, device) = scene_and_device(67, 45, 4);
         let cases: [(&str, &[(&str, ParamValue)]); 4] = [
             ("classical", &[]),
             ("classical", &[("stabilize", ParamValue::Bool(false))]),

@@ -140,6 +140,19 @@ fn sanitize_mask(x: &mut f32) -> bool {
     nan
 }
 
+/// Row `y` of channel 0 of `view`: the host's own samples when they are
+/// packed f32, else read into `copy`.
+fn host_row<'r>(view: &'r ImageView<'_>, y: usize, copy: &'r mut Vec<f32>) -> &'r [f32] {
+    match view.packed_row(y) {
+        Some(row) => row,
+        None => {
+            copy.resize(view.width(), 0.0);
+            view.read_row(y, 0, copy);
+            copy
+        }
+    }
+}
+
 /// The first pass over an insert mask: the samples [`sanitize_mask`]
 /// counts, and the bounding box of those above 0 (after sanitizing), row
 /// by row in parallel on `pool` when given; nothing is written.
@@ -149,15 +162,7 @@ fn scan_mask(pool: Option<&rayon::ThreadPool>, view: &ImageView<'_>) -> (usize, 
         let mut copy = Vec::new();
         let mut acc = (0, Found::default());
         for y in ys {
-            // The host's row itself when packed, else a copy.
-            let row = match view.packed_row(y) {
-                Some(row) => row,
-                None => {
-                    copy.resize(w, 0.0);
-                    view.read_row(y, 0, &mut copy);
-                    &copy[..]
-                }
-            };
+            let row = host_row(view, y, &mut copy);
             // Sanitized, a sample is above 0 exactly when it was (NaN and
             // negatives become 0, the rest is clamped to at most 1): one
             // read-only pass counts the NaN and the samples above 0.
@@ -210,16 +215,7 @@ fn copy_mask_box(
     let band = |(i, rows): (usize, &mut [f32])| {
         let mut copy = Vec::new();
         for (k, o) in rows.chunks_mut(w).enumerate() {
-            let y = rect.y0 + 16 * i + k;
-            // The host's row itself when packed, else a copy.
-            let row = match view.packed_row(y) {
-                Some(row) => row,
-                None => {
-                    copy.resize(w, 0.0);
-                    view.read_row(y, 0, &mut copy);
-                    &copy[..]
-                }
-            };
+            let row = host_row(view, rect.y0 + 16 * i + k, &mut copy);
             let (src, dst) = (&row[rect.x0..rect.x1], &mut o[rect.x0..rect.x1]);
             for (&s, d) in src.iter().zip(dst) {
                 let mut v = s;
