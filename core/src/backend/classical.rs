@@ -139,10 +139,7 @@ fn run_ops_on(
                     )
                 })
             });
-            (holes, missing) = match left {
-                Some((hh, list)) => (Some(hh), Some(list)),
-                None => (None, None),
-            };
+            (holes, missing) = left.unzip();
             k += 1;
         }
         if let Some(hh) = holes {

@@ -7,7 +7,7 @@ use rayon::prelude::*;
 use super::{Camera, Image, ImageView, Recycler};
 use crate::error::{Error, Result};
 use crate::ops::inpaint::FULL;
-use crate::ops::Rect;
+use crate::ops::{Rect, BAND_ROWS};
 
 /// Reads the first `img.channels` channels of `view` into the planes of
 /// `img` (every sample is overwritten), row by row with all channels of a row
@@ -157,7 +157,7 @@ fn host_row<'r>(view: &'r ImageView<'_>, y: usize, copy: &'r mut Vec<f32>) -> &'
 /// counts, and the bounding box of those above 0 (after sanitizing), row
 /// by row in parallel on `pool` when given; nothing is written.
 fn scan_mask(pool: Option<&rayon::ThreadPool>, view: &ImageView<'_>) -> (usize, Option<Rect>) {
-    let (w, h) = (view.width(), view.height());
+    let h = view.height();
     let rows = |ys: std::ops::Range<usize>| -> (usize, Found) {
         let mut copy = Vec::new();
         let mut acc = (0, Found::default());
@@ -169,28 +169,14 @@ fn scan_mask(pool: Option<&rayon::ThreadPool>, view: &ImageView<'_>) -> (usize, 
             let (bad, above) = row.iter().fold((0u32, 0u32), |(n, p), &v| {
                 (n + u32::from(v.is_nan()), p + u32::from(v > 0.0))
             });
-            let bbox = (above > 0).then(|| {
-                // Searched from both ends: a row of the insert is mostly outside it.
-                let x0 = row.iter().position(|&v| v > 0.0).unwrap_or(0);
-                let x1 = row.iter().rposition(|&v| v > 0.0).map_or(w, |x| x + 1);
-                (
-                    Rect {
-                        x0,
-                        y0: y,
-                        x1,
-                        y1: y + 1,
-                    },
-                    above as usize,
-                )
-            });
-            acc = (acc.0 + bad as usize, acc.1.merge(Found { n: 0, bbox }));
+            let found = Found::row(y, row, above > 0, |v| v > 0.0);
+            acc = (acc.0 + bad as usize, acc.1.merge(found));
         }
         acc
     };
-    const ROWS: usize = 16;
     let add = |a: (usize, Found), b: (usize, Found)| (a.0 + b.0, a.1.merge(b.1));
-    let chunks = h.div_ceil(ROWS);
-    let chunk = |c: usize| rows(c * ROWS..((c + 1) * ROWS).min(h));
+    let chunks = h.div_ceil(BAND_ROWS);
+    let chunk = |c: usize| rows(c * BAND_ROWS..((c + 1) * BAND_ROWS).min(h));
     let (bad, found) = match pool {
         Some(pool) => pool.install(|| {
             (0..chunks)
@@ -215,7 +201,7 @@ fn copy_mask_box(
     let band = |(i, rows): (usize, &mut [f32])| {
         let mut copy = Vec::new();
         for (k, o) in rows.chunks_mut(w).enumerate() {
-            let row = host_row(view, rect.y0 + 16 * i + k, &mut copy);
+            let row = host_row(view, rect.y0 + BAND_ROWS * i + k, &mut copy);
             let (src, dst) = (&row[rect.x0..rect.x1], &mut o[rect.x0..rect.x1]);
             for (&s, d) in src.iter().zip(dst) {
                 let mut v = s;
@@ -226,8 +212,12 @@ fn copy_mask_box(
     };
     let rows = &mut out[rect.y0 * w..rect.y1 * w];
     match pool {
-        Some(pool) => pool.install(|| rows.par_chunks_mut(16 * w).enumerate().for_each(band)),
-        None => rows.chunks_mut(16 * w).enumerate().for_each(band),
+        Some(pool) => pool.install(|| {
+            rows.par_chunks_mut(BAND_ROWS * w)
+                .enumerate()
+                .for_each(band)
+        }),
+        None => rows.chunks_mut(BAND_ROWS * w).enumerate().for_each(band),
     }
 }
 

@@ -430,21 +430,16 @@ pub fn push_pull_at(img: &mut Image, window: Rect, holes: &[(u32, u32)]) {
     if window.is_empty() {
         return;
     }
-    let (x0, y0) = (window.x0 as u32, window.y0 as u32);
-    let local: Vec<(u32, u32)> = holes
+    if let Some(&(x, y)) = holes
         .iter()
-        .map(|&(x, y)| {
-            assert!(
-                window.contains(x as usize, y as usize),
-                "hole ({x}, {y}) outside the window {window:?}"
-            );
-            (x - x0, y - y0)
-        })
-        .collect();
-    push_pull_in(img, window, &local);
+        .find(|&&(x, y)| !window.contains(x as usize, y as usize))
+    {
+        panic!("hole ({x}, {y}) outside the window {window:?}");
+    }
+    push_pull_in(img, window, holes);
 }
 
-/// [`push_pull`] with the window's holes (in the window's coordinates):
+/// [`push_pull`] with the window's holes (in the image's coordinates):
 /// sparse or dense by their share of the window.
 fn push_pull_in(img: &mut Image, window: Rect, holes: &[(u32, u32)]) {
     if holes.len() * SPARSE_RATIO < window.width() * window.height() {
@@ -455,7 +450,7 @@ fn push_pull_in(img: &mut Image, window: Rect, holes: &[(u32, u32)]) {
 }
 
 /// The pixels of `window` with A below [`FULL`]: (column, row) in the
-/// window, in row order.
+/// image, in row order.
 fn window_holes(img: &Image, window: Rect) -> Vec<(u32, u32)> {
     let a = img.plane(3);
     let w = img.width;
@@ -469,18 +464,17 @@ fn window_holes(img: &Image, window: Rect) -> Vec<(u32, u32)> {
                 if super::row_min(row) >= FULL {
                     continue;
                 }
-                let dy = (y - window.y0) as u32;
-                // Runs of 16 without holes are skipped by a test that vectorizes.
-                for (i, run) in row.chunks(16).enumerate() {
+                // Stretches without holes are skipped by a test that vectorizes.
+                for (i, run) in row.chunks(SKIP).enumerate() {
                     if super::row_min(run) >= FULL {
                         continue;
                     }
-                    let x0 = 16 * i;
+                    let x0 = window.x0 + SKIP * i;
                     out.extend(
                         run.iter()
                             .enumerate()
                             .filter(|(_, &c)| c < FULL)
-                            .map(|(x, _)| ((x0 + x) as u32, dy)),
+                            .map(|(x, _)| ((x0 + x) as u32, y as u32)),
                     );
                 }
             }
@@ -491,31 +485,30 @@ fn window_holes(img: &Image, window: Rect) -> Vec<(u32, u32)> {
 }
 
 /// [`push_pull`] by the sparse evaluation ([`sparse::Pyramid`]) at `holes`
-/// (all of the window's, [`window_holes`]); the holes are split among the
-/// pool's threads, each with its own memo.
+/// (all of the window's, in the image's coordinates, [`window_holes`]);
+/// the holes are split among the pool's threads, each with its own memo.
 fn push_pull_sparse(img: &mut Image, window: Rect, holes: &[(u32, u32)]) {
     let parts = rayon::current_num_threads().max(1);
+    let w = img.width;
     let fills: Vec<[f32; 3]> = {
         let view = View::of(img, window);
+        let cov = img.plane(3);
         holes
             .par_chunks(holes.len().div_ceil(parts).max(1))
             .flat_map_iter(|part| {
                 let mut pyramid = sparse::Pyramid::new(view);
-                let cov = view.planes[3];
                 part.iter()
                     .map(|&(x, y)| {
                         let (x, y) = (x as usize, y as usize);
-                        let c = cov[(view.y0 + y) * view.stride + view.x0 + x];
-                        pyramid.fill(x, y, c)
+                        pyramid.fill(x - window.x0, y - window.y0, cov[y * w + x])
                     })
                     .collect::<Vec<_>>()
             })
             .collect()
     };
-    let w = img.width;
     let [r, g, b, a] = rgba_planes_mut(img);
     for (&(x, y), f) in holes.iter().zip(&fills) {
-        let o = (window.y0 + y as usize) * w + window.x0 + x as usize;
+        let o = y as usize * w + x as usize;
         (r[o], g[o], b[o], a[o]) = (f[0], f[1], f[2], 1.0);
     }
 }
