@@ -28,6 +28,21 @@ pub(crate) fn simd<Op: pulp::WithSimd>(op: Op) -> Op::Output {
     pulp::Arch::new().dispatch(op)
 }
 
+/// Asks the CPU to bring the cache line holding `s[i]` into its caches
+/// ahead of a read: a hint, with no effect on any value (nothing happens
+/// for an index out of range, or on other architectures than x86-64).
+/// Through `pulp`'s SSE token (SSE is part of every x86-64), whose
+/// prefetch is a safe function: a prefetch neither faults nor writes.
+#[inline(always)]
+pub(crate) fn prefetch<T>(s: &[T], i: usize) {
+    #[cfg(target_arch = "x86_64")]
+    if let (Some(v), Some(sse)) = (s.get(i), pulp::core_arch::x86::Sse::try_new()) {
+        sse._mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>(std::ptr::from_ref(v).cast());
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = (s, i);
+}
+
 /// Rows per parallel work item (fixed, so results never depend on threads).
 pub const BAND_ROWS: usize = 16;
 
