@@ -138,6 +138,7 @@ fn tiling(c: &mut Criterion) {
                     params: &params,
                     pool: device.pool(),
                     kept: None,
+                    scene_probe: None,
                 };
                 backend
                     .process(
@@ -203,6 +204,7 @@ fn classical(c: &mut Criterion) {
             params: &params,
             pool: &pool,
             kept: None,
+            scene_probe: None,
         };
         let mut carry = Carry::default();
         let mut progress = Progress::new(None);

@@ -241,6 +241,7 @@ pub fn stabilize_with_history(img: &mut Image, input: &BackendInput<'_>, stages:
                     &stabilize::ViewRows {
                         view: history,
                         k: 0,
+                        probe: input.scene_probe,
                     },
                 )
             });
@@ -258,6 +259,11 @@ impl Backend for Classical {
 
     fn uses_normals(&self) -> bool {
         false
+    }
+
+    /// The stabilization pass reprojects history frame 0 over every row.
+    fn records_scene_probe(&self, params: &crate::params::Params) -> bool {
+        params.stabilize && params.temporal_blend > 0.0
     }
 
     fn process(

@@ -10,7 +10,7 @@ use std::sync::Mutex;
 use crate::error::{Error, Result};
 use crate::frame::{Image, PreparedFrame, RgbaImage};
 use crate::params::Params;
-use crate::temporal::HistoryView;
+use crate::temporal::{HistoryView, LatticeRows};
 
 /// Small per-session state a backend carries from frame to frame (for
 /// example smoothed harmonization parameters). The session hands the backend a
@@ -135,6 +135,11 @@ pub struct BackendInput<'a> {
     /// Where the history's copy of the result may be written by the last
     /// pass over the image (`None`: the session copies it).
     pub kept: Option<&'a KeptColor>,
+    /// Where a pass that reprojects history frame 0 row by row over the
+    /// whole frame records the rows at the scene-cut detector's lattice
+    /// (the session then scores the cut from them after the backend, see
+    /// [`Backend::records_scene_probe`]); `None`: nothing to record.
+    pub scene_probe: Option<&'a LatticeRows<'a>>,
 }
 
 /// A backend turns one prepared frame plus history into the enhanced frame.
@@ -146,6 +151,18 @@ pub trait Backend: Send + Sync {
     /// not prepare it (a frame-sized read and conversion saved).
     fn uses_normals(&self) -> bool {
         true
+    }
+
+    /// Whether, with `params` and some history, the backend reprojects
+    /// history frame 0 over the whole frame and records the scene-cut
+    /// detector's rows in [`BackendInput::scene_probe`] as it goes. The
+    /// session then runs the backend before it knows whether the frame is
+    /// a scene cut, and runs the frame again from a reset when it is (cuts
+    /// are rare; the detector's own reprojection is saved on every other
+    /// frame). A backend that says so but records nothing costs only the
+    /// detector's reprojection after it.
+    fn records_scene_probe(&self, _params: &Params) -> bool {
+        false
     }
 
     /// Produces the enhanced frame: 4 planes, RGB premultiplied by A, A the

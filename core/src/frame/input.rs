@@ -8,6 +8,7 @@ use super::{Camera, Image, ImageView, Recycler};
 use crate::error::{Error, Result};
 use crate::ops::inpaint::FULL;
 use crate::ops::{Rect, BAND_ROWS};
+use crate::temporal::{Lattice, LatticeRows};
 
 /// Reads the first `img.channels` channels of `view` into the planes of
 /// `img` (every sample is overwritten), row by row with all channels of a row
@@ -344,6 +345,13 @@ pub struct PreparedFrame {
     /// scanned, for a frame made another way; the pipeline then looks
     /// itself).
     pub scan: Option<Scan>,
+    /// The frame at the scene-cut detector's lattice
+    /// ([`crate::temporal::Lattice`] of its size): premultiplied RGB and
+    /// the coverage (1 where absent), row-major, kept while the rows were
+    /// in cache; the detector needs them after the backend changed the
+    /// color in place. `None` for a frame made another way (the detector
+    /// then reads the planes).
+    pub scene_samples: Option<Vec<[f32; 4]>>,
 }
 
 /// Where the holes and the insert are, found by [`PreparedFrame`]'s
@@ -527,6 +535,8 @@ impl PreparedFrame {
         let mut coverage = cov_view.map(|_| take(1).data);
         let color_planes = if rgba { 4 } else { 3 };
         let mut color = take(color_planes);
+        let lattice = Lattice::new(w, h);
+        let scene_rows = LatticeRows::new(&lattice);
         // The `fix` functions are written without branches (selects), so
         // their loops vectorize.
         let (sanitized, cov_found) = read_image_with(
@@ -561,6 +571,11 @@ impl PreparedFrame {
                         None => head[3].fill(1.0),
                     }
                 }
+                let cov_row = cov_view.map(|_| &*rows[color_planes]);
+                scene_rows.set(y, |x| {
+                    let c = cov_row.map_or(1.0, |c| c[x]);
+                    [rows[0][x], rows[1][x], rows[2][x], c]
+                });
                 found
             },
         );
@@ -633,6 +648,7 @@ impl PreparedFrame {
             normal,
             insert_mask,
             scan: Some(Scan { holes, insert }),
+            scene_samples: scene_rows.finish(),
             camera: input.camera,
             frame_index: input.frame_index,
             sanitized,

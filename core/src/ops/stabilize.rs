@@ -13,7 +13,7 @@ use rayon::prelude::*;
 
 use super::{fmax, fmin, par_bands_mut, row_max, simd, BAND_ROWS};
 use crate::frame::{Image, RgbaImage};
-use crate::temporal::{HistoryView, ReprojectedFrame};
+use crate::temporal::{HistoryView, LatticeRows, ReprojectedFrame};
 
 /// History alpha below this carries no usable color.
 const MIN_HISTORY_ALPHA: f32 = 1e-4;
@@ -115,12 +115,22 @@ pub struct ViewRows<'v, 'a> {
     pub view: &'v HistoryView<'a>,
     /// Which history frame.
     pub k: usize,
+    /// Where the rows at the scene-cut detector's lattice are recorded as
+    /// they are made (RGB and validity), so the detector needs no
+    /// reprojection of its own.
+    pub probe: Option<&'v LatticeRows<'v>>,
 }
 
 impl HistoryRows for ViewRows<'_, '_> {
     #[inline(always)]
     fn row(&self, y: usize, rgba: &mut [[f32; 4]], valid: &mut [f32]) {
-        self.view.reproject_row_rgba(self.k, y, rgba, valid)
+        self.view.reproject_row_rgba(self.k, y, rgba, valid);
+        if let Some(p) = self.probe {
+            p.set(y, |x| {
+                let c = rgba[x];
+                [c[0], c[1], c[2], valid[x]]
+            });
+        }
     }
 }
 

@@ -10,7 +10,7 @@ pub mod scene_cut;
 use std::sync::OnceLock;
 
 pub use history::{History, HistoryFrame};
-pub use scene_cut::{is_scene_cut, scene_cut_score, SceneCutScore};
+pub use scene_cut::{is_scene_cut, scene_cut_score, Lattice, LatticeRows, SceneCutScore};
 
 use crate::frame::{Image, PreparedFrame, Recycler};
 use reproject::{Chain, Source};
@@ -641,6 +641,7 @@ mod tests {
                 sanitized_aovs: 0,
                 huge_motion: 0,
                 scan: None,
+                scene_samples: None,
             };
             let full = HistoryView::new(&history, &current, 3, &pool);
             for k in 0..full.len() {
@@ -672,7 +673,11 @@ mod tests {
                         let mut vrgba = vec![[0.0f32; 4]; w];
                         let mut vrv = vec![0.0f32; w];
                         crate::ops::simd(VectorizedRow {
-                            rows: crate::ops::stabilize::ViewRows { view: &view, k },
+                            rows: crate::ops::stabilize::ViewRows {
+                                view: &view,
+                                k,
+                                probe: None,
+                            },
                             i,
                             rgba: &mut vrgba,
                             valid: &mut vrv,

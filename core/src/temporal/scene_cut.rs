@@ -13,6 +13,8 @@
 //! depth/motion reprojection found almost nothing valid
 //! (fewer than [`MIN_VALID_CELLS`] of the cells).
 
+use std::sync::OnceLock;
+
 use rayon::prelude::*;
 
 use super::{HistoryView, ReprojectionMode};
@@ -64,66 +66,247 @@ struct Cell {
     hist: [f32; 3],
 }
 
+/// The sparse lattice of pixels the detector compares: a grid of square
+/// cells of `cell` pixels (about 64 across the longer side, at least 8
+/// pixels), each sampled every `step` pixels (about 4 x 4 per cell) from
+/// `step / 2` into the cell. Samples are kept row-major: lattice row `r`
+/// (image row [`Lattice::rows`]`[r]`), column `c` (image column
+/// [`Lattice::columns`]`[c]`) at `r * columns.len() + c`.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Lattice {
+    width: usize,
+    height: usize,
+    cell: usize,
+    /// Image rows of the lattice, ascending.
+    rows: Vec<usize>,
+    /// Image columns of the lattice, ascending.
+    columns: Vec<usize>,
+    /// For each image row, its lattice row (`u32::MAX`: none).
+    row_of: Vec<u32>,
+}
+
+impl Lattice {
+    /// The lattice of a `width` x `height` frame.
+    pub fn new(width: usize, height: usize) -> Lattice {
+        let cell = (width.max(height).div_ceil(64)).max(8);
+        let step = (cell / 4).max(1);
+        let along = |n: usize| -> Vec<usize> {
+            (0..n.div_ceil(cell))
+                .flat_map(|g| (g * cell + step / 2..((g + 1) * cell).min(n)).step_by(step))
+                .collect()
+        };
+        let (rows, columns) = (along(height), along(width));
+        let mut row_of = vec![u32::MAX; height];
+        for (r, &y) in rows.iter().enumerate() {
+            row_of[y] = r as u32;
+        }
+        Lattice {
+            width,
+            height,
+            cell,
+            rows,
+            columns,
+            row_of,
+        }
+    }
+
+    /// Image rows of the lattice, ascending.
+    pub fn rows(&self) -> &[usize] {
+        &self.rows
+    }
+
+    /// Image columns of the lattice, ascending.
+    pub fn columns(&self) -> &[usize] {
+        &self.columns
+    }
+
+    /// The lattice row at image row `y`, if it is one.
+    #[inline]
+    pub fn row_of(&self, y: usize) -> Option<usize> {
+        self.row_of
+            .get(y)
+            .filter(|&&r| r != u32::MAX)
+            .map(|&r| r as usize)
+    }
+
+    /// Samples in the lattice.
+    pub fn len(&self) -> usize {
+        self.rows.len() * self.columns.len()
+    }
+
+    /// True for a frame without pixels.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Four values of row `y` at the lattice's columns: `f(x)` for each
+    /// column `x`.
+    pub fn take_row(&self, f: impl Fn(usize) -> [f32; 4]) -> Vec<[f32; 4]> {
+        self.columns.iter().map(|&x| f(x)).collect()
+    }
+}
+
+/// Lattice samples filled row by row from parallel passes: each lattice
+/// row is set once ([`LatticeRows::set`]) by the pass that has that image
+/// row in cache.
+#[derive(Debug)]
+pub struct LatticeRows<'l> {
+    lattice: &'l Lattice,
+    rows: Vec<OnceLock<Vec<[f32; 4]>>>,
+}
+
+impl<'l> LatticeRows<'l> {
+    /// Empty rows of `lattice`.
+    pub fn new(lattice: &'l Lattice) -> LatticeRows<'l> {
+        let rows = (0..lattice.rows.len()).map(|_| OnceLock::new()).collect();
+        LatticeRows { lattice, rows }
+    }
+
+    /// The lattice.
+    pub fn lattice(&self) -> &'l Lattice {
+        self.lattice
+    }
+
+    /// Records image row `y` when it is a lattice row (`f(x)` at each of
+    /// the lattice's columns, see [`Lattice::take_row`]); a row already
+    /// recorded keeps its first values.
+    #[inline]
+    pub fn set(&self, y: usize, f: impl Fn(usize) -> [f32; 4]) {
+        if let Some(r) = self.lattice.row_of(y) {
+            if self.rows[r].get().is_none() {
+                let _ = self.rows[r].set(self.lattice.take_row(f));
+            }
+        }
+    }
+
+    /// Every sample, row-major, once every lattice row is recorded.
+    pub fn finish(self) -> Option<Vec<[f32; 4]>> {
+        let mut out = Vec::with_capacity(self.lattice.len());
+        for r in self.rows {
+            out.extend(r.into_inner()?);
+        }
+        Some(out)
+    }
+}
+
+/// The current frame at `lattice`: premultiplied RGB and the coverage (1
+/// when absent), the samples kept while the frame was prepared when there
+/// are any ([`PreparedFrame::scene_samples`]), else read from its planes
+/// (which must be there).
+pub fn current_samples(lattice: &Lattice, current: &PreparedFrame) -> Vec<[f32; 4]> {
+    if let Some(s) = current
+        .scene_samples
+        .as_ref()
+        .filter(|s| s.len() == lattice.len())
+    {
+        return s.clone();
+    }
+    let (w, n) = (current.width(), current.width() * current.height());
+    let (cur, cov) = (&current.color.data, current.coverage.as_deref());
+    let mut out = Vec::with_capacity(lattice.len());
+    for &y in lattice.rows() {
+        out.extend(lattice.take_row(|x| {
+            let p = y * w + x;
+            [
+                cur[p],
+                cur[n + p],
+                cur[2 * n + p],
+                cov.map_or(1.0, |c| c[p]),
+            ]
+        }));
+    }
+    out
+}
+
+/// History frame 0 of `view` reprojected at `lattice`: RGB and validity,
+/// pixel by pixel ([`HistoryView::sampler`]), in parallel on the view's pool.
+pub fn history_samples(lattice: &Lattice, view: &HistoryView<'_>) -> Vec<[f32; 4]> {
+    let at = view.sampler(0);
+    let row = |&y: &usize| -> Vec<[f32; 4]> {
+        lattice.take_row(|x| {
+            let (c, v) = at.at(y, x);
+            [c[0], c[1], c[2], v]
+        })
+    };
+    let rows: Vec<Vec<[f32; 4]>> = match view.pool() {
+        Some(pool) => pool.install(|| lattice.rows().par_iter().map(row).collect()),
+        None => lattice.rows().iter().map(row).collect(),
+    };
+    rows.concat()
+}
+
 /// Measures how well the current frame continues history frame 0; `None`
 /// when the view has no history.
 pub fn scene_cut_score(view: &HistoryView<'_>, current: &PreparedFrame) -> Option<SceneCutScore> {
     if view.is_empty() {
         return None;
     }
-    let geometric = matches!(
+    let lattice = Lattice::new(current.width(), current.height());
+    let cur = current_samples(&lattice, current);
+    let hist = history_samples(&lattice, view);
+    Some(score_samples(&lattice, &cur, &hist, geometric(view)))
+}
+
+/// True when history frame 0 of `view` is aligned by depth or motion
+/// vectors (so its validity is measured, not assumed).
+pub fn geometric(view: &HistoryView<'_>) -> bool {
+    matches!(
         view.mode(0),
         ReprojectionMode::MotionVectors | ReprojectionMode::DepthCamera
-    );
-    let (w, h) = (current.width(), current.height());
-    let s = (w.max(h).div_ceil(64)).max(8);
-    let (gw, gh) = (w.div_ceil(s), h.div_ceil(s));
-    // A sparse lattice of pixels, about 4 x 4 per cell: only those are
-    // reprojected (cheap when history frame 0 was not reprojected yet).
-    let step = (s / 4).max(1);
-    let n = w * h;
-    let cov = current.coverage.as_deref();
-    let cur = &current.color.data;
-    let at = view.sampler(0);
-    let row_cells = |gy: usize| -> Vec<Cell> {
-        let mut cells = vec![Cell::default(); gw];
-        for y in (gy * s + step / 2..((gy + 1) * s).min(h)).step_by(step) {
-            for (gx, cell) in cells.iter_mut().enumerate() {
-                for x in (gx * s + step / 2..((gx + 1) * s).min(w)).step_by(step) {
-                    let p = y * w + x;
-                    cell.area += 1.0;
-                    let (hist, v) = at.at(y, x);
-                    if v <= 0.0 {
-                        continue;
-                    }
-                    let c = cov.map_or(1.0, |c| c[p]);
-                    cell.weight += v * c;
-                    for ch in 0..3 {
-                        cell.cur[ch] += v * cur[ch * n + p];
-                        cell.hist[ch] += v * c * hist[ch];
-                    }
-                }
+    )
+}
+
+/// The score from the samples at `lattice` of the current frame (`cur`:
+/// RGB premultiplied, coverage; see [`current_samples`]) and of history
+/// frame 0 reprojected (`hist`: RGB, validity; see [`history_samples`]);
+/// `geometric` as [`geometric`] says. The same sums in the same order
+/// whichever pass took the samples, so the same score bit for bit.
+///
+/// # Panics
+/// When a slice does not hold one sample per lattice pixel.
+pub fn score_samples(
+    lattice: &Lattice,
+    cur: &[[f32; 4]],
+    hist: &[[f32; 4]],
+    geometric: bool,
+) -> SceneCutScore {
+    assert_eq!(cur.len(), lattice.len(), "current samples");
+    assert_eq!(hist.len(), lattice.len(), "history samples");
+    let s = lattice.cell;
+    let (gw, gh) = (lattice.width.div_ceil(s), lattice.height.div_ceil(s));
+    let nx = lattice.columns.len();
+    let mut cells = vec![Cell::default(); gw * gh];
+    for (r, &y) in lattice.rows.iter().enumerate() {
+        let row = &mut cells[(y / s) * gw..(y / s + 1) * gw];
+        let (cr, hr) = (&cur[r * nx..(r + 1) * nx], &hist[r * nx..(r + 1) * nx]);
+        for ((&x, c), h) in lattice.columns.iter().zip(cr).zip(hr) {
+            let cell = &mut row[x / s];
+            cell.area += 1.0;
+            let v = h[3];
+            if v <= 0.0 {
+                continue;
+            }
+            let cv = c[3];
+            cell.weight += v * cv;
+            for ch in 0..3 {
+                cell.cur[ch] += v * c[ch];
+                cell.hist[ch] += v * cv * h[ch];
             }
         }
-        cells
-    };
-    let rows: Vec<Vec<Cell>> = match view.pool() {
-        Some(pool) => pool.install(|| (0..gh).into_par_iter().map(row_cells).collect()),
-        None => (0..gh).map(row_cells).collect(),
-    };
-    let cells: Vec<Cell> = rows
+    }
+    let cells: Vec<Cell> = cells
         .into_iter()
-        .flatten()
         .filter(|c| c.area > 0.0 && c.weight >= 0.5 * c.area)
         .collect();
     let total = gw * gh;
     if cells.is_empty() {
-        return Some(SceneCutScore {
+        return SceneCutScore {
             cells: total,
             compared: 0,
             mismatch: 0.0,
             exposure_offset: 0.0,
             geometric,
-        });
+        };
     }
     let lum = |c: &[f32; 3]| 0.2126 * c[0] + 0.7152 * c[1] + 0.0722 * c[2];
     let mean_lum = cells.iter().map(|c| lum(&c.cur) / c.weight).sum::<f32>() / cells.len() as f32;
@@ -152,13 +335,13 @@ pub fn scene_cut_score(view: &HistoryView<'_>, current: &PreparedFrame) -> Optio
         .iter()
         .filter(|(l, c)| (l - offset).abs() > LOG_TOLERANCE || *c > CHROMA_TOLERANCE)
         .count();
-    Some(SceneCutScore {
+    SceneCutScore {
         cells: total,
         compared: cells.len(),
         mismatch: bad as f32 / cells.len() as f32,
         exposure_offset: offset,
         geometric,
-    })
+    }
 }
 
 /// True when the current frame does not continue the history (a cut).

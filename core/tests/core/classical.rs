@@ -516,6 +516,7 @@ fn run_backend(f: &Frame, params: &Params, carry: &mut Carry, dev: &Device) -> I
         params,
         pool: dev.pool(),
         kept: None,
+        scene_probe: None,
     };
     let mut progress = Progress::new(None);
     let mut stages = Stages::default();

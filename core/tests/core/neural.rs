@@ -301,6 +301,7 @@ fn run_backend(
         params,
         pool: device.pool(),
         kept: None,
+        scene_probe: None,
     };
     let backend = Neural {
         model: model.clone(),

@@ -265,6 +265,49 @@ fn scene_cut_resets_but_exposure_flicker_does_not() {
     assert_eq!(s.process(&f, None).unwrap().1.reset, None);
 }
 
+/// A cut found after the classical backend ran with the history (scored
+/// from what its stabilization pass recorded) leaves the session as a
+/// reset at that frame would: the cut frame is a cold start, and the frames
+/// after it continue from it bit for bit (issue 2).
+#[test]
+fn a_cut_found_after_the_backend_continues_as_a_reset_would() {
+    let dev = device(2);
+    let seq = sequence(0, 2, W, H);
+    let cam = |t: i64| camera_at(t as f32, W, H);
+    let other: Vec<Rendered> = (3..=5)
+        .map(|t| render(Look::Other, cam(t), cam(t - 1), W, H))
+        .collect();
+    let mut s = session(&dev, &[]);
+    let mut reset = session(&dev, &[]);
+    run(&mut s, &seq, 0, 0, 2);
+    run(&mut reset, &seq, 0, 0, 2);
+    for (k, r) in other.iter().enumerate() {
+        let t = 3 + k as i64;
+        let (out, rep) = s.process(&input(r, t), None).unwrap();
+        let mut f = input(r, t);
+        f.reset = k == 0;
+        let (want, wrep) = reset.process(&f, None).unwrap();
+        assert_eq!(
+            rep.reset,
+            (k == 0).then_some(ResetReason::SceneCut),
+            "frame {t}"
+        );
+        assert_eq!(
+            wrep.reset,
+            (k == 0).then_some(ResetReason::Requested),
+            "frame {t}"
+        );
+        assert_eq!(rep.history_used, k, "frame {t}");
+        assert!(same(&out, &want), "frame {t}: not what a reset gives");
+        // The detector ran on every frame with history.
+        assert!(
+            rep.stages.0.iter().any(|(n, _)| n == "scene_cut"),
+            "frame {t}: {:?}",
+            rep.stages
+        );
+    }
+}
+
 #[test]
 fn warnings_for_nan_inputs_and_huge_motion_vectors() {
     let dev = device(2);

@@ -8,11 +8,18 @@
 //! which pixels were visible in the previous frame are exact.
 
 use glam::{DVec2, DVec3, Vec3};
+use harmonizer_core::backend::classical::Classical;
+use harmonizer_core::backend::{Backend, BackendInput, Carry, Progress, Stages};
+use harmonizer_core::frame::Recycler;
 use harmonizer_core::frame::{Camera, FrameInput, ImageView, PreparedFrame, RgbaImage};
-use harmonizer_core::temporal::{
-    is_scene_cut, scene_cut_score, History, HistoryFrame, HistoryView, ReprojectionMode,
+use harmonizer_core::temporal::scene_cut::{
+    current_samples, geometric, history_samples, score_samples,
 };
-use harmonizer_core::{DepthKind, Image};
+use harmonizer_core::temporal::{
+    is_scene_cut, scene_cut_score, History, HistoryFrame, HistoryView, Lattice, LatticeRows,
+    ReprojectionMode,
+};
+use harmonizer_core::{DepthKind, Image, Params};
 
 /// Which textures the scene has (1 is an unrelated scene: a cut).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -546,6 +553,94 @@ fn scene_cut_fires_on_a_cut_and_not_on_exposure_flicker_or_camera_motion() {
         let cur = render(Look::Other, cam, prev_cam, W, H);
         let (cut, score) = cut_check(cur, &prev, motion, depth, camera);
         assert!(cut, "{what}: a cut (same geometry) must fire: {score}");
+    }
+}
+
+/// The scene-cut detector's samples as the session takes them when the
+/// classical backend runs before the detector (the current frame while it
+/// is prepared, history frame 0 from the stabilization pass) are the
+/// detector's own bit for bit, in every reprojection mode, so a cut is
+/// decided the same wherever they were taken (issue 2).
+#[test]
+fn lattice_samples_from_prepare_and_stabilization_are_the_detectors() {
+    let seq = sequence(0, 1, W, H);
+    let pool = pool(2);
+    let n = W * H;
+    // Holes and partly covered pixels, so the coverage weights count.
+    let cov: Vec<f32> = (0..n)
+        .map(|p| match p % 7 {
+            0 => 0.0,
+            1 => 0.5,
+            _ => 1.0,
+        })
+        .collect();
+    let bits = |v: &[[f32; 4]]| v.iter().flatten().map(|x| x.to_bits()).collect::<Vec<_>>();
+    let lattice = Lattice::new(W, H);
+    assert!(lattice.len() > 1000, "{} samples", lattice.len());
+    for (motion, depth, camera) in [
+        (true, true, true),
+        (false, true, true),
+        (true, false, false),
+        (false, false, false),
+    ] {
+        let what = format!("motion {motion}, depth {depth}, camera {camera}");
+        let mut hist = History::default();
+        let mut hf = history_frame(&seq[0], 0);
+        hf.depth = hf.depth.filter(|_| depth);
+        hf.motion = hf.motion.filter(|_| motion);
+        hf.camera = hf.camera.filter(|_| camera);
+        hist.push(hf, 4);
+        let mut input = seq[1].input(motion, depth, camera, 1);
+        input.coverage = Some(ImageView::from_f32("coverage", &cov, W, H, 1).unwrap());
+        let rec = Recycler::new();
+        let mut frame =
+            PreparedFrame::from_input_recycled(&input, DepthKind::Planar, &pool, &rec, false, true)
+                .unwrap();
+        // The current frame: kept while prepared = read from the planes.
+        let kept = frame.scene_samples.take().expect("samples kept");
+        assert_eq!(
+            bits(&kept),
+            bits(&current_samples(&lattice, &frame)),
+            "{what}"
+        );
+        frame.scene_samples = Some(kept);
+        let (want, want_score) = {
+            let view = HistoryView::new(&hist, &frame, 4, &pool);
+            let score = scene_cut_score(&view, &frame).unwrap();
+            (history_samples(&lattice, &view), format!("{score:?}"))
+        };
+        assert!(
+            want.iter().any(|s| s[3] > 0.0),
+            "{what}: some history valid"
+        );
+        // History frame 0 as the stabilization pass records it.
+        let color = frame.take_color();
+        let view = HistoryView::new(&hist, &frame, 4, &pool);
+        let probe = LatticeRows::new(&lattice);
+        let params = Params::default();
+        let input = BackendInput {
+            frame: &frame,
+            history: &view,
+            params: &params,
+            pool: &pool,
+            kept: None,
+            scene_probe: Some(&probe),
+        };
+        assert!(Classical.records_scene_probe(&params));
+        Classical
+            .process_in_place(
+                color,
+                &input,
+                &mut Carry::default(),
+                &mut Progress::new(None),
+                &mut Stages::default(),
+            )
+            .unwrap();
+        let got = probe.finish().expect("every lattice row recorded");
+        assert_eq!(bits(&got), bits(&want), "{what}");
+        let cur = frame.scene_samples.as_deref().unwrap();
+        let score = score_samples(&lattice, cur, &got, geometric(&view));
+        assert_eq!(format!("{score:?}"), want_score, "{what}");
     }
 }
 
