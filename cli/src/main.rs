@@ -572,7 +572,12 @@ fn bench_one(
     let mut dst: Vec<Vec<f32>> = Vec::new();
     let mut stages: Vec<(String, Vec<f64>)> = Vec::new();
     for t in 0..(warmup + frames) {
-        let f = scene.frame(1 + t as i64);
+        // Each frame is made between timed frames (so its buffers are not
+        // in cache when timed), on the device's own threads: made on other
+        // threads (rayon's global pool), every stage of the next frame ran
+        // 35-60 % slower on a 2-core machine, an effect of the bench's own
+        // extra threads on scheduling, not of the library.
+        let f = device.pool().install(|| scene.frame(1 + t as i64));
         let (out, report) = session.process(&f.input.frame_input(), None)?;
         // The memory-bandwidth floor: copy the same bytes (input buffers and output).
         let bufs: [&[f32]; 7] = [
