@@ -495,6 +495,26 @@ fn identity_and_unavailable_modes() {
     assert!(view.reproject(0).valid.iter().all(|&v| v == 0.0));
 }
 
+/// Which AOVs the scene-cut tests give (motion, depth, camera): every
+/// reprojection mode.
+const AOV_SETS: [(bool, bool, bool); 4] = [
+    (true, true, true),
+    (false, true, true),
+    (true, false, false),
+    (false, false, false),
+];
+
+/// A history of `prev` alone, with only the AOVs asked for.
+fn history_with(prev: &Rendered, motion: bool, depth: bool, camera: bool) -> History {
+    let mut hist = History::default();
+    let mut hf = history_frame(prev, 0);
+    hf.depth = hf.depth.filter(|_| depth);
+    hf.motion = hf.motion.filter(|_| motion);
+    hf.camera = hf.camera.filter(|_| camera);
+    hist.push(hf, 4);
+    hist
+}
+
 fn cut_check(
     cur: Rendered,
     prev: &Rendered,
@@ -502,18 +522,7 @@ fn cut_check(
     depth: bool,
     camera: bool,
 ) -> (bool, String) {
-    let mut hist = History::default();
-    let mut hf = history_frame(prev, 0);
-    if !depth {
-        hf.depth = None;
-    }
-    if !motion {
-        hf.motion = None;
-    }
-    if !camera {
-        hf.camera = None;
-    }
-    hist.push(hf, 4);
+    let hist = history_with(prev, motion, depth, camera);
     let frame =
         PreparedFrame::from_input(&cur.input(motion, depth, camera, 1), DepthKind::Planar).unwrap();
     let pool = pool(2);
@@ -527,12 +536,7 @@ fn scene_cut_fires_on_a_cut_and_not_on_exposure_flicker_or_camera_motion() {
     let prev = sequence(0, 0, W, H).remove(0);
     let cam = camera_at(1.0, W, H);
     let prev_cam = camera_at(0.0, W, H);
-    for (motion, depth, camera) in [
-        (true, true, true),
-        (false, true, true),
-        (true, false, false),
-        (false, false, false),
-    ] {
+    for (motion, depth, camera) in AOV_SETS {
         let what = format!("motion {motion}, depth {depth}, camera {camera}");
         for gain in [1.0, 1.25, 0.75] {
             let cur = render(Look::Main, cam, prev_cam, W, H).exposed(gain);
@@ -577,19 +581,9 @@ fn lattice_samples_from_prepare_and_stabilization_are_the_detectors() {
     let bits = |v: &[[f32; 4]]| v.iter().flatten().map(|x| x.to_bits()).collect::<Vec<_>>();
     let lattice = Lattice::new(W, H);
     assert!(lattice.len() > 1000, "{} samples", lattice.len());
-    for (motion, depth, camera) in [
-        (true, true, true),
-        (false, true, true),
-        (true, false, false),
-        (false, false, false),
-    ] {
+    for (motion, depth, camera) in AOV_SETS {
         let what = format!("motion {motion}, depth {depth}, camera {camera}");
-        let mut hist = History::default();
-        let mut hf = history_frame(&seq[0], 0);
-        hf.depth = hf.depth.filter(|_| depth);
-        hf.motion = hf.motion.filter(|_| motion);
-        hf.camera = hf.camera.filter(|_| camera);
-        hist.push(hf, 4);
+        let hist = history_with(&seq[0], motion, depth, camera);
         let mut input = seq[1].input(motion, depth, camera, 1);
         input.coverage = Some(ImageView::from_f32("coverage", &cov, W, H, 1).unwrap());
         let rec = Recycler::new();
