@@ -7,7 +7,7 @@ use crate::device::Device;
 use crate::error::{Error, Result};
 use crate::frame::{FrameInput, Image, ImageViewMut, PreparedFrame, Recycler, RgbaImage};
 use crate::params::{BackendKind, GapPolicy, ParamValue, Params};
-use crate::temporal::scene_cut::{geometric, score_samples};
+use crate::temporal::scene_cut::{current_samples, geometric, history_samples, score_samples};
 use crate::temporal::{History, HistoryFrame, HistoryView, Lattice, LatticeRows};
 
 /// Why the temporal state was dropped before a frame.
@@ -428,40 +428,29 @@ impl Session {
                 .process(&backend_input, &mut carry, progress, &mut stages),
         };
         let (kept, kept_filled) = kept.map_or((None, false), KeptColor::into_inner);
+        // Scored from the rows the backend recorded (or, had it recorded
+        // none, reprojected now) and the samples kept while preparing.
         let found_cut = |stages: &mut Stages| -> bool {
-            if !deferred {
-                return false;
-            }
-            stages.time("scene_cut", || {
-                let samples = (probe.finish(), frame.scene_samples.as_deref());
-                let (Some(hist), Some(cur)) = samples else {
-                    return crate::temporal::is_scene_cut(
-                        &view,
-                        &frame,
-                        self.params.scene_cut_threshold,
-                    );
-                };
-                score_samples(&lattice, cur, &hist, geometric(&view))
-                    .is_cut(self.params.scene_cut_threshold)
-            })
+            deferred
+                && stages.time("scene_cut", || {
+                    let hist = probe
+                        .finish()
+                        .unwrap_or_else(|| history_samples(&lattice, &view));
+                    let cur = current_samples(&lattice, &frame);
+                    score_samples(&lattice, &cur, &hist, geometric(&view))
+                        .is_cut(self.params.scene_cut_threshold)
+                })
         };
         let mut out = match out {
             Ok(out) if found_cut(&mut stages) => {
                 drop(view);
-                frame.recycle(&self.recycler);
-                self.recycler.give(out.data);
-                if let Some(k) = kept {
-                    self.recycler.give(k.data);
-                }
+                self.give_back(frame, kept, Some(out));
                 return Ok(Attempt::Cut);
             }
             Ok(out) => out,
             Err(e) => {
                 drop(view);
-                frame.recycle(&self.recycler);
-                if let Some(k) = kept {
-                    self.recycler.give(k.data);
-                }
+                self.give_back(frame, kept, None);
                 return Err(e);
             }
         };
@@ -474,10 +463,7 @@ impl Session {
         let done = progress.report(1.0);
         drop(view);
         if let Err(e) = done {
-            frame.recycle(&self.recycler);
-            if let Some(k) = kept {
-                self.recycler.give(k.data);
-            }
+            self.give_back(frame, kept, Some(out));
             return Err(e);
         }
 
@@ -561,6 +547,18 @@ impl Session {
         }
         report.stages = stages;
         Ok(Attempt::Done(out, report))
+    }
+
+    /// Gives the buffers of a run that commits nothing (an error, a cancel,
+    /// a cut found late) back to the recycler.
+    fn give_back(&self, frame: PreparedFrame, kept: Option<RgbaImage>, out: Option<Image>) {
+        frame.recycle(&self.recycler);
+        for b in [kept.map(|k| k.data), out.map(|o| o.data)]
+            .into_iter()
+            .flatten()
+        {
+            self.recycler.give(b);
+        }
     }
 
     /// Like [`Session::process`], then writes the result into `output`
@@ -664,6 +662,11 @@ mod tests {
         (scene, device)
     }
 
+    /// The samples of `a` and `b`, pairwise, have the same bits.
+    fn same_bits(a: &[f32], b: &[f32]) -> bool {
+        a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits())
+    }
+
     /// The classical backend without its in-place path: the frame's color
     /// is copied into a working image (`Backend::process`).
     struct Copying(crate::backend::classical::Classical);
@@ -727,13 +730,7 @@ mod tests {
             let (a, ra) = in_place.process(&f.frame_input(), None).unwrap();
             let (b, rb) = copying.process(&f.frame_input(), None).unwrap();
             assert_eq!((ra.reset, ra.history_used), (rb.reset, rb.history_used));
-            assert!(
-                a.data
-                    .iter()
-                    .zip(&b.data)
-                    .all(|(x, y)| x.to_bits() == y.to_bits()),
-                "frame {t}"
-            );
+            assert!(same_bits(&a.data, &b.data), "frame {t}");
             assert_eq!(
                 in_place.state.carry.values, copying.state.carry.values,
                 "frame {t}: the smoothed harmonization"
@@ -769,10 +766,7 @@ mod tests {
                 let kept = &session.state.history.get(0).unwrap().color;
                 let want = RgbaImage::from_planes(&out, None);
                 assert!(
-                    kept.data
-                        .iter()
-                        .zip(&want.data)
-                        .all(|(a, b)| a.to_bits() == b.to_bits()),
+                    same_bits(&kept.data, &want.data),
                     "{backend} {extra:?}: frame {t}"
                 );
                 session.recycle(out);

@@ -13,6 +13,7 @@
 //! depth/motion reprojection found almost nothing valid
 //! (fewer than [`MIN_VALID_CELLS`] of the cells).
 
+use std::borrow::Cow;
 use std::sync::OnceLock;
 
 use rayon::prelude::*;
@@ -193,13 +194,13 @@ impl<'l> LatticeRows<'l> {
 /// when absent), the samples kept while the frame was prepared when there
 /// are any ([`PreparedFrame::scene_samples`]), else read from its planes
 /// (which must be there).
-pub fn current_samples(lattice: &Lattice, current: &PreparedFrame) -> Vec<[f32; 4]> {
+pub fn current_samples<'f>(lattice: &Lattice, current: &'f PreparedFrame) -> Cow<'f, [[f32; 4]]> {
     if let Some(s) = current
         .scene_samples
-        .as_ref()
+        .as_deref()
         .filter(|s| s.len() == lattice.len())
     {
-        return s.clone();
+        return Cow::Borrowed(s);
     }
     let (w, n) = (current.width(), current.width() * current.height());
     let (cur, cov) = (&current.color.data, current.coverage.as_deref());
@@ -215,7 +216,7 @@ pub fn current_samples(lattice: &Lattice, current: &PreparedFrame) -> Vec<[f32; 
             ]
         }));
     }
-    out
+    Cow::Owned(out)
 }
 
 /// History frame 0 of `view` reprojected at `lattice`: RGB and validity,
