@@ -110,6 +110,26 @@ def test_acescg_to_linear_rec709_is_the_real_conversion() -> None:
     assert out[1] == pytest.approx(-0.1302, abs=1e-3)
 
 
+@pytest.mark.parametrize(
+    "name, token",
+    [
+        ("ACEScg", "lin_ap1_scene"),
+        ("lin_ap1", "lin_ap1_scene"),
+        ("lin_ap1_scene", "lin_ap1_scene"),
+        ("Linear Rec.709 (sRGB)", "lin_rec709_scene"),
+        ("Linear Rec.2020", "lin_rec2020_scene"),
+        ("sRGB - Texture", "srgb_rec709_scene"),
+        ("Raw", "data"),
+        ("ACEScct", None),  # no USD token: the new product gets no UsdColorSpaceAPI
+    ],
+)
+def test_usd_color_space_name(name: str, token: str | None) -> None:
+    """The USD token (GfColorSpaceNames) a new product declares for the OCIO
+    space its color is in (issue 9)."""
+    conv = ColorConverter(*load_config("ocio://default"), name, "test")
+    assert conv.usd_name == token
+
+
 def test_color_space_precedence_and_errors() -> None:
     c = converter_for(
         ("ACEScg", "/Render/Vars/color.colorSpace"),

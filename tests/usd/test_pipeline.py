@@ -502,7 +502,7 @@ def test_color_space_precedence_end_to_end(shot: Path) -> None:
         "lin_rec2020_scene"
     )
     stage.Save()
-    r = run_cli(str(shot), "--backend", "bypass", "--no-layer")
+    r = run_cli(str(shot), "--backend", "bypass")
     assert r.returncode == 0, r.stderr
     assert (
         "/Render/Products/beauty: 6 frames 1001-1006, backend bypass, color space Linear Rec.2020,"
@@ -514,3 +514,53 @@ def test_color_space_precedence_end_to_end(shot: Path) -> None:
     )
     b = read_exr(shot.parent / "render/harmonized/beauty.1001.exr", "out")
     assert b.attributes()["harmonizer:colorSpace"] == "Linear Rec.2020"
+    # The new products declare the same spaces with UsdColorSpaceAPI (issue 9).
+    stage = Usd.Stage.Open(str(shot.with_name("shot.harmonized.usda")))
+    for name, token in (("beauty", "lin_rec2020_scene"), ("nomv", "lin_ap1_scene")):
+        src = stage.GetPrimAtPath(f"/Render/Products/{name}")
+        new = stage.GetPrimAtPath(f"/Render/Products/{name}_harmonized")
+        assert color_space_name(src) == token
+        assert new.HasAPI(Usd.ColorSpaceAPI)
+        assert color_space_name(new) == token
+
+
+def color_space_name(prim: Usd.Prim) -> str:
+    """What UsdColorSpaceAPI says the prim's color space is ('' when none)."""
+    return Usd.ColorSpaceAPI.ComputeColorSpaceName(prim, None)
+
+
+def test_new_products_declare_their_color_space(shot: Path, tmp_path: Path) -> None:
+    """Issue 9: each new product carries its color space with UsdColorSpaceAPI
+    (not only harmonizer:colorSpace): the source product's token (nomv:
+    lin_ap1_scene), else the token of the space its pixels were read in
+    (beauty: the file's colorInteropID; an OCIO name mapped to its token)."""
+    r = run_cli(str(shot), "--backend", "bypass", "--frames", "1001")
+    assert r.returncode == 0, r.stderr
+    stage = Usd.Stage.Open(str(shot.with_name("shot.harmonized.usda")))
+    nomv = stage.GetPrimAtPath("/Render/Products/nomv")
+    new_nomv = stage.GetPrimAtPath("/Render/Products/nomv_harmonized")
+    assert color_space_name(nomv) == "lin_ap1_scene"
+    assert new_nomv.HasAPI(Usd.ColorSpaceAPI)
+    assert color_space_name(new_nomv) == color_space_name(nomv)
+    new_beauty = stage.GetPrimAtPath("/Render/Products/beauty_harmonized")
+    assert color_space_name(new_beauty) == "lin_rec709_scene"
+    assert new_beauty.GetAttribute("harmonizer:colorSpace").Get() == (
+        "Linear Rec.709 (sRGB)"
+    )
+
+    # An OCIO name (harmonizer:colorSpace) becomes its USD token.
+    src = Usd.Stage.Open(str(shot))
+    src.GetPrimAtPath("/Render/Products/beauty").CreateAttribute(
+        "harmonizer:colorSpace", Sdf.ValueTypeNames.String, custom=True
+    ).Set("Linear Rec.2020")
+    src.Save()
+    layer = tmp_path / "cs.usda"
+    r = run_cli(
+        str(shot),
+        *("--backend", "bypass", "--frames", "1001", "--product", "beauty"),
+        *("--layer", str(layer)),
+    )
+    assert r.returncode == 0, r.stderr
+    stage = Usd.Stage.Open(str(layer))
+    new_beauty = stage.GetPrimAtPath("/Render/Products/beauty_harmonized")
+    assert color_space_name(new_beauty) == "lin_rec2020_scene"

@@ -7,6 +7,11 @@ else the settings' ``renderingColorSpace``, else the config's
 ``scene_linear`` role. The config is ``$OCIO`` when set, else
 ``ocio://default``. Names are resolved through aliases and color interop IDs
 (``lin_ap1_scene`` finds ACEScg).
+
+New products are declared on the stage with UsdColorSpaceAPI, whose
+``colorSpace:name`` is one of USD's color space tokens (``GfColorSpaceNames``:
+``lin_ap1_scene``, ``lin_rec709_scene``, ...): :func:`usd_color_space_name`
+maps an OCIO color space to the token.
 """
 
 from __future__ import annotations
@@ -31,6 +36,46 @@ LINEAR_REC709 = (
 _configs: dict[str, ocio.Config] = {}
 
 
+def _usd_tokens() -> frozenset[str]:
+    try:
+        from pxr import Gf
+
+        names = Gf.ColorSpaceNames
+    except (ImportError, AttributeError):  # usd-core before GfColorSpace
+        return frozenset(
+            (
+                "lin_ap0_scene",
+                "lin_ap1_scene",
+                "lin_rec709_scene",
+                "lin_rec2020_scene",
+                "lin_p3d65_scene",
+                "lin_adobergb_scene",
+                "lin_ciexyzd65_scene",
+                "srgb_rec709_scene",
+                "srgb_p3d65_scene",
+                "srgb_ap1_scene",
+                "g18_rec709_scene",
+                "g22_rec709_scene",
+                "g24_rec709_scene",
+                "g22_ap1_scene",
+                "g22_adobergb_scene",
+                "identity",
+                "raw",
+                "data",
+            )
+        )
+    return frozenset(
+        str(getattr(names, n))
+        for n in dir(names)
+        if not n.startswith("_") and n != "Unknown"
+    )
+
+
+#: USD's color space tokens (``GfColorSpaceNames``), the values
+#: UsdColorSpaceAPI's ``colorSpace:name`` takes.
+USD_COLOR_SPACE_NAMES = _usd_tokens()
+
+
 def load_config(path: str | None = None) -> tuple[ocio.Config, str]:
     """The OCIO config: ``path``, else ``$OCIO``, else ``ocio://default``."""
     src = path or os.environ.get("OCIO") or "ocio://default"
@@ -52,6 +97,21 @@ def find_color_space(config: ocio.Config, name: str) -> ocio.ColorSpace | None:
         iid = cs.getInteropID() if hasattr(cs, "getInteropID") else ""
         if iid and iid.lower() == low:
             return cs
+    return None
+
+
+def usd_color_space_name(cs: ocio.ColorSpace, declared: str = "") -> str | None:
+    """The USD color space token (``GfColorSpaceNames``) of the OCIO color
+    space ``cs``: ``declared`` itself when it is a USD token (the name the
+    stage or file used to declare ``cs``), else the color space's interop ID,
+    one of its aliases or its name when that is a USD token; None when the
+    space has no USD token (a config's own space without an interop ID)."""
+    if declared in USD_COLOR_SPACE_NAMES:
+        return declared
+    iid = cs.getInteropID() if hasattr(cs, "getInteropID") else ""
+    for n in (iid, *cs.getAliases(), cs.getName()):
+        if n in USD_COLOR_SPACE_NAMES:
+            return str(n)
     return None
 
 
@@ -84,6 +144,8 @@ class ColorConverter:
             )
         dst = _working(self.config, self.config_name)
         self.source_name = src.getName()
+        #: USD color space token of the source space (None: it has none).
+        self.usd_name = usd_color_space_name(src, self.source)
         self.identity = src.getName() == dst.getName()
         self.linear = self.identity or bool(
             self.config.isColorSpaceLinear(src.getName(), ocio.REFERENCE_SPACE_SCENE)

@@ -7,6 +7,13 @@ per processed frame, with the pattern as its default; ``harmonizer:*``
 attributes and a ``harmonizer:sourceProduct`` relationship), plus a
 RenderSettings prim ``<settings>_harmonized`` listing them. The original
 layer is not modified unless ``in_place`` is set.
+
+Each new product's color space is declared with UsdColorSpaceAPI
+(``colorSpace:name``): the USD token of the space its color was read in and
+written back to (the source product's own token when the stage declares it;
+an OCIO name is mapped to its token, see
+:func:`usd_harmonizer.color.usd_color_space_name`), and as the OCIO name in
+``harmonizer:colorSpace``.
 """
 
 from __future__ import annotations
@@ -115,6 +122,9 @@ def write_layer(
         prim.CreateAttribute(
             "harmonizer:colorSpace", Sdf.ValueTypeNames.String, custom=True
         ).Set(frames[-1].color_space)
+        token = frames[-1].usd_color_space
+        if token and hasattr(Usd, "ColorSpaceAPI"):  # usd-core >= 24.11
+            Usd.ColorSpaceAPI.Apply(prim).CreateColorSpaceNameAttr(token)
         prim.CreateAttribute(
             "harmonizer:frames", Sdf.ValueTypeNames.IntArray, custom=True
         ).Set(Vt.IntArray([r.frame for r in frames]))

@@ -74,6 +74,10 @@ class FrameResult:
     warnings: list[str]
     #: Host-side times in ms: read, color (both conversions), library, write.
     timings: dict[str, float] = field(default_factory=dict)
+    #: USD color space token of ``color_space`` (``lin_ap1_scene``, ...), the
+    #: new product's UsdColorSpaceAPI ``colorSpace:name``; None when the
+    #: OCIO space has none.
+    usd_color_space: str | None = None
 
 
 def make_device(options: Options) -> Any:
@@ -340,6 +344,7 @@ class ProductRunner:
                 "write": (t_w1 - t_w0) * 1e3,
                 "total": (t_w1 - t0) * 1e3,
             },
+            usd_color_space=conv.usd_name,
         )
         self.results.append(result)
         return result
