@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 from pxr import Usd
-from usd_harmonizer import PostFrameHook, ProductFileError
+from usd_harmonizer import PostFrameHook, ProductFileError, SettingsError
 from usd_harmonizer.exrio import read_exr
 
 
@@ -73,3 +73,14 @@ def test_hook_all_products(shot: Path) -> None:
             out[1].output == shot.parent / "render/nomv/harmonized/shot_nomv_f1001.exr"
         )
         assert "camera" in out[1].inputs and "motion" not in out[1].inputs
+
+
+def test_hook_checks_outputs_before_any_product(shot: Path) -> None:
+    """Issue 10: out_dir=render writes nomv over its own files: the call stops
+    before any product of the frame is written (beauty would go to
+    render/beauty/)."""
+    render = shot.parent / "render"
+    with PostFrameHook(str(shot), backend="bypass", out_dir=render) as hook:
+        with pytest.raises(SettingsError, match="would overwrite the input"):
+            hook(1001)
+    assert not (render / "beauty").exists()

@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 import fixtures
+import handmade
 import numpy as np
 import OpenImageIO as oiio
 import pytest
@@ -174,7 +175,7 @@ def test_cli_classical_enhances_with_history(shot: Path, tmp_path: Path) -> None
         str(layer),
     )
     assert r.returncode == 0, r.stderr
-    files = sorted(out_dir.glob("beauty.*.exr"))
+    files = sorted((out_dir / "beauty").glob("beauty.*.exr"))
     assert [p.name for p in files] == [f"beauty.{f}.exr" for f in fixtures.FRAMES]
     diffs = []
     for f, p in zip(fixtures.FRAMES, files):
@@ -187,7 +188,9 @@ def test_cli_classical_enhances_with_history(shot: Path, tmp_path: Path) -> None
     assert max(diffs) > 1e-4, diffs
     stage = Usd.Stage.Open(str(layer))
     prod = resolve(stage, settings="/Render/Settings_harmonized").products[0]
-    assert prod.file_for(1003).resolve() == (out_dir / "beauty.1003.exr").resolve()
+    assert (
+        prod.file_for(1003).resolve() == (out_dir / "beauty/beauty.1003.exr").resolve()
+    )
     assert stage.GetRootLayer().subLayerPaths[0] == os.path.relpath(shot, layer.parent)
 
 
@@ -290,19 +293,24 @@ def test_aspect_mismatch(shot: Path) -> None:
 
 
 def test_output_never_overwrites_input(shot: Path) -> None:
-    before = digest(shot.parent / "render/beauty.1001.exr")
+    """--out-dir render writes nomv to render/nomv/, where its own files are:
+    refused before any frame is written."""
+    src = shot.parent / "render/nomv/shot_nomv_f1001.exr"
+    before = digest(src)
     r = run_cli(
         str(shot),
         "--backend",
         "bypass",
-        "--product",
-        "beauty",
         "--out-dir",
         str(shot.parent / "render"),
     )
     assert r.returncode == 1
-    assert "the output would overwrite the input; choose another --out-dir" in r.stderr
-    assert digest(shot.parent / "render/beauty.1001.exr") == before
+    assert (
+        f"render product /Render/Products/nomv frame 1001 ({src}): the output would "
+        "overwrite the input; choose another --out-dir" in r.stderr
+    )
+    assert digest(src) == before
+    assert not (shot.parent / "render/beauty").exists()
 
 
 def test_bad_backend_parameter(shot: Path) -> None:
@@ -366,7 +374,7 @@ def test_multipart_blender_product(rendered: Path, tmp_path: Path) -> None:
     assert digest(rendered / "blender/blender.1001.exr") == before
     for f in fixtures.FRAMES:
         a = read_exr(rendered / f"blender/blender.{f}.exr", "src")
-        b = read_exr(out_dir / f"blender.{f}.exr", "out")
+        b = read_exr(out_dir / f"blender/blender.{f}.exr", "out")
         assert [p.names for p in a.parts] == [p.names for p in b.parts]
         assert [p.spec.get_string_attribute("name") for p in b.parts] == [
             "ViewLayer.Combined",
@@ -423,7 +431,7 @@ def test_neural_backend_with_a_model(shot: Path, tmp_path: Path) -> None:
     assert "backend neural" in r.stdout
     for f in fixtures.FRAMES:
         a = read_exr(shot.parent / f"render/beauty.{f}.exr", "src")
-        b = read_exr(tmp_path / f"nn/beauty.{f}.exr", "out")
+        b = read_exr(tmp_path / f"nn/beauty/beauty.{f}.exr", "out")
         assert b.attributes()["harmonizer:model"] == "box3"
         assert b.attributes()["harmonizer:backend"] == "neural"
         rgb_a, rgb_b = a.stack(["R", "G", "B"]), b.stack(["R", "G", "B"])
@@ -466,7 +474,7 @@ def test_user_map_and_params(shot: Path, tmp_path: Path) -> None:
     )
     assert r.returncode == 0, r.stderr
     assert "inputs color+depth+motion+coverage+camera," in r.stdout
-    assert sorted(p.name for p in (tmp_path / "m").iterdir()) == [
+    assert sorted(p.name for p in (tmp_path / "m/beauty").iterdir()) == [
         "beauty.1001.exr",
         "beauty.1002.exr",
     ]
@@ -564,3 +572,104 @@ def test_new_products_declare_their_color_space(shot: Path, tmp_path: Path) -> N
     stage = Usd.Stage.Open(str(layer))
     new_beauty = stage.GetPrimAtPath("/Render/Products/beauty_harmonized")
     assert color_space_name(new_beauty) == "lin_rec2020_scene"
+
+
+def stereo(root: Path, names: tuple[str, str], patterns: tuple[str, str]) -> tuple[
+    Path, dict[str, dict[int, np.ndarray]]
+]:
+    """A hand-made stage with two Linear Rec.709 products (distinct pixels)
+    over frames 1-2."""
+    rng = np.random.default_rng(10)
+    rgb = {
+        n: {f: rng.uniform(0, 2, (handmade.H, handmade.W, 3)) for f in (1, 2)}
+        for n in names
+    }
+    stage = handmade.author(
+        root,
+        [
+            handmade.Product(f"/Render/Products/{n}", p, rgb[n], "lin_rec709_scene")
+            for n, p in zip(names, patterns)
+        ],
+        [1, 2],
+    )
+    return stage, rgb
+
+
+def test_out_dir_gives_each_product_its_folder(tmp_path: Path) -> None:
+    """Issue 10: stereo products render/left/frame.####.exr and
+    render/right/frame.####.exr with --out-dir DIR go to DIR/left/ and
+    DIR/right/ (each product's prim name), never to one DIR/frame.####.exr;
+    each new product points at its own files."""
+    stage, rgb = stereo(
+        tmp_path / "st",
+        ("left", "right"),
+        ("render/left/frame.####.exr", "render/right/frame.####.exr"),
+    )
+    out_dir = tmp_path / "out"
+    r = run_cli(str(stage), "--backend", "bypass", "--out-dir", str(out_dir))
+    assert r.returncode == 0, r.stderr
+    assert sorted(str(p.relative_to(out_dir)) for p in out_dir.rglob("*.exr")) == [
+        "left/frame.0001.exr",
+        "left/frame.0002.exr",
+        "right/frame.0001.exr",
+        "right/frame.0002.exr",
+    ]
+    layer = Usd.Stage.Open(str(stage.with_name("stage.harmonized.usda")))
+    new = resolve(layer, settings="/Render/Settings_harmonized")
+    for prod in new.products:
+        eye = prod.name.removesuffix("_harmonized")
+        for f in (1, 2):
+            out = out_dir / eye / f"frame.{f:04d}.exr"
+            assert prod.file_for(f).resolve() == out.resolve()
+            assert np.abs(handmade.read_rgb(out) - rgb[eye][f]).max() < 1e-5
+
+
+def test_products_never_share_an_output(tmp_path: Path) -> None:
+    """Issue 10: a run that would write two frames to one file, or over any
+    product's input, stops before writing anything."""
+    # Two products reading the same files: both would write render/harmonized/.
+    stage, _ = stereo(
+        tmp_path / "same",
+        ("a", "b"),
+        ("render/frame.####.exr", "render/frame.####.exr"),
+    )
+    r = run_cli(str(stage), "--backend", "bypass")
+    assert r.returncode == 1
+    out = stage.parent / "render/harmonized/frame.0001.exr"
+    assert (
+        f"render products /Render/Products/a frame 1 and /Render/Products/b frame 1 "
+        f"would both be written to {out}" in r.stderr
+    )
+    assert "use --out-dir" in r.stderr
+    assert not (stage.parent / "render/harmonized").exists()
+
+    # --out-dir DIR writes a to DIR/a/, where b's input is.
+    stage, _ = stereo(
+        tmp_path / "over",
+        ("a", "b"),
+        ("render/frame.####.exr", "out/a/frame.####.exr"),
+    )
+    before = digest(stage.parent / "out/a/frame.0001.exr")
+    r = run_cli(
+        str(stage), "--backend", "bypass", "--out-dir", str(stage.parent / "out")
+    )
+    assert r.returncode == 1
+    out = stage.parent / "out/a/frame.0001.exr"
+    assert (
+        f"render product /Render/Products/a frame 1: the output {out} would overwrite "
+        f"the input of render product /Render/Products/b frame 1" in r.stderr
+    )
+    assert digest(out) == before
+    assert not (stage.parent / "out/b").exists()
+
+    # One product whose frames differ only in their folders.
+    stage, _ = stereo(
+        tmp_path / "dirs", ("a", "b"), ("render/<F4>/a.exr", "render/<F4>/b.exr")
+    )
+    r = run_cli(str(stage), "--backend", "bypass", "--out-dir", str(tmp_path / "o"))
+    assert r.returncode == 1
+    assert (
+        f"render products /Render/Products/a frame 1 and /Render/Products/a frame 2 "
+        f"would both be written to {tmp_path / 'o/a/a.exr'}" in r.stderr
+    )
+    assert not (tmp_path / "o").exists()

@@ -67,7 +67,8 @@ def add_cmdline_args(parser: argparse.ArgumentParser) -> None:
         "--out-dir",
         type=Path,
         metavar="DIR",
-        help="output directory (default: <product dir>/harmonized)",
+        help="output directory; each product's files go to DIR/<product prim name>/ "
+        "(default: harmonized/ beside each product's files)",
     )
     parser.add_argument(
         "--base-dir",

@@ -15,7 +15,13 @@ from typing import Any, Self
 
 from . import binding
 from .layer import write_layer
-from .process import FrameResult, Options, ProductRunner, make_device
+from .process import (
+    FrameResult,
+    Options,
+    ProductRunner,
+    check_outputs,
+    make_device,
+)
 from .settings import SettingsInfo, open_stage, resolve
 
 
@@ -58,7 +64,11 @@ class PostFrameHook:
         }
 
     def __call__(self, frame: int) -> list[FrameResult]:
-        """Processes ``frame`` of every product; returns one result per product."""
+        """Processes ``frame`` of every product; returns one result per product.
+        Nothing is written when two products would write one file or over an
+        input (:func:`~usd_harmonizer.process.check_outputs`)."""
+        products = [r.product for r in self.runners.values()]
+        check_outputs(products, [int(frame)], self.options.out_dir)
         out = []
         for runner in self.runners.values():
             reset = runner.last_frame is not None and frame <= runner.last_frame

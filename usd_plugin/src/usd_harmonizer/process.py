@@ -25,7 +25,7 @@ import numpy as np
 from . import binding
 from .camera import exr_matrices
 from .color import ColorConverter, converter_for
-from .errors import FrameError, ProductFileError, UsdHarmonizerError
+from .errors import FrameError, ProductFileError, SettingsError, UsdHarmonizerError
 from .exrio import read_exr, write_exr_atomic
 from .settings import ProductInfo, SettingsInfo
 from .varmap import Binding, find_channels, map_vars
@@ -39,7 +39,8 @@ class Options:
     backend: str = "auto"
     #: Further session parameters by name (``strength``, ``context_frames``, ...).
     params: dict[str, Any] = field(default_factory=dict)
-    #: Output directory; default ``<product file dir>/harmonized``.
+    #: Output directory: each product's files go to ``out_dir/<product prim
+    #: name>/``; default ``<product file dir>/harmonized``.
     out_dir: Path | None = None
     #: User var mapping: var name or path -> role (or ``ignore``).
     user_map: dict[str, str] = field(default_factory=dict)
@@ -128,6 +129,68 @@ def data_window_matrix(spec: Any) -> np.ndarray:
     return m
 
 
+def output_path(product: ProductInfo, frame: int, out_dir: Path | None) -> Path:
+    """Where the enhanced file of ``product``'s ``frame`` goes: beside the
+    source in ``harmonized/``, or with ``out_dir`` in ``out_dir/<the product's
+    prim name>/`` (products whose files share a name in different folders,
+    such as stereo eyes, never meet there); the file name is the source's."""
+    src = product.file_for(frame)
+    if out_dir is None:
+        return src.parent / "harmonized" / src.name
+    return out_dir / product.name / src.name
+
+
+def check_outputs(
+    products: list[ProductInfo], frames: list[int], out_dir: Path | None
+) -> None:
+    """Raises :class:`SettingsError` before any work when two (product, frame)
+    would be written to one file, or an output would be one of the inputs
+    (of any product and frame)."""
+    inputs: dict[Path, tuple[str, int]] = {}
+    for p in products:
+        for f in frames:
+            inputs.setdefault(p.file_for(f).resolve(), (p.path, f))
+    outputs: dict[Path, tuple[ProductInfo, int]] = {}
+    for p in products:
+        for f in frames:
+            out = output_path(p, f, out_dir)
+            key = out.resolve()
+            if key in inputs:
+                q, g = inputs[key]
+                where = f"render product {p.path} frame {f}"
+                if (q, g) == (p.path, f):
+                    raise SettingsError(
+                        f"{where} ({p.file_for(f)}): the output would overwrite "
+                        "the input; choose another --out-dir"
+                    )
+                raise SettingsError(
+                    f"{where}: the output {out} would overwrite the input of "
+                    f"render product {q} frame {g}; choose another --out-dir"
+                )
+            if key in outputs:
+                q, g = outputs[key]
+                if out_dir is None:
+                    hint = (
+                        "use --out-dir DIR, which writes each product into "
+                        "DIR/<product name>/"
+                    )
+                elif q.path == p.path:
+                    hint = (
+                        "the files differ only in their folders; leave out --out-dir "
+                        "(outputs go beside each file, in harmonized/)"
+                    )
+                else:
+                    hint = (
+                        "products with one prim name share DIR/<product name>/; "
+                        "run them separately with different --out-dir"
+                    )
+                raise SettingsError(
+                    f"render products {q.path} frame {g} and {p.path} frame {f} would "
+                    f"both be written to {out}; {hint}"
+                )
+            outputs[key] = (p, f)
+
+
 class ProductRunner:
     """Runs one product's frames through one session, keeping temporal state."""
 
@@ -161,18 +224,9 @@ class ProductRunner:
         self._converters: dict[tuple[Any, ...], ColorConverter] = {}
 
     # -- paths ---------------------------------------------------------------
-    def out_dir_for(self, source: Path) -> Path:
-        """The directory enhanced files go to."""
-        return (
-            self.options.out_dir
-            if self.options.out_dir is not None
-            else source.parent / "harmonized"
-        )
-
     def output_for(self, frame: int) -> Path:
-        """The enhanced file of ``frame``."""
-        src = self.product.file_for(frame)
-        return self.out_dir_for(src) / src.name
+        """The enhanced file of ``frame`` (see :func:`output_path`)."""
+        return output_path(self.product, frame, self.options.out_dir)
 
     # -- one frame -------------------------------------------------------------
     def _converter(self, attrs: dict[str, Any], file_name: str) -> ColorConverter:

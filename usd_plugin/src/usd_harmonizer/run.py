@@ -10,7 +10,13 @@ from pathlib import Path
 
 from . import binding
 from .layer import write_layer
-from .process import FrameResult, Options, ProductRunner, make_device
+from .process import (
+    FrameResult,
+    Options,
+    ProductRunner,
+    check_outputs,
+    make_device,
+)
 from .settings import ProductInfo, SettingsInfo, open_stage, resolve
 
 
@@ -47,6 +53,7 @@ def run_stage(
     order = sorted(info.frames)
     for p in info.products:
         p.check_frames_distinct(order)
+    check_outputs(info.products, order, options.out_dir)
     summary = RunSummary(info)
     total = len(order) * len(info.products)
     done = 0
