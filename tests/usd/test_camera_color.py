@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import fixtures
+import handmade
 import numpy as np
 import pytest
 from pxr import Gf, Usd
@@ -16,6 +17,7 @@ from usd_harmonizer.color import (
     find_color_space,
     load_config,
 )
+from usd_harmonizer.cli import main
 from usd_harmonizer.exrio import read_exr
 
 
@@ -196,3 +198,59 @@ def test_empty_depth_becomes_far() -> None:
     assert out.dtype == np.float32 and out.flags.c_contiguous
     assert out.tolist() == [[1.5, FAR_DEPTH, FAR_DEPTH], [FAR_DEPTH, FAR_DEPTH, 1e10]]
     assert d[0, 1] == 0.0  # the file's pixels are not touched
+
+
+def wide_gamut_colors(rng: np.random.Generator) -> np.ndarray:
+    """(H, W, 3) colors on the boundary of the product's own gamut (one
+    component 0, one 1, one random, then scaled 0.01..8): every one outside
+    Rec.709 when the space is ACEScg or Rec.2020; a grey ramp in the last row."""
+    h, w = handmade.H, handmade.W
+    rgb = np.zeros((h, w, 3))
+    for px in rgb.reshape(-1, 3):
+        i, j = rng.choice(3, 2, replace=False)
+        px[i], px[j] = 1.0, rng.uniform(0, 1)
+    rgb *= np.exp(rng.uniform(np.log(0.01), np.log(8.0), (h, w, 1)))
+    rgb[-1] = np.linspace(0, 4, w)[:, None]
+    return rgb.astype(np.float32)
+
+
+@pytest.mark.parametrize(
+    "mode",
+    [("--backend", "bypass"), ("--backend", "classical", "--strength", "0")],
+    ids=["bypass", "strength0"],
+)
+def test_wide_gamut_round_trip(tmp_path: Path, mode: tuple[str, ...]) -> None:
+    """ACEScg and Rec.2020 products with saturated colors outside Rec.709
+    (negative Linear Rec.709 components through the hook's OCIO config) come
+    back within 1e-4 with backend=bypass and with strength 0: the library
+    passes out-of-gamut color through instead of clipping it to 0."""
+    rng = np.random.default_rng(2020)
+    frames = [1, 2]
+    spaces = {"acescg": "lin_ap1_scene", "rec2020": "lin_rec2020_scene"}
+    rgb = {n: {f: wide_gamut_colors(rng) for f in frames} for n in spaces}
+    stage = handmade.author(
+        tmp_path / "wg",
+        [
+            handmade.Product(
+                f"/Render/Products/{n}", f"render/{n}.####.exr", rgb[n], cs
+            )
+            for n, cs in spaces.items()
+        ],
+        frames,
+    )
+    config, name = load_config()  # what the hook uses: $OCIO, else ocio://default
+    for n, cs in spaces.items():
+        lin = ColorConverter(config, name, cs, "test").to_linear(rgb[n][1])
+        # Every color but the grey row is outside Rec.709.
+        assert (lin[:-1].min(axis=-1) < 0).all(), n
+        assert lin.min() < -0.5, n
+    out_dir = tmp_path / "out"
+    assert main([str(stage), *mode, "--out-dir", str(out_dir), "--quiet"]) == 0
+    for n in spaces:
+        for f in frames:
+            src = rgb[n][f]
+            out = handmade.read_rgb(out_dir / n / f"{n}.{f:04d}.exr")
+            finite = np.isfinite(src).all(axis=-1)
+            assert finite.all()
+            err = np.abs(out - src)[finite].max()
+            assert err < 1e-4, (n, f, err, out[finite].min())
