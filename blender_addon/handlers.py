@@ -1,6 +1,9 @@
 """Render handlers: one harmonizer session per animation render.
 
 - ``render_init``: check (and set) the passes, open the session.
+- ``frame_change_post``: while rendering, keep the camera evaluated at each
+  frame (in ``render_write`` the scene camera is still the one of the frame the
+  render started from).
 - ``render_write``: after Blender saved a frame, enhance it and write the
   enhanced EXR (beside the raw one unless configured otherwise).
 - ``render_complete`` / ``render_cancel``: free the session.
@@ -67,6 +70,18 @@ def on_render_init(scene, *_args):
 
 
 @persistent
+def on_frame_change_post(scene, depsgraph=None, *_args):
+    """A frame was evaluated for rendering: keep its camera for ``render_write``."""
+    runner = _RUNNERS.get(scene.name)
+    if runner is None or depsgraph is None or scene.frame_subframe != 0.0:
+        return
+    try:
+        runner.cameras[scene.frame_current] = runtime.camera_matrices(scene, depsgraph)
+    except Exception as exc:  # render_write falls back to the scene camera
+        reports.post("WARNING", f"Harmonizer: frame {scene.frame_current}: cannot read the camera: {exc}")
+
+
+@persistent
 def on_render_write(scene, *_args):
     """A frame was saved: enhance it."""
     runner = _RUNNERS.get(scene.name)
@@ -78,6 +93,10 @@ def on_render_write(scene, *_args):
     out = passes.enhanced_path(scene, raw, frame)
     step = max(1, scene.frame_step)
     index = (frame - scene.frame_start) // step
+    if frame in runner.cameras:
+        camera = runner.cameras.pop(frame)
+    else:  # no evaluation seen for this frame: the scene camera as it is
+        camera = runtime.camera_matrices(scene)
     start = time.perf_counter()
     try:
         result = runner.processor.process(
@@ -85,7 +104,7 @@ def on_render_write(scene, *_args):
             out,
             frame=frame,
             frame_index=index,
-            camera=runtime.camera_matrices(scene),
+            camera=camera,
             allow_overwrite=scene.harmonizer.overwrite_raw,
         )
     except Exception as exc:  # one failed frame never aborts the user's render
@@ -121,6 +140,7 @@ def on_render_done(scene, *_args):
 
 HANDLERS = (
     (bpy.app.handlers.render_init, on_render_init),
+    (bpy.app.handlers.frame_change_post, on_frame_change_post),
     (bpy.app.handlers.render_write, on_render_write),
     (bpy.app.handlers.render_complete, on_render_done),
     (bpy.app.handlers.render_cancel, on_render_done),

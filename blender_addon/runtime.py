@@ -36,6 +36,9 @@ class Runner:
             replace_composite=s.replace_composite,
         )
         self.scene_name = scene.name
+        #: Frame number -> (worldToCamera, worldToNDC) of the camera evaluated at
+        #: that frame, captured by the frame_change_post handler during the render.
+        self.cameras: dict[int, tuple | None] = {}
         self.device = hz.Device(threads=s.threads, ort_library=deps.onnxruntime_library())
         try:
             self.session = hz.Session(
@@ -73,19 +76,26 @@ class Runner:
             device.close()
 
 
-def camera_params(scene: bpy.types.Scene) -> processor.CameraParams | None:
-    """The scene camera at the current frame as plain values (perspective only), or None.
+def camera_params(scene: bpy.types.Scene, depsgraph=None) -> processor.CameraParams | None:
+    """The scene camera as plain values (perspective only), or None.
 
-    Reads only properties (no depsgraph evaluation), so it is safe in render
-    handlers, which run in the render thread when rendering from the UI.
+    With ``depsgraph`` (a ``frame_change_post`` handler's), the camera evaluated
+    in it: during an animation render that is the camera at the frame being
+    rendered, while ``scene.camera.matrix_world`` still holds the camera at the
+    frame the render started from. Without it, the original object's
+    properties (right in the main thread after ``frame_set``).
     """
     import numpy as np
 
     cam = scene.camera
-    if cam is None or cam.type != "CAMERA" or cam.data.type != "PERSP":
+    if cam is None or cam.type != "CAMERA":
+        return None
+    if depsgraph is not None:
+        cam = cam.evaluated_get(depsgraph)
+    data = cam.data
+    if data.type != "PERSP":
         return None  # orthographic/panoramic: the library reprojects with motion vectors only
     r = scene.render
-    data = cam.data
     return processor.CameraParams(
         matrix_world=np.array(cam.matrix_world, dtype=np.float64),
         lens=data.lens,
@@ -102,7 +112,7 @@ def camera_params(scene: bpy.types.Scene) -> processor.CameraParams | None:
     )
 
 
-def camera_matrices(scene: bpy.types.Scene):
-    """OpenEXR worldToCamera/worldToNDC of the scene camera at the current frame, or None."""
-    params = camera_params(scene)
+def camera_matrices(scene: bpy.types.Scene, depsgraph=None):
+    """OpenEXR worldToCamera/worldToNDC of the scene camera (see ``camera_params``), or None."""
+    params = camera_params(scene, depsgraph)
     return None if params is None else processor.blender_camera_matrices(params)
