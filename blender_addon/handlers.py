@@ -5,7 +5,8 @@
   frame (in ``render_write`` the scene camera is still the one of the frame the
   render started from).
 - ``render_write``: after Blender saved a frame, enhance it and write the
-  enhanced EXR (beside the raw one unless configured otherwise).
+  enhanced EXR (beside the raw one unless configured otherwise). A written
+  still (``render(write_still=True)``) is enhanced as a frame on its own.
 - ``render_complete`` / ``render_cancel``: free the session.
 
 A failed frame is reported and skipped; it never aborts the render, and the
@@ -14,6 +15,7 @@ session's temporal state stays as it was before that frame.
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass, field
 
@@ -33,7 +35,20 @@ class RunLog:
     finished: bool = False
 
 
-_RUNNERS: dict[str, runtime.Runner] = {}
+@dataclass
+class _Render:
+    """A render in progress: its session and what render_write needs to know."""
+
+    runner: runtime.Runner
+    #: Frame number -> (worldToCamera, worldToNDC) of the camera evaluated at that
+    #: frame (frame_change_post), or None for a camera the library cannot use.
+    cameras: dict[int, tuple | None] = field(default_factory=dict)
+    #: The file a still render writes and its state at render start (None: absent).
+    still_path: str = ""
+    still_before: tuple | None = None
+
+
+_RENDERS: dict[str, _Render] = {}
 _LOGS: dict[str, RunLog] = {}
 
 
@@ -42,10 +57,19 @@ def last_run(scene_name: str) -> RunLog | None:
     return _LOGS.get(scene_name)
 
 
+def _file_state(path: str) -> tuple | None:
+    """What changes when a file is written (None: no file)."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return (st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
+
+
 def _close(scene_name: str) -> None:
-    runner = _RUNNERS.pop(scene_name, None)
-    if runner is not None:
-        runner.close()
+    render = _RENDERS.pop(scene_name, None)
+    if render is not None:
+        render.runner.close()
     log = _LOGS.get(scene_name)
     if log is not None:
         log.finished = True
@@ -62,21 +86,26 @@ def on_render_init(scene, *_args):
     for level, text in passes.check(scene, apply=scene.harmonizer.manage_passes):
         reports.post(level, text)
     try:
-        _RUNNERS[scene.name] = runtime.Runner(scene)
+        runner = runtime.Runner(scene)
     except Exception as exc:  # reported; the render itself goes on unchanged
         msg = f"Harmonizer: cannot start for scene {scene.name!r}: {exc}"
         log.errors.append(msg)
         reports.post("ERROR", msg)
+        return
+    # Whether this render is a still is only known when a file is written:
+    # a still goes to passes.still_path(), which an animation never writes.
+    still = passes.still_path(scene)
+    _RENDERS[scene.name] = _Render(runner, still_path=still, still_before=_file_state(still))
 
 
 @persistent
 def on_frame_change_post(scene, depsgraph=None, *_args):
     """A frame was evaluated for rendering: keep its camera for ``render_write``."""
-    runner = _RUNNERS.get(scene.name)
-    if runner is None or depsgraph is None or scene.frame_subframe != 0.0:
+    render = _RENDERS.get(scene.name)
+    if render is None or depsgraph is None or scene.frame_subframe != 0.0:
         return
     try:
-        runner.cameras[scene.frame_current] = runtime.camera_matrices(scene, depsgraph)
+        render.cameras[scene.frame_current] = runtime.camera_matrices(scene, depsgraph)
     except Exception as exc:  # render_write falls back to the scene camera
         reports.post("WARNING", f"Harmonizer: frame {scene.frame_current}: cannot read the camera: {exc}")
 
@@ -84,17 +113,19 @@ def on_frame_change_post(scene, depsgraph=None, *_args):
 @persistent
 def on_render_write(scene, *_args):
     """A frame was saved: enhance it."""
-    runner = _RUNNERS.get(scene.name)
-    if runner is None:
+    render = _RENDERS.get(scene.name)
+    if render is None:
         return
+    runner = render.runner
     log = _LOGS[scene.name]
     frame = scene.frame_current
-    raw = scene.render.frame_path(frame=frame)
-    out = passes.enhanced_path(scene, raw, frame)
+    still = _file_state(render.still_path) not in (None, render.still_before)
+    raw = render.still_path if still else scene.render.frame_path(frame=frame)
+    out = passes.enhanced_path(scene, raw, frame, still=still)
     step = max(1, scene.frame_step)
     index = (frame - scene.frame_start) // step
-    if frame in runner.cameras:
-        camera = runner.cameras.pop(frame)
+    if frame in render.cameras:
+        camera = render.cameras.pop(frame)
     else:  # no evaluation seen for this frame: the scene camera as it is
         camera = runtime.camera_matrices(scene)
     start = time.perf_counter()
@@ -110,7 +141,7 @@ def on_render_write(scene, *_args):
     except Exception as exc:  # one failed frame never aborts the user's render
         msg = f"Harmonizer: frame {frame} not enhanced ({raw}): {exc}"
         log.errors.append(msg)
-        log.frames.append({"frame": frame, "raw": raw, "output": None, "error": str(exc)})
+        log.frames.append({"frame": frame, "raw": raw, "output": None, "error": str(exc), "still": still})
         reports.post("ERROR", msg)
         return
     report = result.report
@@ -118,6 +149,7 @@ def on_render_write(scene, *_args):
         "frame": frame,
         "raw": raw,
         "output": out,
+        "still": still,
         "reset": report.get("reset"),
         "backend": report.get("backend"),
         "history_used": report.get("history_used"),
@@ -162,7 +194,7 @@ def unregister() -> None:
                 and getattr(existing, "__name__", None) == fn.__name__
             ):
                 handler_list.remove(existing)
-    for name in list(_RUNNERS):
+    for name in list(_RENDERS):
         _close(name)
 
 

@@ -94,8 +94,32 @@ def check(scene: bpy.types.Scene, *, apply: bool) -> list[tuple[str, str]]:
     return out
 
 
-def enhanced_path(scene: bpy.types.Scene, raw_path: str, frame: int) -> str:
-    """Where the enhanced frame for ``raw_path`` goes."""
+def still_path(scene: bpy.types.Scene) -> str:
+    """The file Blender 5.0 writes for a still (``render(write_still=True)``).
+
+    Not ``frame_path()``: a still is named after the output path with no frame
+    number (``####`` stays as it is, a path without ``#`` gets no digits), and
+    the format's extension is made sure of (``shot.png`` -> ``shot.exr``).
+    """
+    render = scene.render
+    path = bpy.path.abspath(render.filepath)
+    if render.use_file_extension:
+        ext = render.file_extension
+        if not path.lower().endswith(ext.lower()):
+            root, old = os.path.splitext(path)
+            if old.lower() in bpy.path.extensions_image:
+                path = root
+            path += ext
+    return path
+
+
+def enhanced_path(scene: bpy.types.Scene, raw_path: str, frame: int, *, still: bool = False) -> str:
+    """Where the enhanced frame for ``raw_path`` goes.
+
+    A still (``still``) is named as Blender names the raw still: the Enhanced
+    Frames path with its frame tokens kept, so it never takes the place of an
+    animation frame.
+    """
     s = scene.harmonizer
     if s.overwrite_raw:
         return raw_path
@@ -105,7 +129,7 @@ def enhanced_path(scene: bpy.types.Scene, raw_path: str, frame: int) -> str:
             return os.path.join(base, os.path.basename(raw_path))
         from . import sequence
 
-        path = sequence.expand(base, frame)
+        path = base if still else sequence.expand(base, frame)
         if not path.lower().endswith(".exr"):
             path += ".exr"
         return path

@@ -36,9 +36,6 @@ class Runner:
             replace_composite=s.replace_composite,
         )
         self.scene_name = scene.name
-        #: Frame number -> (worldToCamera, worldToNDC) of the camera evaluated at
-        #: that frame, captured by the frame_change_post handler during the render.
-        self.cameras: dict[int, tuple | None] = {}
         self.device = hz.Device(threads=s.threads, ort_library=deps.onnxruntime_library())
         try:
             self.session = hz.Session(

@@ -484,3 +484,52 @@ def test_animated_camera_reprojects_with_the_camera_of_each_frame(addon, tmp_roo
     print(f"\nanimated camera: mean |vector run - camera run| per frame: {np.round(diffs, 4).tolist()}")
     assert not wrong, f"worldToCamera/worldToNDC passed are not the camera at the frame: {wrong}"
     assert max(diffs) < 0.001, diffs
+
+
+def test_written_still_is_enhanced_as_one_frame(addon, tmp_root):
+    """Issue 7: ``render(write_still=True)`` is enhanced, under the name Blender wrote.
+
+    Blender names a still after the output path without frame numbers (``####``
+    kept, the format's extension made sure of), not ``frame_path()``. A stale
+    animation frame with the same number must not be taken for it.
+    """
+    out = os.path.join(tmp_root, "still")
+    scene = fixture.build(os.path.join(out, "raw", "frame_####.exr"), frames=(1, 3))
+    scene.render.resolution_x, scene.render.resolution_y = 32, 18
+    configure(scene, backend="bypass")
+    os.makedirs(os.path.join(out, "raw"), exist_ok=True)
+    stale = os.path.join(out, "raw", "frame_0002.exr")
+    with open(stale, "wb") as fh:
+        fh.write(b"an older animation frame")
+    os.utime(stale, (1.0e9, 1.0e9))
+    scene.frame_set(2)
+    cases = [
+        # render output, enhanced output setting, (file Blender writes, enhanced file)
+        ("frame_####.exr", "", ("raw/frame_####.exr", "raw/harmonized/frame_####.exr")),
+        ("still_", "", ("raw/still_.exr", "raw/harmonized/still_.exr")),
+        ("shot.png", "", ("raw/shot.exr", "raw/harmonized/shot.exr")),
+        ("frame_####.exr", "enhanced/hz_####", ("raw/frame_####.exr", "enhanced/hz_####.exr")),
+    ]
+    for name, output_path, (want_raw, want_enh) in cases:
+        scene.render.filepath = os.path.join(out, "raw", name)
+        scene.harmonizer.output_path = os.path.join(out, output_path) if output_path else ""
+        n_reports = len(addon.reports.RECENT)
+        assert bpy.ops.render.render(write_still=True) == {"FINISHED"}
+        assert os.path.isfile(os.path.join(out, want_raw)), sorted(os.listdir(os.path.join(out, "raw")))
+        new = list(addon.reports.RECENT)[n_reports:]
+        assert not [t for level, t in new if level != "INFO"], new
+        log = addon.handlers.last_run(scene.name)
+        assert not log.errors, log.errors
+        assert [(f["frame"], f["raw"], f["output"]) for f in log.frames] == [
+            (2, os.path.join(out, want_raw), os.path.join(out, want_enh))
+        ], (name, log.frames)
+        assert log.frames[0]["reset"] == "first_frame"
+        raw, _ = read_exr(os.path.join(out, want_raw))
+        enh, attrs = read_exr(os.path.join(out, want_enh))
+        assert attrs["harmonizer/frame"] == "2"
+        np.testing.assert_allclose(_rgb(enh), _rgb(raw), atol=1e-4)
+    # A still render that writes nothing is not enhanced, quietly.
+    n_reports = len(addon.reports.RECENT)
+    assert bpy.ops.render.render() == {"FINISHED"}
+    assert addon.handlers.last_run(scene.name).frames == []
+    assert not [t for level, t in list(addon.reports.RECENT)[n_reports:] if level != "INFO"]
