@@ -139,6 +139,7 @@ def on_render_write(scene, *_args):
             allow_overwrite=scene.harmonizer.overwrite_raw,
         )
     except Exception as exc:  # one failed frame never aborts the user's render
+        runner.drop_messages()
         msg = f"Harmonizer: frame {frame} not enhanced ({raw}): {exc}"
         log.errors.append(msg)
         log.frames.append({"frame": frame, "raw": raw, "output": None, "error": str(exc), "still": still})
@@ -154,11 +155,10 @@ def on_render_write(scene, *_args):
         "backend": report.get("backend"),
         "history_used": report.get("history_used"),
         "ms": (time.perf_counter() - start) * 1000.0,
-        "warnings": list(report.get("warnings") or []),
+        # The library numbers frames by index in the render (frame_step apart).
+        "warnings": runner.post_messages(frame, lambda i: scene.frame_start + i * step),
     }
     log.frames.append(entry)
-    for w in entry["warnings"]:
-        reports.post("WARNING", f"Harmonizer: frame {frame}: {w}")
     reset = entry["reset"]
     note = f", temporal state reset ({reset})" if reset else ""
     reports.post("INFO", f"Harmonizer: frame {frame} -> {out} ({entry['ms']:.0f} ms{note})")

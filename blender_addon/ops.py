@@ -47,10 +47,12 @@ class _Job:
         try:
             result = self.runner.processor.process(raw, out, frame=frame, frame_index=frame)
         except Exception as exc:
+            self.runner.drop_messages()
             msg = f"Harmonizer: frame {frame} not enhanced ({raw}): {exc}"
             self.failed.append(msg)
             reports.post("ERROR", msg)
             return True
+        self.runner.post_messages(frame)  # frame_index is the frame number here
         self.done += 1
         reset = result.report.get("reset")
         if reset:
@@ -125,13 +127,13 @@ class HARMONIZER_OT_enhance_sequence(bpy.types.Operator):
         try:
             while job.step():
                 if sys.stdout.isatty() or bpy.app.background:
-                    print(f"\rHarmonizer: {job.index}/{total} frames", end="", flush=True)
+                    reports.progress(f"Harmonizer: {job.index}/{total} frames")
         except KeyboardInterrupt:
-            print()
+            reports.end_progress()
             self.report({"WARNING"}, "Harmonizer: cancelled")
             job.close()
             return {"CANCELLED"}
-        print()
+        reports.end_progress()
         return self._finish(job)
 
     def invoke(self, context, event):

@@ -19,18 +19,46 @@ import bpy
 #: The latest messages, newest last: (level, text).
 RECENT: collections.deque = collections.deque(maxlen=200)
 _PENDING: collections.deque = collections.deque()
-_LOCK = threading.Lock()
+_LOCK = threading.RLock()
+#: Whether the terminal's last line is a progress line without its newline.
+_PROGRESS_OPEN = False
 _POLL_SECONDS = 0.5
 
 
 def post(level: str, text: str) -> None:
     """Report ``text`` at ``level`` ('INFO', 'WARNING' or 'ERROR'); safe from any thread."""
+    label = {"INFO": "Info", "WARNING": "Warning", "ERROR": "Error"}.get(level, level)
     with _LOCK:
         RECENT.append((level, text))
         if not bpy.app.background:
             _PENDING.append((level, text))
-    label = {"INFO": "Info", "WARNING": "Warning", "ERROR": "Error"}.get(level, level)
-    print(f"{label}: {text}", file=sys.stderr if level != "INFO" else sys.stdout, flush=True)
+        _end_progress()
+        print(f"{label}: {text}", file=sys.stderr if level != "INFO" else sys.stdout, flush=True)
+
+
+def progress(text: str) -> None:
+    """Show ``text`` as the terminal's progress line (rewritten in place with ``\r``).
+
+    The line stays open until ``end_progress`` or the next ``post``, which ends
+    it first, so a message never runs into it.
+    """
+    global _PROGRESS_OPEN
+    with _LOCK:
+        print(f"\r{text}", end="", flush=True)
+        _PROGRESS_OPEN = True
+
+
+def end_progress() -> None:
+    """End an open progress line (a newline), if there is one."""
+    with _LOCK:
+        _end_progress()
+
+
+def _end_progress() -> None:
+    global _PROGRESS_OPEN
+    if _PROGRESS_OPEN:
+        print(flush=True)
+        _PROGRESS_OPEN = False
 
 
 def take_pending() -> list[tuple[str, str]]:

@@ -2,9 +2,16 @@
 
 from __future__ import annotations
 
+import re
+from collections.abc import Callable
+
 import bpy
 
 from . import deps, passes, processor, reports
+
+
+#: A frame number in a library message ("frame 12", "frame -3").
+_FRAME_REF = re.compile(r"\bframe (-?\d+)\b")
 
 
 class Runner:
@@ -36,6 +43,7 @@ class Runner:
             replace_composite=s.replace_composite,
         )
         self.scene_name = scene.name
+        self._messages: list[tuple[str, str]] = []
         self.device = hz.Device(threads=s.threads, ort_library=deps.onnxruntime_library())
         try:
             self.session = hz.Session(
@@ -60,8 +68,36 @@ class Runner:
         self.error_type = hz.HarmonizerError
 
     def _on_message(self, level: str, text: str) -> None:
-        lvl = {"error": "ERROR", "warning": "WARNING", "warn": "WARNING"}.get(str(level).lower(), "INFO")
-        reports.post(lvl, f"Harmonizer: {text}")
+        # Kept until the frame is done: post_messages reports each once, with
+        # Blender's frame numbers (the library numbers frames by frame_index).
+        self._messages.append((str(level).lower(), text))
+
+    def post_messages(self, frame: int, frame_of: Callable[[int], int] | None = None) -> list[str]:
+        """Report the library's warnings about the frame just processed, once each.
+
+        ``frame_of`` turns the library's frame numbers (the ``frame_index``
+        passed) into Blender's; every "frame N" of a message is rewritten, and a
+        message that does not start with the frame gets it in front. The
+        library's notes on a temporal reset are not repeated: the caller's own
+        line about the frame names the reset. Returns the warnings posted.
+        """
+        messages, self._messages = self._messages, []
+        posted = []
+        for level, text in messages:
+            if level not in ("warning", "warn", "error"):
+                continue
+            if frame_of is not None:
+                text = _FRAME_REF.sub(lambda m: f"frame {frame_of(int(m.group(1)))}", text)
+            if not text.startswith(f"frame {frame}:"):
+                text = f"frame {frame}: {text}"
+            text = f"Harmonizer: {text}"
+            reports.post("ERROR" if level == "error" else "WARNING", text)
+            posted.append(text)
+        return posted
+
+    def drop_messages(self) -> None:
+        """Forget messages of a frame that failed (the error says what happened)."""
+        self._messages = []
 
     def close(self) -> None:
         """Free the session and the device."""

@@ -533,3 +533,98 @@ def test_written_still_is_enhanced_as_one_frame(addon, tmp_root):
     assert bpy.ops.render.render() == {"FINISHED"}
     assert addon.handlers.last_run(scene.name).frames == []
     assert not [t for level, t in list(addon.reports.RECENT)[n_reports:] if level != "INFO"]
+
+
+def _put_nan(addon, path: str, count: int = 5) -> None:
+    """Write NaN into the first ``count`` pixels of the Combined pass of ``path``."""
+    exr = addon.exrio.read(addon.deps.oiio(), path)
+    rgb = np.array(exr.channels(COLOR[:3]))
+    rgb.reshape(-1, 3)[:count] = np.nan
+    exr.set_channels(COLOR[:3], rgb)
+    addon.exrio.write(addon.deps.oiio(), exr, path)
+
+
+def _warnings(recent) -> list[str]:
+    return [text for level, text in recent if level == "WARNING"]
+
+
+def test_library_warnings_reported_once_with_the_blender_frame(addon, tmp_root, capsys):
+    """Issue 8: one message per library warning, naming Blender's frame numbers.
+
+    Frames 1-9 every 2nd frame, frame 5 skipped (its file exists, Overwrite off),
+    NaN written into frame 3: the library numbers frames 0, 1, 3 and its
+    warnings said "frame 1: ..." and again "frame 3: frame 1: ...".
+    """
+    out = os.path.join(tmp_root, "messages")
+    raw_dir = os.path.join(out, "raw")
+    scene = fixture.build(os.path.join(raw_dir, "frame_####.exr"), frames=(1, 7), samples=1)
+    scene.render.resolution_x, scene.render.resolution_y = 32, 18
+    scene.frame_step = 2
+    configure(scene, backend="classical", output_path=os.path.join(out, "enhanced", "frame_####.exr"))
+    os.makedirs(raw_dir, exist_ok=True)
+    with open(os.path.join(raw_dir, "frame_0005.exr"), "wb") as fh:
+        fh.write(b"placeholder")
+    scene.render.use_overwrite = False
+
+    def nan_in_frame_3(sc, *_):
+        if sc.frame_current == 3:
+            _put_nan(addon, sc.render.frame_path(frame=3))
+
+    bpy.app.handlers.render_write.insert(0, nan_in_frame_3)
+    try:
+        n_reports = len(addon.reports.RECENT)
+        capsys.readouterr()
+        render(scene)
+    finally:
+        bpy.app.handlers.render_write.remove(nan_in_frame_3)
+    printed = capsys.readouterr()
+    log = addon.handlers.last_run(scene.name)
+    assert not log.errors, log.errors
+    assert [f["frame"] for f in log.frames] == [1, 3, 7]
+    warnings = _warnings(list(addon.reports.RECENT)[n_reports:])
+    assert len(warnings) == 2, warnings
+    assert warnings[0].startswith("Harmonizer: frame 3: 15 color samples were NaN"), warnings
+    assert warnings[1].startswith("Harmonizer: frame 7: not consecutive to frame 3;"), warnings
+    # What the terminal shows: the same two lines, once each.
+    shown = [line for line in (printed.out + printed.err).splitlines() if "Warning:" in line]
+    assert shown == [f"Warning: {w}" for w in warnings], shown
+
+
+def test_batch_progress_line_ends_before_a_message(addon, classical_run, tmp_root):
+    """Issue 8: the operator's progress line ("\\r" updated) is ended before a warning or error."""
+    import contextlib
+    import io
+
+    _scene, out, _log = classical_run
+    scene = bpy.context.scene
+    src = os.path.join(tmp_root, "batch_messages", "raw")
+    os.makedirs(src, exist_ok=True)
+    for frame in (1, 2, 3, 4, 6):
+        shutil.copy(os.path.join(out, "raw", f"frame_{frame:04d}.exr"), src)
+    _put_nan(addon, os.path.join(src, "frame_0003.exr"))
+    with open(os.path.join(src, "frame_0004.exr"), "r+b") as fh:
+        fh.truncate(1000)
+    configure(scene, backend="classical")
+    n_reports = len(addon.reports.RECENT)
+    terminal = io.StringIO()
+    with contextlib.redirect_stdout(terminal), contextlib.redirect_stderr(terminal):
+        result = bpy.ops.harmonizer.enhance_sequence(
+            directory=src, output_directory=os.path.join(tmp_root, "batch_messages", "enhanced")
+        )
+    assert result == {"FINISHED"}
+    new = list(addon.reports.RECENT)[n_reports:]
+    warnings = _warnings(new)
+    assert len(warnings) == 2, new
+    assert warnings[0].startswith("Harmonizer: frame 3: 15 color samples were NaN"), warnings
+    assert warnings[1].startswith("Harmonizer: frame 6: not consecutive to frame 3;"), warnings
+    errors = [text for level, text in new if level == "ERROR"]
+    assert len(errors) == 1 and "frame 4" in errors[0], new
+    lines = terminal.getvalue().split("\n")
+    messages = [line for line in lines if "Warning:" in line or "Error:" in line]
+    for line in messages:  # each on a line of its own (the operator's summary is a warning too)
+        assert line.startswith(("Warning: Harmonizer: ", "Error: Harmonizer: ")), repr(line)
+    about_frames = [
+        line for line in messages if line.startswith(("Warning: Harmonizer: frame ", "Error: Harmonizer: frame "))
+    ]
+    assert len(about_frames) == 3, lines
+    assert lines[-1] == "" and "\r" not in lines[-2], lines[-3:]  # the output ends with a complete line
