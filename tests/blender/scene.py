@@ -126,3 +126,66 @@ def build(output_pattern: str, *, samples: int = 4, frames: tuple[int, int] = FR
     vl = scene.view_layers[0]
     vl.name = "ViewLayer"
     return scene
+
+
+#: Emission colors of the wide-gamut scene, in ACEScg: primaries and mixes, most
+#: of them outside Rec.709 (negative components in Linear Rec.709).
+WIDE_GAMUT_COLORS = (
+    (1.0, 0.0, 0.0),
+    (0.0, 1.0, 0.0),
+    (0.0, 0.0, 1.0),
+    (0.0, 0.9, 0.9),
+    (0.9, 0.0, 0.9),
+    (0.9, 0.9, 0.0),
+    (2.5, 0.05, 0.1),
+    (0.3, 0.3, 0.3),
+)
+
+
+def build_wide_gamut(output_pattern: str, *, frames: tuple[int, int] = (1, 2)) -> bpy.types.Scene:
+    """An empty file in the ACEScg working space: emissive tiles of saturated ACEScg colors.
+
+    48x27, 1 sample (emission only, nothing to converge), a still camera over
+    a 4x2 grid of tiles on a saturated green background.
+    """
+    bpy.ops.wm.read_homefile(use_empty=True)
+    if bpy.data.colorspace.working_space != "ACEScg":
+        assert bpy.ops.wm.set_working_color_space(working_space="ACEScg", convert_colors=False) == {"FINISHED"}
+    scene = bpy.context.scene
+    scene.name = "WideGamut"
+    render = scene.render
+    render.engine = "CYCLES"
+    scene.cycles.device = "CPU"
+    scene.cycles.samples = 1
+    scene.cycles.use_denoising = False
+    scene.cycles.use_adaptive_sampling = False
+    render.resolution_x, render.resolution_y = 48, 27
+    render.resolution_percentage = 100
+    render.use_motion_blur = False
+    render.threads_mode = "FIXED"
+    render.threads = 1
+    render.filepath = output_pattern
+    settings = render.image_settings
+    settings.media_type = "MULTI_LAYER_IMAGE"
+    settings.file_format = "OPEN_EXR_MULTILAYER"
+    settings.color_depth = "32"
+    scene.frame_start, scene.frame_end = frames
+
+    world = bpy.data.worlds.new("World")
+    world.use_nodes = True
+    world.node_tree.nodes["Background"].inputs["Color"].default_value = (0.0, 0.8, 0.1, 1.0)
+    scene.world = world
+    for k, rgb in enumerate(WIDE_GAMUT_COLORS):
+        mat = bpy.data.materials.new(f"Tile{k}")
+        mat.use_nodes = True
+        nodes = mat.node_tree.nodes
+        nodes.remove(nodes["Principled BSDF"])
+        emission = nodes.new("ShaderNodeEmission")
+        emission.inputs["Color"].default_value = (*rgb, 1.0)
+        mat.node_tree.links.new(emission.outputs["Emission"], nodes["Material Output"].inputs["Surface"])
+        bpy.ops.mesh.primitive_plane_add(size=0.9, location=(-1.5 + (k % 4), 0.5 - (k // 4), 0.0))
+        bpy.context.active_object.data.materials.append(mat)
+    bpy.ops.object.camera_add(location=(0.0, 0.0, 4.0))
+    scene.camera = bpy.context.active_object
+    scene.view_layers[0].name = "ViewLayer"
+    return scene

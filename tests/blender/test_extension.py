@@ -628,3 +628,34 @@ def test_batch_progress_line_ends_before_a_message(addon, classical_run, tmp_roo
     ]
     assert len(about_frames) == 3, lines
     assert lines[-1] == "" and "\r" not in lines[-2], lines[-3:]  # the output ends with a complete line
+
+
+@pytest.mark.parametrize("settings", [{"backend": "bypass"}, {"backend": "classical", "strength": 0.0}])
+def test_wide_gamut_colors_round_trip(addon, tmp_root, settings):
+    """Colors outside Rec.709 (ACEScg working space) come back unchanged with bypass or strength 0.
+
+    In Linear Rec.709, what the library works in, they have negative components;
+    every finite color of the raw render must round-trip within 1e-4.
+    """
+    name = "_".join(f"{k}-{v}" for k, v in settings.items())
+    out = os.path.join(tmp_root, "wide_gamut", name)
+    scene = fixture.build_wide_gamut(os.path.join(out, "raw", "frame_####.exr"))
+    assert bpy.data.colorspace.working_space == "ACEScg"
+    configure(scene, output_path=os.path.join(out, "enhanced", "frame_####.exr"), **settings)
+    render(scene)
+    log = addon.handlers.last_run(scene.name)
+    assert not log.errors, log.errors
+    conv = addon.colorspace.Converter(addon.deps.ocio(), addon.deps.ocio_config_path(), "ACEScg")
+    for frame in (scene.frame_start, scene.frame_end):
+        raw, _ = read_exr(os.path.join(out, "raw", f"frame_{frame:04d}.exr"))
+        enh, attrs = read_exr(os.path.join(out, "enhanced", f"frame_{frame:04d}.exr"))
+        assert attrs["harmonizer/colorspace"] == "ACEScg"
+        rec709 = np.ascontiguousarray(_rgb(raw), dtype=np.float32)
+        conv.to_library(rec709)
+        outside = (rec709 < -0.01).any(axis=-1).mean()
+        assert outside > 0.5, f"only {outside:.0%} of the pixels are outside Rec.709"
+        for c in COLOR:
+            finite = np.isfinite(raw[c])
+            np.testing.assert_allclose(
+                enh[c][finite], raw[c][finite], atol=1e-4, rtol=0, err_msg=f"{settings} frame {frame} {c}"
+            )
