@@ -46,6 +46,8 @@ class _Render:
     #: The file a still render writes and its state at render start (None: absent).
     still_path: str = ""
     still_before: tuple | None = None
+    #: The library's frame number (frame_index: render order) -> Blender's frame.
+    frames: dict[int, int] = field(default_factory=dict)
 
 
 _RENDERS: dict[str, _Render] = {}
@@ -122,8 +124,10 @@ def on_render_write(scene, *_args):
     still = _file_state(render.still_path) not in (None, render.still_before)
     raw = render.still_path if still else scene.render.frame_path(frame=frame)
     out = passes.enhanced_path(scene, raw, frame, still=still)
+    # Render order, so that frames frame_step apart are consecutive for the library.
     step = max(1, scene.frame_step)
     index = (frame - scene.frame_start) // step
+    render.frames[index] = frame
     if frame in render.cameras:
         camera = render.cameras.pop(frame)
     else:  # no evaluation seen for this frame: the scene camera as it is
@@ -155,8 +159,7 @@ def on_render_write(scene, *_args):
         "backend": report.get("backend"),
         "history_used": report.get("history_used"),
         "ms": (time.perf_counter() - start) * 1000.0,
-        # The library numbers frames by index in the render (frame_step apart).
-        "warnings": runner.post_messages(frame, lambda i: scene.frame_start + i * step),
+        "warnings": runner.post_messages(frame, lambda i: render.frames.get(i, scene.frame_start + i * step)),
     }
     log.frames.append(entry)
     reset = entry["reset"]

@@ -528,6 +528,21 @@ def test_written_still_is_enhanced_as_one_frame(addon, tmp_root):
         enh, attrs = read_exr(os.path.join(out, want_enh))
         assert attrs["harmonizer/frame"] == "2"
         np.testing.assert_allclose(_rgb(enh), _rgb(raw), atol=1e-4)
+    # A still's warnings name its frame, also off the Frame Step grid (frame 2 of 1, 3, 5, ...).
+    scene.frame_step = 2
+    scene.harmonizer.backend = "classical"
+
+    def nan_in_still(sc, *_):
+        _put_nan(addon, addon.passes.still_path(sc))
+
+    bpy.app.handlers.render_write.insert(0, nan_in_still)
+    try:
+        n_reports = len(addon.reports.RECENT)
+        assert bpy.ops.render.render(write_still=True) == {"FINISHED"}
+    finally:
+        bpy.app.handlers.render_write.remove(nan_in_still)
+    warnings = _warnings(list(addon.reports.RECENT)[n_reports:])
+    assert len(warnings) == 1 and warnings[0].startswith("Harmonizer: frame 2: 15 color samples were NaN"), warnings
     # A still render that writes nothing is not enhanced, quietly.
     n_reports = len(addon.reports.RECENT)
     assert bpy.ops.render.render() == {"FINISHED"}
