@@ -1,4 +1,4 @@
-"""Render handlers: one harmonizer session per animation render.
+"""Render handlers: one harmonizer session per render (an animation or a written still).
 
 - ``render_init``: check (and set) the passes, open the session.
 - ``frame_change_post``: while rendering, keep the camera evaluated at each
