@@ -3,6 +3,8 @@
 
 #[path = "core/classical.rs"]
 mod classical;
+#[path = "core/hostile.rs"]
+mod hostile;
 #[path = "core/io.rs"]
 mod io;
 #[path = "core/neural.rs"]

@@ -9,11 +9,20 @@ use exr::prelude::{
     LayerAttributes, ReadChannels, ReadLayers, Text, WritableImage,
 };
 
+use super::guard::{self, ReadLimits, Refusal};
 use super::layout::{self, ChannelRef, InsertSource, LayoutOptions, LayoutPreset, ResolvedLayout};
 use crate::error::{Error, Result};
 use crate::frame::{Camera, FrameInput, Image, ImageView};
 
 type FlatImage = exr::image::FlatImage;
+
+/// The message of a caught panic.
+fn panic_text(p: &Box<dyn std::any::Any + Send>) -> String {
+    p.downcast_ref::<&str>()
+        .map(|s| s.to_string())
+        .or_else(|| p.downcast_ref::<String>().cloned())
+        .unwrap_or_else(|| "internal error".to_string())
+}
 
 /// Where a frame came from, for error messages: `frame 12 (path)`.
 fn ctx(path: &Path, frame: Option<i64>) -> String {
@@ -102,25 +111,78 @@ fn rows_matrix(r: &[[f32; 4]; 4]) -> [f32; 16] {
 }
 
 impl ExrFile {
-    /// Reads every part and channel of `path`; `frame` only names the frame in errors.
+    /// Reads every part and channel of `path`; `frame` only names the frame in
+    /// errors. The header's claims are checked first with the default
+    /// [`ReadLimits`] (the memory available as the budget).
     pub fn open(path: &Path, frame: Option<i64>) -> Result<ExrFile> {
+        ExrFile::open_with(path, frame, &ReadLimits::default())
+    }
+
+    /// [`ExrFile::open`] with explicit limits (a device's memory limit, ...).
+    /// A file whose header claims more than the limits, the memory budget or
+    /// its own size can hold is refused before anything is decoded
+    /// ([`super::guard`]); a decoder failure, even a panic inside the `exr`
+    /// crate, is an error naming the file and frame.
+    pub fn open_with(path: &Path, frame: Option<i64>, limits: &ReadLimits) -> Result<ExrFile> {
         if !path.is_file() {
             return Err(Error::Io(format!("{}: file not found", ctx(path, frame))));
         }
-        let image = exr::prelude::read()
-            .no_deep_data()
-            .largest_resolution_level()
-            .all_channels()
-            .all_layers()
-            .all_attributes()
-            .pedantic()
-            .from_file(path)
-            .map_err(|e| {
-                Error::Io(format!(
-                    "{}: cannot read EXR (unreadable or truncated file): {e}",
-                    ctx(path, frame)
-                ))
-            })?;
+        let size = std::fs::metadata(path)
+            .map_err(|e| Error::Io(format!("{}: {e}", ctx(path, frame))))?
+            .len();
+        let (budget, budget_name) = limits.budget();
+        if size > budget as u64 {
+            return Err(Error::OutOfMemory(format!(
+                "{}: the file is {size} bytes, more than {budget_name} ({budget} bytes)",
+                ctx(path, frame)
+            )));
+        }
+        let bytes =
+            std::fs::read(path).map_err(|e| Error::Io(format!("{}: {e}", ctx(path, frame))))?;
+        ExrFile::from_bytes(bytes, path, frame, limits)
+    }
+
+    /// A whole EXR file already in memory; `path` and `frame` name it in
+    /// errors. The same checks as [`ExrFile::open_with`].
+    pub fn from_bytes(
+        bytes: Vec<u8>,
+        path: &Path,
+        frame: Option<i64>,
+        limits: &ReadLimits,
+    ) -> Result<ExrFile> {
+        let checked =
+            std::panic::catch_unwind(|| guard::check(&bytes, limits)).unwrap_or_else(|p| {
+                Err(Refusal::Invalid(format!(
+                    "the header could not be read ({})",
+                    panic_text(&p)
+                )))
+            });
+        checked.map_err(|r| match r {
+            Refusal::Memory(m) => Error::OutOfMemory(format!("{}: {m}", ctx(path, frame))),
+            Refusal::Invalid(m) => Error::Io(format!(
+                "{}: cannot read EXR (unreadable or truncated file): {m}",
+                ctx(path, frame)
+            )),
+        })?;
+        let decoded = std::panic::catch_unwind(|| {
+            exr::prelude::read()
+                .no_deep_data()
+                .largest_resolution_level()
+                .all_channels()
+                .all_layers()
+                .all_attributes()
+                .pedantic()
+                .from_buffered(std::io::Cursor::new(&bytes[..]))
+                .map_err(|e| e.to_string())
+        })
+        .unwrap_or_else(|p| Err(format!("the decoder failed ({})", panic_text(&p))));
+        drop(bytes);
+        let image = decoded.map_err(|e| {
+            Error::Io(format!(
+                "{}: cannot read EXR (unreadable or truncated file): {e}",
+                ctx(path, frame)
+            ))
+        })?;
         let mut channels = Vec::new();
         for (part, layer) in image.layer_data.iter().enumerate() {
             let part_name = layer.attributes.layer_name.as_ref().map(|t| t.to_string());
