@@ -2,8 +2,10 @@
 # Sets up everything and runs every test of harmonizer: formatting, lints,
 # docs, header drift, Rust unit and integration tests, the C/C++ host tests,
 # the Python binding, the USD hook and the Blender extension (real Blender),
-# and the training smoke test. Works on a fresh machine with only the package
-# registries (creates .venv, .venv-bpy and .venv-usd as needed).
+# the training smoke test, and each fuzz target for a short fixed time
+# (HARMONIZER_FUZZ_SECONDS, 45 by default). Works on a fresh machine with
+# only the package registries (creates .venv, .venv-bpy and .venv-usd as
+# needed).
 #
 #   scripts/test.sh            # everything
 #   scripts/test.sh rust c     # only some steps (names below)
@@ -14,7 +16,7 @@ set -uo pipefail
 cd "$(dirname "$0")/.."
 export PATH="$HOME/.cargo/bin:$PATH"
 
-all_steps=(setup fmt clippy doc header rust release c python usd blender training)
+all_steps=(setup fmt clippy doc header rust release c python usd blender training fuzz)
 steps=("$@")
 [ ${#steps[@]} -gt 0 ] || steps=("${all_steps[@]}")
 
@@ -62,6 +64,7 @@ want python && run_step python env PYTHONPATH="$PWD/ffi/python" .venv/bin/python
 want usd && run_step usd ./tests/usd/run.sh -q
 want blender && run_step blender ./tests/blender/run.sh
 want training && run_step training ./training/smoke_test.sh
+want fuzz && run_step fuzz ./scripts/fuzz.sh "${HARMONIZER_FUZZ_SECONDS:-45}"
 
 printf '\n'
 [ ${#failures[@]} -eq 0 ] || printf 'failed steps: %s\n' "${failures[*]}"

@@ -172,6 +172,9 @@ impl ExrFile {
                 .all_layers()
                 .all_attributes()
                 .pedantic()
+                // On this thread: a panic in the crate's worker threads
+                // aborts the process, here it is caught.
+                .non_parallel()
                 .from_buffered(std::io::Cursor::new(&bytes[..]))
                 .map_err(|e| e.to_string())
         })
