@@ -9,7 +9,7 @@ use std::sync::Arc;
 
 use clap::{Parser, Subcommand};
 use harmonizer_core::io::layout::{ChannelMapping, LayoutOptions, LayoutPreset};
-use harmonizer_core::io::pattern::FrameRange;
+use harmonizer_core::io::pattern::{FramePattern, FrameRange};
 use harmonizer_core::io::run::{plan, run_sequence, FrameResult, RunOptions};
 use harmonizer_core::params::BackendKind;
 use harmonizer_core::synth::{self, Scene, Sequence, SynthConfig};
@@ -17,6 +17,9 @@ use harmonizer_core::{
     Device, DeviceOptions, Error, ModelSource, ParamValue, Params, Result, Session,
 };
 use serde_json::{json, Map, Value};
+
+mod files;
+use files::Files;
 
 #[derive(Parser)]
 #[command(
@@ -205,6 +208,17 @@ fn make_session(args: &SessionArgs, gap: Option<&str>) -> Result<Session> {
     Session::new(device, params)
 }
 
+/// The model file and its manifest, inputs of any command given `--model`.
+fn model_inputs(files: &mut Files, model: Option<&Path>) {
+    if let Some(m) = model {
+        files.input("--model", m);
+        files.input(
+            "model manifest",
+            harmonizer_core::backend::neural::manifest_path(m),
+        );
+    }
+}
+
 fn stages_json(stages: &harmonizer_core::backend::Stages) -> Value {
     let mut m = Map::new();
     for (k, v) in &stages.0 {
@@ -224,6 +238,7 @@ fn frame_json(r: &FrameResult) -> Value {
         "reset": r.report.reset.map(|x| x.name()),
         "history_used": r.report.history_used,
         "sanitized": r.report.sanitized,
+        "out_of_gamut": r.report.out_of_gamut,
         "warnings": warnings,
         "read_ms": r.read_ms,
         "process_ms": r.report.total_ms,
@@ -246,6 +261,7 @@ fn summary_json(results: &[FrameResult]) -> Value {
         "frames": results.len(),
         "resets": resets,
         "sanitized": results.iter().map(|r| r.report.sanitized).sum::<usize>(),
+        "out_of_gamut": results.iter().map(|r| r.report.out_of_gamut).sum::<usize>(),
         "warnings": results.iter().map(|r| r.report.warnings.len() + r.read_warnings.len()).sum::<usize>(),
         "mean_process_ms": results.iter().map(|r| r.report.total_ms).sum::<f64>() / n,
         "mean_read_ms": results.iter().map(|r| r.read_ms).sum::<f64>() / n,
@@ -301,8 +317,8 @@ fn print_summary(results: &[FrameResult], output: &str) {
         }
     );
     println!(
-        "  sanitized color samples (NaN, Inf, negative): {}; warnings: {}",
-        s["sanitized"], s["warnings"]
+        "  sanitized color samples (NaN, Inf): {}; out-of-gamut pixels passed through: {}; warnings: {}",
+        s["sanitized"], s["out_of_gamut"], s["warnings"]
     );
     for r in results {
         for w in r.read_warnings.iter().chain(&r.report.warnings) {
@@ -330,6 +346,18 @@ fn cmd_run(
         frames: frames.as_deref().map(FrameRange::parse).transpose()?,
     };
     let planned = plan(&options)?;
+    let mut files = Files::default();
+    for p in &planned {
+        files.input(format!("input frame {}", p.frame), &p.input);
+    }
+    model_inputs(&mut files, session_args.model.as_deref());
+    for p in &planned {
+        files.output(format!("output frame {}", p.frame), &p.output);
+    }
+    if let Some(path) = &report {
+        files.output("--report file", path);
+    }
+    files.check()?;
     let mut session = make_session(&session_args, Some(&gap))?;
     let bar = progress_bar(planned.len() as u64);
     let mut done: Vec<FrameResult> = Vec::new();
@@ -417,11 +445,30 @@ fn cmd_demo(out: &Path, args: SessionArgs) -> Result<()> {
         "harmonize demo: {} frames {}x{} (holes, an inserted sphere with a tone mismatch and no contact shadow, flicker)",
         config.frames, config.width, config.height
     );
+    let pattern = "frame.####.exr";
+    let sheet = out.join("contact_sheet.png");
+    let metrics = out.join("metrics.json");
+    let mut files = Files::default();
+    model_inputs(&mut files, args.model.as_deref());
+    for (sub, what) in [
+        ("input", "input frame"),
+        ("truth", "truth frame"),
+        ("output", "output frame"),
+    ] {
+        let p = FramePattern::parse(&out.join(sub).join(pattern).to_string_lossy())?;
+        for t in 0..config.frames as i64 {
+            let n = config.first_frame + t;
+            files.output(format!("{what} {n}"), p.path(n));
+        }
+    }
+    files.output("contact sheet", &sheet);
+    files.output("metrics", &metrics);
+    files.check()?;
     let seq = Sequence::generate(config)?;
-    let (input, truth) = seq.write_generic(out, "frame.####.exr")?;
+    let (input, truth) = seq.write_generic(out, pattern)?;
     let output = out
         .join("output")
-        .join("frame.####.exr")
+        .join(pattern)
         .to_string_lossy()
         .to_string();
     let options = RunOptions {
@@ -454,7 +501,6 @@ fn cmd_demo(out: &Path, args: SessionArgs) -> Result<()> {
         "warping_error_output": seq.warping_error(&outs, 4),
         "mean_process_ms": results.iter().map(|r| r.report.total_ms).sum::<f64>() / results.len().max(1) as f64,
     });
-    let sheet = out.join("contact_sheet.png");
     let picks: Vec<usize> = [0, 7, 15, 23]
         .into_iter()
         .filter(|&i| i < seq.frames.len())
@@ -470,7 +516,6 @@ fn cmd_demo(out: &Path, args: SessionArgs) -> Result<()> {
         })
         .collect();
     contact_sheet(&sheet, &rows, config.width, config.height)?;
-    let metrics = out.join("metrics.json");
     write_json(&metrics, &m)?;
     let f = |k: &str| m[k].as_f64().unwrap_or(f64::NAN);
     println!("  input:   {input}");

@@ -393,3 +393,218 @@ mod tools {
         assert!(!o.status.success() && text(&o).1.contains("160by90"));
     }
 }
+
+/// What a run writes is checked before any frame is read: no output may be
+/// an input or another output (issue 3, defect 3).
+#[cfg(unix)]
+mod safety {
+    use super::*;
+
+    /// A 4-frame 32x18 sequence in `dir/input`; its pattern.
+    fn small(dir: &Path) -> String {
+        sequence(
+            dir,
+            SynthConfig {
+                width: 32,
+                height: 18,
+                frames: 4,
+                ..Default::default()
+            },
+        )
+        .1
+    }
+
+    fn s(p: &Path) -> &str {
+        p.to_str().unwrap()
+    }
+
+    /// The bytes of every file directly in `dir`, by name.
+    fn snapshot(dir: &Path) -> Vec<(String, Vec<u8>)> {
+        let mut v: Vec<_> = std::fs::read_dir(dir)
+            .unwrap()
+            .map(|e| e.unwrap().path())
+            .filter(|p| p.is_file())
+            .map(|p| {
+                (
+                    p.file_name().unwrap().to_string_lossy().to_string(),
+                    std::fs::read(&p).unwrap(),
+                )
+            })
+            .collect();
+        v.sort();
+        v
+    }
+
+    fn names(dir: &Path) -> Vec<String> {
+        let mut v: Vec<String> = std::fs::read_dir(dir)
+            .map(|r| {
+                r.map(|e| e.unwrap().file_name().to_string_lossy().to_string())
+                    .collect()
+            })
+            .unwrap_or_default();
+        v.sort();
+        v
+    }
+
+    /// Fails, naming every string of `want` on stderr.
+    fn refused(args: &[&str], want: &[&str]) -> String {
+        let o = harmonize(args);
+        let (out, err) = text(&o);
+        assert!(!o.status.success(), "{args:?} ran: {out}\n{err}");
+        for w in want {
+            assert!(err.contains(w), "{args:?}: {w:?} not in {err}");
+        }
+        err
+    }
+
+    #[test]
+    fn report_or_output_onto_an_input_is_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let d = dir.path();
+        let input = small(d);
+        let ip = FramePattern::parse(&input).unwrap();
+        let before = snapshot(&d.join("input"));
+        let out_dir = d.join("out");
+        let out = out_dir.join("o.####.exr");
+        let run = |report: &Path, want: &[&str]| {
+            refused(
+                &[
+                    "run",
+                    &input,
+                    "-o",
+                    s(&out),
+                    "--backend",
+                    "bypass",
+                    "--report",
+                    s(report),
+                ],
+                want,
+            )
+        };
+        // The report is an input frame, by its own path.
+        let p1 = ip.path(1);
+        let e = run(&p1, &["--report", "input frame 1", "shot.0001.exr"]);
+        assert!(e.contains("input file"), "{e}");
+        // ... through a symbolic link to it, a hard link to it, and a linked directory.
+        std::os::unix::fs::symlink(ip.path(2), d.join("link.json")).unwrap();
+        run(&d.join("link.json"), &["link.json", "shot.0002.exr"]);
+        std::fs::hard_link(ip.path(3), d.join("hard.json")).unwrap();
+        run(&d.join("hard.json"), &["hard.json", "shot.0003.exr"]);
+        std::os::unix::fs::symlink(d.join("input"), d.join("linked")).unwrap();
+        run(
+            &d.join("linked").join("shot.0004.exr"),
+            &["linked/shot.0004.exr", "shot.0004.exr"],
+        );
+        // An output frame that is a hard link to another frame's input.
+        std::fs::create_dir(&out_dir).unwrap();
+        std::fs::hard_link(ip.path(2), out_dir.join("o.0001.exr")).unwrap();
+        refused(
+            &["run", &input, "-o", s(&out), "--backend", "bypass"],
+            &[
+                "output frame 1",
+                "o.0001.exr",
+                "input frame 2",
+                "shot.0002.exr",
+            ],
+        );
+        std::fs::remove_file(out_dir.join("o.0001.exr")).unwrap();
+        // The model's manifest is an input too.
+        std::fs::write(d.join("m.onnx"), b"not a model").unwrap();
+        std::fs::write(d.join("m.json"), b"{}").unwrap();
+        refused(
+            &[
+                "run",
+                &input,
+                "-o",
+                s(&out),
+                "--backend",
+                "bypass",
+                "--model",
+                s(&d.join("m.onnx")),
+                "--report",
+                s(&d.join("m.json")),
+            ],
+            &["m.json", "model manifest"],
+        );
+        assert_eq!(std::fs::read(d.join("m.json")).unwrap(), b"{}");
+        // Nothing was written: inputs unchanged, no output frame.
+        assert!(snapshot(&d.join("input")) == before, "an input changed");
+        assert_eq!(names(&out_dir), Vec::<String>::new());
+    }
+
+    /// Inputs x.0001.exr and x.1001.exr with `-o x.1###.exr`: frame 1's
+    /// output would replace frame 1001's input before it is read.
+    #[test]
+    fn output_pattern_onto_a_later_input_is_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let d = dir.path();
+        let input = small(d);
+        let ip = FramePattern::parse(&input).unwrap();
+        std::fs::rename(ip.path(2), ip.path(1001)).unwrap();
+        std::fs::remove_file(ip.path(3)).unwrap();
+        std::fs::remove_file(ip.path(4)).unwrap();
+        let before = snapshot(&d.join("input"));
+        let out = d.join("input").join("shot.1###.exr");
+        refused(
+            &["run", &input, "-o", s(&out), "--backend", "bypass"],
+            &["output frame 1", "input frame 1001", "shot.1001.exr"],
+        );
+        assert!(snapshot(&d.join("input")) == before, "an input changed");
+    }
+
+    #[test]
+    fn two_outputs_onto_one_path_are_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let d = dir.path();
+        let input = small(d);
+        let out_dir = d.join("out");
+        let out = out_dir.join("o.####.exr");
+        refused(
+            &[
+                "run",
+                &input,
+                "-o",
+                s(&out),
+                "--backend",
+                "bypass",
+                "--report",
+                s(&out_dir.join("o.0002.exr")),
+            ],
+            &["--report", "output frame 2", "o.0002.exr", "same file"],
+        );
+        assert_eq!(names(&out_dir), Vec::<String>::new());
+
+        // demo: its output directory a link to its input directory.
+        let demo = d.join("demo");
+        std::fs::create_dir_all(demo.join("input")).unwrap();
+        std::os::unix::fs::symlink(demo.join("input"), demo.join("output")).unwrap();
+        refused(
+            &["demo", "--out", s(&demo), "--backend", "bypass"],
+            &[
+                "output frame 1",
+                "input frame 1",
+                "frame.0001.exr",
+                "same file",
+            ],
+        );
+        assert_eq!(names(&demo.join("input")), Vec::<String>::new());
+        assert_eq!(names(&demo), ["input", "output"]);
+        // demo: its metrics over the model's manifest (an input).
+        let demo = d.join("demo2");
+        std::fs::create_dir(&demo).unwrap();
+        std::fs::write(demo.join("metrics.onnx"), b"not a model").unwrap();
+        std::fs::write(demo.join("metrics.json"), b"{}").unwrap();
+        refused(
+            &[
+                "demo",
+                "--out",
+                s(&demo),
+                "--model",
+                s(&demo.join("metrics.onnx")),
+            ],
+            &["metrics", "model manifest", "metrics.json"],
+        );
+        assert_eq!(std::fs::read(demo.join("metrics.json")).unwrap(), b"{}");
+        assert_eq!(names(&demo), ["metrics.json", "metrics.onnx"]);
+    }
+}
