@@ -1,9 +1,12 @@
 //! The files a command reads and writes, checked before any work: no file
 //! written may be a file read or another file written (through symbolic
-//! and hard links). The writes themselves stay atomic
-//! (`io::exr::write_atomic`).
+//! and hard links), and every directory written to is made, as the write
+//! would make it, and must take a new file. A run so fails before it reads
+//! its first frame, not after it (or after its last frame, for the report).
+//! The writes themselves stay atomic (`io::exr::write_atomic`).
 
 use std::collections::HashMap;
+use std::io::ErrorKind;
 use std::path::{Component, Path, PathBuf};
 
 use harmonizer_core::{Error, Result};
@@ -132,8 +135,14 @@ impl Files {
         });
     }
 
-    /// Refuses an output that is an input or another output.
+    /// Refuses an output that is an input or another output, then makes
+    /// the outputs' directories and checks that each takes a new file.
     pub fn check(&self) -> Result<()> {
+        self.refuse_overlaps()?;
+        self.prepare_dirs()
+    }
+
+    fn refuse_overlaps(&self) -> Result<()> {
         let mut read: HashMap<Key, usize> = HashMap::new();
         for (i, f) in self.inputs.iter().enumerate() {
             for k in keys(&f.path) {
@@ -165,6 +174,55 @@ impl Files {
                         written.insert(k, i);
                     }
                 }
+            }
+        }
+        Ok(())
+    }
+
+    /// Makes each output's directory as `write_atomic` would, and creates
+    /// and removes the temporary file it would write there
+    /// (`name.tmp-<pid>`), so a failure reads as it would have at the write.
+    fn prepare_dirs(&self) -> Result<()> {
+        let fail = |f: &File, at: &Path, e: &dyn std::fmt::Display| {
+            Error::Io(format!("cannot write {}: {}: {e}", f.name(), at.display()))
+        };
+        let mut probed: Vec<&Path> = Vec::new();
+        for f in &self.outputs {
+            let name = f
+                .path
+                .file_name()
+                .ok_or_else(|| fail(f, &f.path, &"has no file name"))?;
+            if std::fs::symlink_metadata(&f.path).is_ok_and(|m| m.is_dir()) {
+                return Err(Error::Io(format!(
+                    "cannot write {}: a directory is there",
+                    f.name()
+                )));
+            }
+            let dir = dir_of(&f.path);
+            if probed.contains(&dir) {
+                continue;
+            }
+            probed.push(dir);
+            if !dir.is_dir() {
+                std::fs::create_dir_all(dir).map_err(|e| fail(f, dir, &e))?;
+            }
+            let tmp = dir.join(format!(
+                "{}.tmp-{}",
+                name.to_string_lossy(),
+                std::process::id()
+            ));
+            match std::fs::OpenOptions::new()
+                .write(true)
+                .create_new(true)
+                .open(&tmp)
+            {
+                Ok(file) => {
+                    drop(file);
+                    std::fs::remove_file(&tmp).map_err(|e| fail(f, &tmp, &e))?;
+                }
+                // Someone else's file: left alone; the directory takes files.
+                Err(e) if e.kind() == ErrorKind::AlreadyExists => {}
+                Err(e) => return Err(fail(f, &tmp, &e)),
             }
         }
         Ok(())
