@@ -139,6 +139,7 @@ fn tiling(c: &mut Criterion) {
                     pool: device.pool(),
                     kept: None,
                     scene_probe: None,
+                    memory_budget: usize::MAX,
                 };
                 backend
                     .process(
@@ -205,6 +206,7 @@ fn classical(c: &mut Criterion) {
             pool: &pool,
             kept: None,
             scene_probe: None,
+            memory_budget: usize::MAX,
         };
         let mut carry = Carry::default();
         let mut progress = Progress::new(None);

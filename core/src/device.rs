@@ -30,7 +30,12 @@ pub struct DeviceOptions {
     pub threads: usize,
     /// Path of `libonnxruntime.so`; `None` = `HARMONIZER_ORT_LIB`, `ORT_DYLIB_PATH`, the project's `.venv`.
     pub ort_library: Option<PathBuf>,
-    /// Soft limit on working memory in bytes for tiled inference; 0 = no limit.
+    /// Limit on the working memory of one frame in bytes; 0 = the memory
+    /// of the machine (RAM plus swap, or the cgroup's limit when lower).
+    /// A frame whose estimated working set (the session's frame-sized
+    /// buffers and history, see [`crate::Session::memory_estimate`]) exceeds
+    /// it is refused with [`Error::OutOfMemory`] before anything is
+    /// allocated; the neural backend's tiles get what is left.
     pub memory_limit: usize,
     /// The neural model.
     pub model: ModelSource,
@@ -39,6 +44,8 @@ pub struct DeviceOptions {
 /// A device. Create once, share between sessions.
 pub struct Device {
     options: DeviceOptions,
+    /// The memory limit in force and what it is.
+    memory: (usize, &'static str),
     pool: rayon::ThreadPool,
     neural: Mutex<Option<Arc<crate::backend::neural::NeuralModel>>>,
 }
@@ -53,6 +60,14 @@ impl std::fmt::Debug for Device {
 
 impl Device {
     /// Creates a device with its own thread pool (threads are not pinned).
+    ///
+    /// A model given as a file or as bytes is checked here: the file and
+    /// its manifest are read, the manifest validated and the ONNX bytes
+    /// checked to be an ONNX model whose graph has the manifest's input and
+    /// output, then loaded into ONNX Runtime when it can be found. A
+    /// missing or bad model is an error naming it ([`Error::Io`],
+    /// [`Error::Model`]); a missing runtime is not (it is reported when a
+    /// session asks for the neural backend, and `auto` runs classical).
     pub fn new(options: DeviceOptions) -> Result<Arc<Device>> {
         let threads = if options.threads == 0 {
             std::thread::available_parallelism()
@@ -71,11 +86,33 @@ impl Device {
             .thread_name(|i| format!("harmonizer-{i}"))
             .build()
             .map_err(|e| Error::Io(format!("cannot start {threads} worker threads: {e}")))?;
-        Ok(Arc::new(Device {
+        let memory = match options.memory_limit {
+            0 => (machine_memory(), "memory of this machine"),
+            n => (n, "device memory_limit"),
+        };
+        let device = Device {
             options,
+            memory,
             pool,
             neural: Mutex::new(None),
-        }))
+        };
+        if device.options.model != ModelSource::Embedded {
+            crate::backend::neural::NeuralModel::check(&device.options)?;
+            match device.neural_model() {
+                Ok(_) => {}
+                Err(e @ (Error::Model(_) | Error::Io(_))) => return Err(e),
+                // The runtime is missing or another one is loaded: said
+                // when a session asks for the model.
+                Err(_) => {}
+            }
+        }
+        Ok(Arc::new(device))
+    }
+
+    /// The limit a frame's working set must fit, in bytes, and what it is
+    /// (`"device memory_limit"` or `"memory of this machine"`).
+    pub fn memory_budget(&self) -> (usize, &'static str) {
+        self.memory
     }
 
     /// The settings this device was created with.
@@ -105,5 +142,43 @@ impl Device {
             *slot = Some(m.clone());
         }
         Ok(loaded)
+    }
+}
+
+/// The memory this process can use, in bytes: RAM plus swap
+/// (`/proc/meminfo`), or the cgroup's limit when lower; `usize::MAX` where
+/// neither can be read.
+fn machine_memory() -> usize {
+    let kib = |text: &str, key: &str| -> Option<usize> {
+        let line = text.lines().find(|l| l.starts_with(key))?;
+        let n: usize = line[key.len()..]
+            .trim()
+            .trim_end_matches("kB")
+            .trim()
+            .parse()
+            .ok()?;
+        n.checked_mul(1024)
+    };
+    let total = std::fs::read_to_string("/proc/meminfo").ok().and_then(|t| {
+        let ram = kib(&t, "MemTotal:")?;
+        Some(ram.saturating_add(kib(&t, "SwapTotal:").unwrap_or(0)))
+    });
+    let cgroup = [
+        "/sys/fs/cgroup/memory.max",
+        "/sys/fs/cgroup/memory/memory.limit_in_bytes",
+    ]
+    .iter()
+    .find_map(|p| {
+        std::fs::read_to_string(p)
+            .ok()?
+            .trim()
+            .parse::<usize>()
+            .ok()
+    });
+    match (total, cgroup) {
+        (Some(t), Some(c)) => t.min(c),
+        (Some(t), None) => t,
+        (None, Some(c)) => c,
+        (None, None) => usize::MAX,
     }
 }

@@ -30,7 +30,9 @@ pub mod temporal;
 
 pub use device::{Device, DeviceOptions, ModelSource};
 pub use error::{Error, Result};
-pub use frame::{Camera, DepthKind, FrameInput, Image, ImageView, ImageViewMut, PixelFormat};
+pub use frame::{
+    Camera, DepthKind, FrameInput, FrameShape, Image, ImageView, ImageViewMut, PixelFormat,
+};
 pub use params::{ParamValue, Params};
 pub use session::{FrameReport, Session};
 

@@ -5,7 +5,9 @@ use std::sync::Arc;
 use crate::backend::{self, Backend, BackendInput, Carry, KeptColor, Progress, Stages};
 use crate::device::Device;
 use crate::error::{Error, Result};
-use crate::frame::{FrameInput, Image, ImageViewMut, PreparedFrame, Recycler, RgbaImage};
+use crate::frame::{
+    FrameInput, FrameShape, Image, ImageViewMut, PreparedFrame, Recycler, RgbaImage,
+};
 use crate::params::{BackendKind, GapPolicy, ParamValue, Params};
 use crate::temporal::scene_cut::{current_samples, geometric, history_samples, score_samples};
 use crate::temporal::{History, HistoryFrame, HistoryView, Lattice, LatticeRows};
@@ -139,6 +141,7 @@ fn make_backend(device: &Device, params: &Params) -> Result<(Box<dyn Backend>, O
             Err(e) => return Err(e),
         },
     };
+    backend.check_params(params)?;
     Ok((backend, None))
 }
 
@@ -177,7 +180,11 @@ impl Session {
         self.staged.get(name)
     }
 
-    /// Applies staged parameters. A change of backend or context resets the state.
+    /// Applies staged parameters. A change of backend or context resets the
+    /// state. Settings the backend cannot run with (tile settings that
+    /// cannot tile a frame with the neural model, see
+    /// [`Backend::check_params`]) are refused here, naming the parameters;
+    /// on error nothing changes.
     pub fn commit(&mut self) -> Result<()> {
         if self.staged == self.params {
             return Ok(());
@@ -232,24 +239,90 @@ impl Session {
         self.recycler.give(image.data);
     }
 
-    /// Enhances one frame. On error (including cancellation) the temporal
-    /// state is exactly as before the call. Returns the enhanced frame as 4
-    /// planes (RGB premultiplied by A, A coverage after hole filling).
+    /// Estimated bytes of working memory of a frame of `shape` with the
+    /// committed parameters: the prepared frame's planes, the backend's
+    /// output (unless it works in place), the history's copy of the result,
+    /// the history at its capacity (`context_frames` frames of RGBA, depth
+    /// and motion, as kept) and the backend's own frame-sized planes
+    /// ([`Backend::working_planes`]); f32 planes of `width * height`.
+    /// [`Error::OutOfMemory`] when the size arithmetic overflows.
+    pub fn memory_estimate(&self, shape: &FrameShape) -> Result<usize> {
+        let p = &self.params;
+        let b = usize::from;
+        let in_place = self.backend.works_in_place() && p.strength >= 1.0;
+        let color = if in_place { 4 } else { 3 + 4 };
+        let aovs = b(shape.coverage)
+            + b(shape.insert_mask)
+            + b(shape.depth)
+            + 2 * b(shape.motion)
+            + 3 * b(shape.normal && self.backend.uses_normals());
+        let k = p.context_frames;
+        let history = match k {
+            0 => 0,
+            k => 4 + k * (4 + b(shape.depth) + 2 * b(shape.motion)),
+        };
+        let planes = color + aovs + history + self.backend.working_planes(p);
+        let (w, h) = (shape.width, shape.height);
+        w.checked_mul(h)
+            .and_then(|n| n.checked_mul(planes))
+            .and_then(|n| n.checked_mul(std::mem::size_of::<f32>()))
+            .ok_or_else(|| {
+                Error::OutOfMemory(format!(
+                    "frame {w}x{h}: its working set ({planes} planes of {w}x{h} f32 samples) \
+                     is larger than the address space"
+                ))
+            })
+    }
+
+    /// Checks a frame of `shape` against the device's memory limit
+    /// ([`Device::memory_budget`]: `memory_limit`, else the machine's
+    /// memory) before anything is allocated or read: the frame's
+    /// [`Session::memory_estimate`] must fit it, else
+    /// [`Error::OutOfMemory`] naming the size, the estimate and the limit.
+    /// Returns the bytes left to the backend (`usize::MAX`: no limit known).
+    /// [`Session::process`] calls it first; a host may call it before it
+    /// builds the frame's views (the C ABI does).
+    pub fn check_memory(&self, shape: &FrameShape) -> Result<usize> {
+        let need = self.memory_estimate(shape)?;
+        let (limit, what) = self.device.memory_budget();
+        if need > limit {
+            let gib = |n: usize| n as f64 / (1u64 << 30) as f64;
+            return Err(Error::OutOfMemory(format!(
+                "frame {}x{}: its working set needs about {need} bytes ({:.2} GiB), \
+                 more than the {what} of {limit} bytes ({:.2} GiB)",
+                shape.width,
+                shape.height,
+                gib(need),
+                gib(limit)
+            )));
+        }
+        Ok(match limit {
+            usize::MAX => usize::MAX,
+            _ => limit - need,
+        })
+    }
+
+    /// Enhances one frame. On error (including cancellation and a frame
+    /// too large for the memory limit, see [`Session::check_memory`]) the
+    /// temporal state is exactly as before the call. Returns the enhanced
+    /// frame as 4 planes (RGB premultiplied by A, A coverage after hole
+    /// filling).
     pub fn process(
         &mut self,
         input: &FrameInput<'_>,
         progress: Option<&mut dyn FnMut(f64) -> bool>,
     ) -> Result<(Image, FrameReport)> {
         let t0 = std::time::Instant::now();
+        let budget = self.check_memory(&FrameShape::of(input))?;
         let mut progress = Progress::new(progress);
-        let (out, mut report) = match self.process_once(input, &mut progress, false)? {
+        let (out, mut report) = match self.process_once(input, budget, &mut progress, false)? {
             Attempt::Done(out, report) => (out, report),
             Attempt::Cut => {
                 // The backend ran with the history before the detector,
                 // which found a cut: the frame again, from a reset. Its
                 // first run counts as the detector's time.
                 let ms = t0.elapsed().as_secs_f64() * 1e3;
-                match self.process_once(input, &mut progress, true)? {
+                match self.process_once(input, budget, &mut progress, true)? {
                     Attempt::Done(out, mut report) => {
                         report.stages.0.insert(0, ("scene_cut".to_string(), ms));
                         (out, report)
@@ -266,10 +339,12 @@ impl Session {
 
     /// One run of [`Session::process`]: the frame with the history, or
     /// reset as at a scene cut when `cut` (the run after one that found
-    /// the cut: [`Attempt::Cut`], the state untouched).
+    /// the cut: [`Attempt::Cut`], the state untouched); `budget` is the
+    /// backend's memory ([`BackendInput::memory_budget`]).
     fn process_once(
         &mut self,
         input: &FrameInput<'_>,
+        budget: usize,
         progress: &mut Progress<'_>,
         cut: bool,
     ) -> Result<Attempt> {
@@ -309,6 +384,13 @@ impl Session {
                 frame.sanitized_aovs
             ));
         }
+        if frame.sanitized_normals > 0 {
+            report.warnings.push(format!(
+                "frame {}: {} normal samples were NaN or infinite and were replaced by 0",
+                fmt_index(input.frame_index),
+                frame.sanitized_normals
+            ));
+        }
         if frame.huge_motion > 0 {
             report.warnings.push(format!(
                 "frame {}: {} motion vectors are longer than the image ({}x{}); check motion_vector_scale and the motion AOV",
@@ -318,6 +400,27 @@ impl Session {
                 frame.height()
             ));
         }
+
+        // The history's copy of the result, written by the backend's last
+        // pass when it can (nothing after the backend changes the result
+        // unless `strength` is below 1, see `apply_strength`).
+        let capacity = self.params.context_frames;
+        let kept = match (capacity > 0)
+            .then(|| self.recycler.try_take(4 * frame.width() * frame.height()))
+            .transpose()
+        {
+            Ok(data) => data.map(|data| {
+                KeptColor::new(RgbaImage {
+                    width: frame.width(),
+                    height: frame.height(),
+                    data,
+                })
+            }),
+            Err(e) => {
+                frame.recycle(&self.recycler);
+                return Err(e);
+            }
+        };
 
         let sig = Signature {
             width: frame.width(),
@@ -336,7 +439,8 @@ impl Session {
             } else if last != sig {
                 reset = Some(ResetReason::LayoutChanged);
             } else if let (Some(prev), Some(cur)) = (st.last_index, input.frame_index) {
-                if cur != prev.wrapping_add(1) {
+                // Checked: i64::MAX then i64::MIN is a gap, not a wrap.
+                if prev.checked_add(1) != Some(cur) {
                     match self.params.gap_policy {
                         GapPolicy::Reset => {
                             reset = Some(ResetReason::FrameGap);
@@ -395,17 +499,6 @@ impl Session {
         } else {
             st.carry.clone()
         };
-        // The history's copy of the result, written by the backend's last
-        // pass when it can (nothing after the backend changes the result
-        // unless `strength` is below 1, see `apply_strength`).
-        let capacity = self.params.context_frames;
-        let kept = (capacity > 0).then(|| {
-            KeptColor::new(RgbaImage {
-                width: frame.width(),
-                height: frame.height(),
-                data: self.recycler.take(4 * frame.width() * frame.height()),
-            })
-        });
         let backend_input = BackendInput {
             frame: &frame,
             history: &view,
@@ -413,6 +506,7 @@ impl Session {
             pool,
             kept: kept.as_ref().filter(|_| self.params.strength >= 1.0),
             scene_probe: deferred.then_some(&probe),
+            memory_budget: budget,
         };
         progress.set_span(0.05, 0.95);
         let out = match rgba {

@@ -261,6 +261,13 @@ impl Backend for Classical {
         false
     }
 
+    /// The push-pull pyramid of the hole fill (4 planes and a weight over
+    /// at most the frame, a third of it per level below) and the
+    /// harmonization's and shadow's grids.
+    fn working_planes(&self, _params: &crate::params::Params) -> usize {
+        3
+    }
+
     /// The stabilization pass reprojects history frame 0 over every row.
     fn records_scene_probe(&self, params: &crate::params::Params) -> bool {
         params.stabilize && params.temporal_blend > 0.0
@@ -273,15 +280,15 @@ impl Backend for Classical {
         progress: &mut Progress<'_>,
         stages: &mut Stages,
     ) -> Result<Image> {
-        let img = stages.time("prepare", || {
+        let img = stages.time("prepare", || -> Result<Image> {
             let f = input.frame;
             let mut img = match input.history.recycler() {
-                Some(r) => r.image(f.width(), f.height(), 4),
-                None => Image::zeros(f.width(), f.height(), 4),
+                Some(r) => r.try_image(f.width(), f.height(), 4)?,
+                None => Image::try_zeros(f.width(), f.height(), 4)?,
             };
             input.pool.install(|| rgba_into(f, &mut img));
-            img
-        });
+            Ok(img)
+        })?;
         self.process_in_place(img, input, carry, progress, stages)
     }
 

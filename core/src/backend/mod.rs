@@ -140,6 +140,11 @@ pub struct BackendInput<'a> {
     /// (the session then scores the cut from them after the backend, see
     /// [`Backend::records_scene_probe`]); `None`: nothing to record.
     pub scene_probe: Option<&'a LatticeRows<'a>>,
+    /// Bytes of working memory left to the backend beyond the frame-sized
+    /// buffers the session counted (`Session::memory_estimate`) under the
+    /// device's limit; `usize::MAX`: no limit. The neural backend shrinks
+    /// its tiles to fit it.
+    pub memory_budget: usize,
 }
 
 /// A backend turns one prepared frame plus history into the enhanced frame.
@@ -151,6 +156,21 @@ pub trait Backend: Send + Sync {
     /// not prepare it (a frame-sized read and conversion saved).
     fn uses_normals(&self) -> bool {
         true
+    }
+
+    /// Checks at commit that `params` can run on this backend (for the
+    /// neural backend: that the tile settings can tile any frame with its
+    /// model); an error names the parameters.
+    fn check_params(&self, params: &Params) -> Result<()> {
+        let _ = params;
+        Ok(())
+    }
+
+    /// Frame-sized f32 planes of working memory the backend allocates
+    /// besides its output, for the session's memory estimate.
+    fn working_planes(&self, params: &Params) -> usize {
+        let _ = params;
+        0
     }
 
     /// Whether, with `params` and some history, the backend reprojects
@@ -222,15 +242,15 @@ impl Backend for Bypass {
     ) -> Result<Image> {
         let out = stages.time("bypass", || {
             let f = input.frame;
-            let mut out = Image::zeros(f.width(), f.height(), 4);
+            let mut out = Image::try_zeros(f.width(), f.height(), 4)?;
             let n = f.color.len();
             out.data[..3 * n].copy_from_slice(&f.color.data[..3 * n]);
             match &f.coverage {
                 Some(c) => out.data[3 * n..].copy_from_slice(c),
                 None => out.data[3 * n..].fill(1.0),
             }
-            out
-        });
+            Ok::<_, Error>(out)
+        })?;
         progress.report(1.0)?;
         Ok(out)
     }

@@ -1,6 +1,35 @@
 //! The planar f32 image the pipeline works on (channel-major, like the
 //! network's NCHW tensors).
 
+use crate::error::{Error, Result};
+
+/// `width * height * channels` samples, overflow-checked.
+pub fn sample_count(width: usize, height: usize, channels: usize) -> Result<usize> {
+    width
+        .checked_mul(height)
+        .and_then(|n| n.checked_mul(channels))
+        .filter(|&n| n <= isize::MAX as usize / std::mem::size_of::<f32>())
+        .ok_or_else(|| {
+            Error::OutOfMemory(format!(
+                "an image of {width}x{height}x{channels} f32 samples is larger than the address space"
+            ))
+        })
+}
+
+/// A buffer of `len` zeros, or [`Error::OutOfMemory`] naming its size when
+/// the allocator refuses it (`Vec::try_reserve_exact`: never an abort).
+pub fn try_zeros(len: usize) -> Result<Vec<f32>> {
+    let mut v = Vec::new();
+    v.try_reserve_exact(len).map_err(|e| {
+        Error::OutOfMemory(format!(
+            "cannot allocate a buffer of {len} f32 samples ({} bytes): {e}",
+            len.saturating_mul(std::mem::size_of::<f32>())
+        ))
+    })?;
+    v.resize(len, 0.0);
+    Ok(v)
+}
+
 /// A planar f32 image: `channels` planes of `width * height` samples.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Image {
@@ -23,6 +52,17 @@ impl Image {
             channels,
             data: vec![0.0; width * height * channels],
         }
+    }
+
+    /// A zero-filled image, or [`Error::OutOfMemory`] when its size
+    /// overflows or cannot be allocated (no abort).
+    pub fn try_zeros(width: usize, height: usize, channels: usize) -> Result<Image> {
+        Ok(Image {
+            width,
+            height,
+            channels,
+            data: try_zeros(sample_count(width, height, channels)?)?,
+        })
     }
 
     /// A constant image.
@@ -234,24 +274,49 @@ impl Recycler {
 
     /// A buffer of exactly `len` samples, reused when one of that length is
     /// held (contents arbitrary), else newly allocated (zeros).
+    ///
+    /// # Panics
+    /// When a new buffer cannot be allocated (a panic, not an abort: the C
+    /// ABI turns it into an error). The frame-sized buffers of a frame are
+    /// taken with [`Recycler::try_take`] after the session checked the
+    /// frame's working set against the memory limit.
     pub fn take(&self, len: usize) -> Vec<f32> {
+        self.try_take(len).unwrap_or_else(|e| panic!("{e}"))
+    }
+
+    /// [`Recycler::take`], or [`Error::OutOfMemory`] when a new buffer cannot
+    /// be allocated (`Vec::try_reserve_exact`: never an abort).
+    pub fn try_take(&self, len: usize) -> Result<Vec<f32>> {
         let reused = {
             let mut free = self.free.lock().unwrap_or_else(|e| e.into_inner());
             free.iter()
                 .rposition(|b| b.len() == len)
                 .map(|i| free.swap_remove(i))
         };
-        reused.unwrap_or_else(|| vec![0.0; len])
+        match reused {
+            Some(b) => Ok(b),
+            None => try_zeros(len),
+        }
     }
 
     /// An image whose samples are all to be overwritten by the caller.
+    ///
+    /// # Panics
+    /// As [`Recycler::take`].
     pub fn image(&self, width: usize, height: usize, channels: usize) -> Image {
-        Image {
+        self.try_image(width, height, channels)
+            .unwrap_or_else(|e| panic!("{e}"))
+    }
+
+    /// [`Recycler::image`], or [`Error::OutOfMemory`] when the size
+    /// overflows or the buffer cannot be allocated.
+    pub fn try_image(&self, width: usize, height: usize, channels: usize) -> Result<Image> {
+        Ok(Image {
             width,
             height,
             channels,
-            data: self.take(width * height * channels),
-        }
+            data: self.try_take(sample_count(width, height, channels)?)?,
+        })
     }
 
     /// Keeps `buf` for a later [`Recycler::take`] of its length.
@@ -278,14 +343,16 @@ impl Recycler {
 
     /// A buffer of `width * height` zeros: the one kept by
     /// [`Recycler::give_zeroed`] when it has that shape (cleared where it
-    /// was not zero), else newly allocated.
-    pub fn take_zeroed(&self, width: usize, height: usize) -> Vec<f32> {
+    /// was not zero), else newly allocated; [`Error::OutOfMemory`] when the
+    /// size overflows or a new buffer cannot be allocated.
+    pub fn take_zeroed(&self, width: usize, height: usize) -> Result<Vec<f32>> {
+        let len = sample_count(width, height, 1)?;
         let kept = self
             .zeroed
             .lock()
             .unwrap_or_else(|e| e.into_inner())
             .take()
-            .filter(|z| z.width == width && z.data.len() == width * height);
+            .filter(|z| z.width == width && z.data.len() == len);
         match kept {
             Some(Zeroed {
                 mut data, dirty, ..
@@ -295,9 +362,9 @@ impl Recycler {
                         data[y * width + r.x0..y * width + r.x1].fill(0.0);
                     }
                 }
-                data
+                Ok(data)
             }
-            None => vec![0.0; width * height],
+            None => try_zeros(len),
         }
     }
 

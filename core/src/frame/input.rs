@@ -222,6 +222,33 @@ fn copy_mask_box(
     }
 }
 
+/// The samples of the first `channels` channels of `view` that are NaN or
+/// infinite, counted row by row in parallel on `pool` when given; nothing is
+/// written (the normals of a frame whose backend does not read them).
+fn count_non_finite(
+    pool: Option<&rayon::ThreadPool>,
+    view: &ImageView<'_>,
+    channels: usize,
+) -> usize {
+    let (w, h) = (view.width(), view.height());
+    let rows = |ys: std::ops::Range<usize>| -> usize {
+        let mut buf = vec![0.0f32; channels * w];
+        let mut n = 0;
+        for y in ys {
+            let mut outs: Vec<&mut [f32]> = buf.chunks_mut(w).collect();
+            view.read_row_channels(y, &mut outs);
+            n += buf.iter().map(|v| u32::from(!v.is_finite())).sum::<u32>() as usize;
+        }
+        n
+    };
+    let chunks = h.div_ceil(BAND_ROWS);
+    let chunk = |c: usize| rows(c * BAND_ROWS..((c + 1) * BAND_ROWS).min(h));
+    match pool {
+        Some(pool) => pool.install(|| (0..chunks).into_par_iter().map(chunk).sum()),
+        None => (0..chunks).map(chunk).sum(),
+    }
+}
+
 /// An AOV sample made usable: NaN becomes `bad`, anything else is clamped
 /// to `[lo, hi]`; true when it was NaN (counted). Branch-free, so loops of
 /// it vectorize.
@@ -338,6 +365,9 @@ pub struct PreparedFrame {
     pub sanitized: usize,
     /// Samples of the other AOVs that were NaN or infinite and were replaced.
     pub sanitized_aovs: usize,
+    /// Normal samples that were NaN or infinite (replaced by 0 when the
+    /// normals are prepared, counted either way).
+    pub sanitized_normals: usize,
     /// Motion vectors longer than the image in either axis (a wrong scale
     /// or AOV), counted after scaling.
     pub huge_motion: usize,
@@ -396,7 +426,8 @@ impl PreparedFrame {
     /// Like [`PreparedFrame::from_input_on`], with its buffers taken from
     /// `recycler` (give them back with [`PreparedFrame::recycle`]); the
     /// normals are prepared only when `normals` is true (else `normal` is
-    /// `None`, their size is still checked); with `rgba` the color gets a
+    /// `None`; their size and channels are still checked and their NaN and
+    /// infinite samples counted in `sanitized_normals`); with `rgba` the color gets a
     /// 4th plane, the coverage (1 where absent), written in the same pass:
     /// the working image of a backend that works in place
     /// ([`crate::backend::Backend::works_in_place`]), no copy needed.
@@ -492,9 +523,10 @@ impl PreparedFrame {
             ));
         }
 
+        // Fallible: a buffer the allocator refuses is an error, not an abort.
         let take = |ch: usize| match recycler {
-            Some(r) => r.image(w, h, ch),
-            None => Image::zeros(w, h, ch),
+            Some(r) => r.try_image(w, h, ch),
+            None => Image::try_zeros(w, h, ch),
         };
         let mut sanitized_aovs = 0usize;
         // The insert mask, clamped to [0, 1] (NaN is 0, counted; zeros are
@@ -503,38 +535,44 @@ impl PreparedFrame {
         // reads, then only the box is written into a buffer of zeros (an
         // insert usually covers a small part of the frame).
         let mut insert = None;
-        let insert_mask = input.insert_mask.as_ref().map(|v| {
-            let (bad, found) = scan_mask(pool, v);
-            sanitized_aovs += bad;
-            insert = found;
-            let mut data = match recycler {
-                Some(r) => r.take_zeroed(w, h),
-                None => vec![0.0; w * h],
-            };
-            if let Some(r) = found {
-                copy_mask_box(pool, v, &mut data, r);
-            }
-            data
-        });
+        let insert_mask = input
+            .insert_mask
+            .as_ref()
+            .map(|v| -> Result<Vec<f32>> {
+                let (bad, found) = scan_mask(pool, v);
+                sanitized_aovs += bad;
+                insert = found;
+                let mut data = match recycler {
+                    Some(r) => r.take_zeroed(w, h)?,
+                    None => super::try_zeros(super::sample_count(w, h, 1)?)?,
+                };
+                if let Some(r) = found {
+                    copy_mask_box(pool, v, &mut data, r);
+                }
+                Ok(data)
+            })
+            .transpose()?;
         // NaN becomes `bad` (counted), everything else is clamped to [lo, hi].
         let mut read_planes = |v: &Option<ImageView<'_>>, ch: usize, lo: f32, hi: f32, bad: f32| {
-            v.as_ref().map(|v| {
-                let mut img = take(ch);
-                // By value (`move`): with the bounds behind references the
-                // loop does not vectorize (three times slower).
-                sanitized_aovs +=
-                    read_image(pool, v, &mut img, move |_, x| sanitize(x, lo, hi, bad));
-                img
-            })
+            v.as_ref()
+                .map(|v| -> Result<Image> {
+                    let mut img = take(ch)?;
+                    // By value (`move`): with the bounds behind references the
+                    // loop does not vectorize (three times slower).
+                    sanitized_aovs +=
+                        read_image(pool, v, &mut img, move |_, x| sanitize(x, lo, hi, bad));
+                    Ok(img)
+                })
+                .transpose()
         };
         // Coverage: NaN becomes 0 (counted), the rest is clamped to [0, 1].
         // It is read in the color pass, row by row beside the color, so
         // the alpha plane is its copy while the row is still in cache.
         let cov_fix = |x: &mut f32| sanitize(x, 0.0, 1.0, 0.0);
         let cov_view = input.coverage.as_ref();
-        let mut coverage = cov_view.map(|_| take(1).data);
+        let mut coverage = cov_view.map(|_| take(1)).transpose()?.map(|i| i.data);
         let color_planes = if rgba { 4 } else { 3 };
-        let mut color = take(color_planes);
+        let mut color = take(color_planes)?;
         let lattice = Lattice::new(w, h);
         let scene_rows = LatticeRows::new(&lattice);
         // The `fix` functions are written without branches (selects), so
@@ -581,17 +619,32 @@ impl PreparedFrame {
         );
         let (cov_bad, holes) = (cov_found.n, cov_found.bbox);
 
-        let mut depth = read_planes(&input.depth, 1, 0.0, f32::MAX, f32::MAX).map(|i| i.data);
-        let normal = if normals {
-            read_planes(&input.normal, 3, -f32::MAX, f32::MAX, 0.0)
-        } else {
-            None
+        let mut depth = read_planes(&input.depth, 1, 0.0, f32::MAX, f32::MAX)?.map(|i| i.data);
+        // Normals: NaN and infinite samples are 0 (counted apart, see
+        // `sanitized_normals`); read into planes only for a backend that
+        // reads them, else only counted (one read-only pass).
+        let mut sanitized_normals = 0;
+        let normal = match input.normal.as_ref() {
+            Some(v) if normals => {
+                let mut img = take(3)?;
+                sanitized_normals = read_image(pool, v, &mut img, |_, x| {
+                    let bad = !x.is_finite();
+                    *x = if bad { 0.0 } else { *x };
+                    bad
+                });
+                Some(img)
+            }
+            Some(v) => {
+                sanitized_normals = count_non_finite(pool, v, 3);
+                None
+            }
+            None => None,
         };
         let limit = 4.0 * (w.max(h) as f32);
         let (wf, hf) = (w as f32, h as f32);
         let mut huge_motion = 0;
-        let motion = input.motion.as_ref().map(|v| {
-            let mut img = take(2);
+        let motion = input.motion.as_ref().map(|v| -> Result<Image> {
+            let mut img = take(2)?;
             let (bad, huge) = read_image_with(
                 pool,
                 v,
@@ -616,8 +669,9 @@ impl PreparedFrame {
             );
             sanitized_aovs += bad;
             huge_motion = huge.n;
-            img
+            Ok(img)
         });
+        let motion = motion.transpose()?;
         if depth_kind == DepthKind::Euclidean {
             if let (Some(d), Some(cam)) = (depth.as_mut(), input.camera.as_ref()) {
                 let un = cam.unprojector(w, h);
@@ -653,6 +707,7 @@ impl PreparedFrame {
             frame_index: input.frame_index,
             sanitized,
             sanitized_aovs: sanitized_aovs + cov_bad,
+            sanitized_normals,
             huge_motion,
         })
     }

@@ -4,10 +4,12 @@
 mod camera;
 mod image;
 mod input;
+mod shape;
 mod view;
 
 pub use camera::Camera;
-pub use image::{Image, Recycler, RgbaImage};
+pub use image::{sample_count, try_zeros, Image, Recycler, RgbaImage};
 pub(crate) use input::recycle_mask;
 pub use input::{DepthKind, FrameInput, PreparedFrame, Scan};
+pub use shape::FrameShape;
 pub use view::{ImageView, ImageViewMut, PixelFormat};

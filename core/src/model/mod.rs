@@ -6,6 +6,7 @@
 //! [`embedded`] returns `None` and the library runs the classical backend.
 
 mod manifest;
+pub mod onnx;
 
 pub use manifest::{
     Encoding, Exposure, InputChannel, Manifest, TensorSpec, MANIFEST_FORMAT_VERSION,

@@ -282,7 +282,7 @@ impl<'a> HistoryView<'a> {
         let hk = self.frame(k);
         let cur = self.current;
         let consecutive = |newer: Option<i64>, older: Option<i64>| match (newer, older) {
-            (Some(a), Some(b)) => a == b.wrapping_add(1),
+            (Some(a), Some(b)) => b.checked_add(1) == Some(a),
             _ => true,
         };
         let chain_ok = cur.motion.is_some()
@@ -639,6 +639,7 @@ mod tests {
                 frame_index: None,
                 sanitized: 0,
                 sanitized_aovs: 0,
+                sanitized_normals: 0,
                 huge_motion: 0,
                 scan: None,
                 scene_samples: None,

@@ -517,6 +517,7 @@ fn run_backend(f: &Frame, params: &Params, carry: &mut Carry, dev: &Device) -> I
         pool: dev.pool(),
         kept: None,
         scene_probe: None,
+        memory_budget: usize::MAX,
     };
     let mut progress = Progress::new(None);
     let mut stages = Stages::default();

@@ -302,6 +302,7 @@ fn run_backend(
         pool: device.pool(),
         kept: None,
         scene_probe: None,
+        memory_budget: usize::MAX,
     };
     let backend = Neural {
         model: model.clone(),
@@ -512,15 +513,21 @@ fn memory_limit_forces_smaller_tiles() {
     let model = free.neural_model().unwrap().unwrap();
     let params = Params::default();
     let unlimited = model.tile_plan(w, h, &params).unwrap();
-    let limit = model.working_bytes(&unlimited) - 1;
+    // The session's frame buffers come first; the tiles get what is left.
+    let frame = session(free.clone(), &[])
+        .memory_estimate(&harmonizer_core::FrameShape::of(&input))
+        .unwrap();
+    let limit = frame + model.working_bytes(&unlimited) - 1;
     let tight = device_edited("box3", limit, |_| {});
     let tight_model = tight.neural_model().unwrap().unwrap();
-    let plan = tight_model.tile_plan(w, h, &params).unwrap();
+    let plan = tight_model
+        .tile_plan_within(w, h, &params, limit - frame)
+        .unwrap();
     assert!(
         plan.x.window < unlimited.x.window,
         "{plan:?} vs {unlimited:?}"
     );
-    assert!(tight_model.working_bytes(&plan) <= limit);
+    assert!(tight_model.working_bytes(&plan) <= limit - frame);
     assert!(plan.len() > unlimited.len());
     let a = session(free, &[]).process(&input, None).unwrap().0;
     let b = session(tight.clone(), &[]).process(&input, None).unwrap().0;
@@ -806,8 +813,20 @@ fn auto_without_the_runtime_runs_classical_and_says_why() {
     );
 }
 
+/// The error of a device made with fixture `name` and its manifest changed
+/// by `edit`: the model is checked when the device is made.
 fn model_error(name: &str, edit: impl FnOnce(&mut serde_json::Value)) -> String {
-    let e = device_edited(name, 0, edit).neural_model().unwrap_err();
+    let mut m = fixture_manifest(name);
+    edit(&mut m);
+    let onnx = std::fs::read(fixture(name)).unwrap();
+    let e = Device::new(options(
+        ModelSource::Bytes {
+            onnx,
+            manifest: m.to_string(),
+        },
+        0,
+    ))
+    .unwrap_err();
     assert!(matches!(e, Error::Model(_)), "{e}");
     e.to_string()
 }
@@ -838,8 +857,7 @@ fn bad_manifests_and_models_name_the_field() {
         "{e}"
     );
     // The fixture whose graph input is "x" while its manifest says "input".
-    let e = device_file("wrong_name")
-        .neural_model()
+    let e = Device::new(options(ModelSource::File(fixture("wrong_name")), 0))
         .unwrap_err()
         .to_string();
     assert!(
@@ -851,11 +869,127 @@ fn bad_manifests_and_models_name_the_field() {
     let lone = dir.path().join("lone.onnx");
     std::fs::copy(fixture("identity"), &lone).unwrap();
     let e = Device::new(options(ModelSource::File(lone), 0))
-        .unwrap()
-        .neural_model()
         .unwrap_err()
         .to_string();
     assert!(e.contains("lone.json"), "{e}");
+}
+
+/// Regression (issue 12): a missing or garbage model was accepted by
+/// `Device::new` and refused only when a session asked for it. The device
+/// reads and checks it (manifest, ONNX bytes) and refuses naming the path,
+/// with ONNX Runtime or without it.
+#[test]
+fn a_missing_or_garbage_model_is_refused_by_the_device() {
+    let dir = tempfile::tempdir().unwrap();
+    let garbage = dir.path().join("garbage.onnx");
+    std::fs::write(&garbage, b"this is not an onnx model at all").unwrap();
+    std::fs::copy(
+        fixture("identity").with_extension("json"),
+        garbage.with_extension("json"),
+    )
+    .unwrap();
+    let missing = dir.path().join("no_such_model.onnx");
+    let no_runtime = Some(PathBuf::from("/nonexistent/libonnxruntime.so.1.31.1"));
+    for ort_library in [Some(ort_lib()), no_runtime.clone()] {
+        let with = |model: ModelSource| DeviceOptions {
+            ort_library: ort_library.clone(),
+            ..options(model, 0)
+        };
+        let e = Device::new(with(ModelSource::File(missing.clone()))).unwrap_err();
+        assert!(matches!(e, Error::Io(_)), "{e}");
+        assert!(e.to_string().contains("no_such_model.onnx"), "{e}");
+        let e = Device::new(with(ModelSource::File(garbage.clone()))).unwrap_err();
+        assert!(matches!(e, Error::Model(_)), "{e}");
+        assert!(
+            e.to_string().contains("garbage.onnx") && e.to_string().contains("not an ONNX model"),
+            "{e}"
+        );
+        let e = Device::new(with(ModelSource::Bytes {
+            onnx: b"\x08\x07garbage".to_vec(),
+            manifest: std::fs::read_to_string(fixture("identity").with_extension("json")).unwrap(),
+        }))
+        .unwrap_err();
+        assert!(
+            matches!(e, Error::Model(_)) && e.to_string().contains("in-memory model"),
+            "{e}"
+        );
+        let e = Device::new(with(ModelSource::Bytes {
+            onnx: std::fs::read(fixture("identity")).unwrap(),
+            manifest: "{ not json".into(),
+        }))
+        .unwrap_err();
+        assert!(matches!(e, Error::Model(_)), "{e}");
+        // The graph's names are checked without the runtime too.
+        let e = Device::new(with(ModelSource::File(fixture("wrong_name")))).unwrap_err();
+        assert!(e.to_string().contains("\"x\""), "{e}");
+        // A good model is accepted either way (without the runtime, the
+        // session says so when it asks for the neural backend).
+        let d = Device::new(with(ModelSource::File(fixture("identity")))).unwrap();
+        assert_eq!(d.neural_model().is_ok(), ort_library != no_runtime);
+    }
+}
+
+/// Regression (issue 12): tile settings that pass `set` and `commit` but
+/// make every frame wider than a tile fail. They are refused at commit
+/// (and by `Session::new`), naming the parameters, and nothing changes.
+#[test]
+fn tile_settings_that_cannot_tile_are_refused_at_commit() {
+    let (w, h) = (333, 187);
+    let rgb = hdr_rgb(w, h, 50);
+    let input = FrameInput::new(ImageView::from_f32("color", &rgb, w, h, 3).unwrap());
+    let device = device_file("box3");
+    let mut s = session(device.clone(), &[]);
+    let before = s.process(&input, None).unwrap().0;
+    // box3: tile_size 128, tile_overlap 8, spatial_multiple 16.
+    for (tile, overlap, names) in [
+        (32, 16, "tile_size 32 and tile_overlap 16"),
+        (1, 0, "tile_size 1 and tile_overlap 0 (the model's 8)"),
+        (64, 64, "tile_size 64 and tile_overlap 64"),
+        (0, 40, "tile_size 0 (the model's 128) and tile_overlap 40"),
+    ] {
+        s.set("tile_size", ParamValue::Int(tile)).unwrap();
+        s.set("tile_overlap", ParamValue::Int(overlap)).unwrap();
+        let e = s.commit().unwrap_err();
+        let msg = e.to_string();
+        assert!(matches!(e, Error::Invalid(_)), "{msg}");
+        assert!(msg.contains(names) && msg.contains("box3"), "{msg}");
+        assert!(msg.contains("use tile_size >="), "{msg}");
+        // Frames of some widths fail with these settings; the committed
+        // settings stay the old ones.
+        assert_eq!(s.params().tile_size, 0);
+        let params = Params {
+            tile_size: tile as usize,
+            tile_overlap: overlap as usize,
+            ..Params::default()
+        };
+        let model = device.neural_model().unwrap().unwrap();
+        assert!(
+            (1..1000).any(|n| model.tile_plan(n, 16, &params).is_err()),
+            "{tile} {overlap}: some frame widths fail"
+        );
+        let mut p = params.clone();
+        p.backend = harmonizer_core::params::BackendKind::Neural;
+        assert!(Session::new(device.clone(), p).is_err());
+    }
+    s.set("tile_size", ParamValue::Int(0)).unwrap();
+    s.set("tile_overlap", ParamValue::Int(0)).unwrap();
+    s.commit().unwrap();
+    assert!(s.process(&input, None).unwrap().0 == before);
+    // The smallest tile the message names works, one less does not.
+    s.set("tile_size", ParamValue::Int(32)).unwrap();
+    s.set("tile_overlap", ParamValue::Int(16)).unwrap();
+    let msg = s.commit().unwrap_err().to_string();
+    let smallest: i64 = msg
+        .split("use tile_size >= ")
+        .nth(1)
+        .and_then(|t| t.split_whitespace().next())
+        .and_then(|n| n.parse().ok())
+        .unwrap_or_else(|| panic!("{msg}"));
+    s.set("tile_size", ParamValue::Int(smallest - 1)).unwrap();
+    assert!(s.commit().is_err());
+    s.set("tile_size", ParamValue::Int(smallest)).unwrap();
+    s.commit().unwrap();
+    s.process(&input, None).unwrap();
 }
 
 #[test]

@@ -329,3 +329,155 @@ fn warnings_for_nan_inputs_and_huge_motion_vectors() {
     );
     assert!(out.data.iter().all(|v| v.is_finite()));
 }
+
+/// Regression (issue 2): a frame too large to allocate aborted the process
+/// in the recycler's allocation. It is refused before anything is
+/// allocated or read, naming the size and the limit, and the session goes
+/// on as if the call never happened.
+#[test]
+fn a_frame_too_large_for_memory_is_refused_and_changes_nothing() {
+    use harmonizer_core::frame::{try_zeros, Recycler};
+    use harmonizer_core::FrameShape;
+    let seq = sequence(0, 3, W, H);
+    let dev = device(2);
+    // Without a limit: the machine's memory (frames of 2^20 x 2^20 and
+    // 60000 x 60000 need terabytes).
+    let s = session(&dev, &[]);
+    assert_eq!(dev.memory_budget().1, "memory of this machine");
+    for side in [1usize << 20, 60000] {
+        let e = s.check_memory(&FrameShape::new(side, side)).unwrap_err();
+        let msg = e.to_string();
+        assert!(matches!(e, Error::OutOfMemory(_)), "{msg}");
+        assert!(
+            msg.contains(&format!("{side}x{side}")) && msg.contains("memory of this machine"),
+            "{msg}"
+        );
+    }
+    // Sizes whose arithmetic overflows.
+    let e = s
+        .check_memory(&FrameShape::new(usize::MAX / 2, 3))
+        .unwrap_err();
+    assert!(matches!(e, Error::OutOfMemory(_)), "{e}");
+    // An allocation the allocator refuses is an error, not an abort.
+    assert!(matches!(try_zeros(1 << 60), Err(Error::OutOfMemory(_))));
+    let r = Recycler::new();
+    assert!(matches!(r.try_take(1 << 44), Err(Error::OutOfMemory(_))));
+    assert!(matches!(
+        r.try_image(1 << 30, 1 << 30, 4),
+        Err(Error::OutOfMemory(_))
+    ));
+    assert!(matches!(
+        r.take_zeroed(1 << 40, 1 << 30),
+        Err(Error::OutOfMemory(_))
+    ));
+
+    // With memory_limit 64 MiB: 20000 x 20000 is refused, and so is a frame
+    // the session holds (a 2048 x 2048 color buffer, zeros never read: the
+    // refusal comes first), through `process`.
+    let limit = 64 << 20;
+    let small = Device::new(DeviceOptions {
+        threads: 2,
+        memory_limit: limit,
+        ..DeviceOptions::default()
+    })
+    .unwrap();
+    assert_eq!(small.memory_budget(), (limit, "device memory_limit"));
+    let mut reference = session(&small, &[]);
+    let expected = run(&mut reference, &seq, 0, 0, 3);
+    let mut s = session(&small, &[]);
+    run(&mut s, &seq, 0, 0, 1);
+    let e = s.check_memory(&FrameShape::new(20000, 20000)).unwrap_err();
+    assert!(
+        e.to_string().contains("20000x20000") && e.to_string().contains("67108864"),
+        "{e}"
+    );
+    let big = vec![0.0f32; 2048 * 2048 * 3];
+    let mut huge = FrameInput::new(ImageView::from_f32("color", &big, 2048, 2048, 3).unwrap());
+    huge.frame_index = Some(2);
+    let e = s.process(&huge, None).unwrap_err();
+    let msg = e.to_string();
+    assert!(matches!(e, Error::OutOfMemory(_)), "{msg}");
+    assert!(
+        msg.contains("2048x2048") && msg.contains("device memory_limit of 67108864 bytes"),
+        "{msg}"
+    );
+    assert_eq!(s.history_len(), 2);
+    // The same frame number again: nothing of the failed call was kept.
+    let rest = run(&mut s, &seq, 0, 2, 3);
+    for (t, (a, b)) in rest.iter().zip(&expected[2..]).enumerate() {
+        assert!(
+            same(a, b),
+            "frame {} after the refused frame differs",
+            t + 2
+        );
+    }
+}
+
+/// Regression (issue 11): frame numbers i64::MAX then i64::MIN counted as
+/// consecutive (wrapping arithmetic); they are a gap.
+#[test]
+fn frame_numbers_do_not_wrap_around() {
+    let seq = sequence(0, 2, W, H);
+    let dev = device(2);
+    let mut s = session(&dev, &[]);
+    s.process(&input(&seq[0], i64::MAX), None).unwrap();
+    let (_, r) = s.process(&input(&seq[1], i64::MIN), None).unwrap();
+    assert_eq!(r.reset, Some(ResetReason::FrameGap));
+    assert_eq!(r.history_used, 0);
+    // With gap_policy keep, a kept gap warns.
+    let mut keep = session(&dev, &[("gap_policy", ParamValue::Str("keep".into()))]);
+    keep.process(&input(&seq[0], i64::MAX), None).unwrap();
+    let (_, r) = keep.process(&input(&seq[1], i64::MIN), None).unwrap();
+    assert_eq!(r.reset, None);
+    assert!(
+        r.warnings.iter().any(|w| w.contains("not consecutive")),
+        "{:?}",
+        r.warnings
+    );
+    let (_, r) = s.process(&input(&seq[2], i64::MIN + 1), None).unwrap();
+    assert_eq!(r.reset, None, "i64::MIN + 1 follows i64::MIN");
+}
+
+/// Regression (issue 13): normals were accepted and ignored, NaN in them
+/// unreported. They are validated like the other AOVs: size and channels
+/// checked, NaN and infinite samples counted and warned; the classical
+/// backend does not read them, so its output is the same with or without.
+#[test]
+fn normals_are_validated_and_their_bad_samples_warned() {
+    let seq = sequence(0, 1, W, H);
+    let dev = device(2);
+    let mut normal: Vec<f32> = (0..W * H).flat_map(|_| [0.0f32, 0.0, -1.0]).collect();
+    normal[4] = f32::NAN;
+    normal[9] = f32::INFINITY;
+    normal[10] = f32::NEG_INFINITY;
+    for backend in ["classical", "bypass"] {
+        let set = [("backend", ParamValue::Str(backend.into()))];
+        let mut with = session(&dev, &set);
+        let mut without = session(&dev, &set);
+        for t in 0..2 {
+            let mut f = input(&seq[t as usize], 7 + t);
+            let (b, rb) = without.process(&f, None).unwrap();
+            f.normal = Some(ImageView::from_f32("normal", &normal, W, H, 3).unwrap());
+            let (a, ra) = with.process(&f, None).unwrap();
+            assert!(same(&a, &b), "{backend}: normals change the output");
+            let all = ra.warnings.join("\n");
+            assert!(
+                all.contains(&format!(
+                    "frame {}: 3 normal samples were NaN or infinite",
+                    7 + t
+                )),
+                "{backend}: {all}"
+            );
+            assert!(!rb.warnings.join("\n").contains("normal"));
+        }
+        // Wrong size and channel count are refused, naming the AOV.
+        let two = vec![0.0f32; W * H * 2];
+        let mut f = input(&seq[0], 100);
+        f.normal = Some(ImageView::from_f32("normal", &two, W, H, 2).unwrap());
+        let e = with.process(&f, None).unwrap_err().to_string();
+        assert!(e.contains("normal") && e.contains("3 channel"), "{e}");
+        f.normal = Some(ImageView::from_f32("normal", &two, W / 2, H, 3).unwrap());
+        let e = with.process(&f, None).unwrap_err().to_string();
+        assert!(e.contains("normal") && e.contains("differs"), "{e}");
+    }
+}

@@ -619,6 +619,7 @@ fn lattice_samples_from_prepare_and_stabilization_are_the_detectors() {
             pool: &pool,
             kept: None,
             scene_probe: Some(&probe),
+            memory_budget: usize::MAX,
         };
         assert!(Classical.records_scene_probe(&params));
         Classical

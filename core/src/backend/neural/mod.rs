@@ -91,7 +91,84 @@ pub fn manifest_path(onnx: &Path) -> PathBuf {
     onnx.with_extension("json")
 }
 
+/// The ONNX bytes, manifest text, and the names of both in messages, of a
+/// model given as a file or as bytes (`None` for the embedded model).
+type Source<'a> = (
+    std::borrow::Cow<'a, [u8]>,
+    std::borrow::Cow<'a, str>,
+    String,
+    String,
+);
+
+/// Reads the model `options` name from its file and manifest file, or
+/// borrows the bytes given; `Ok(None)` for the embedded model.
+fn read_source(options: &DeviceOptions) -> Result<Option<Source<'_>>> {
+    Ok(match &options.model {
+        ModelSource::Embedded => None,
+        ModelSource::File(path) => {
+            let json_path = manifest_path(path);
+            let onnx = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+            let manifest = std::fs::read_to_string(&json_path).map_err(|e| {
+                Error::Model(format!(
+                    "model {}: cannot read its manifest {}: {e}",
+                    path.display(),
+                    json_path.display()
+                ))
+            })?;
+            Some((
+                onnx.into(),
+                manifest.into(),
+                path.display().to_string(),
+                json_path.display().to_string(),
+            ))
+        }
+        ModelSource::Bytes { onnx, manifest } => Some((
+            onnx.as_slice().into(),
+            manifest.as_str().into(),
+            "in-memory model".to_string(),
+            "of in-memory model".to_string(),
+        )),
+    })
+}
+
+/// Checks without ONNX Runtime that `onnx` is an ONNX model whose graph has
+/// the manifest's input and output ([`crate::model::onnx::inspect`]).
+fn check_graph(onnx: &[u8], manifest: &Manifest, origin: &str) -> Result<()> {
+    let names = crate::model::onnx::inspect(onnx)
+        .map_err(|e| model_err(origin, format!("not an ONNX model: {e}")))?;
+    for (spec, list, what) in [
+        (&manifest.input, &names.inputs, "input"),
+        (&manifest.output, &names.outputs, "output"),
+    ] {
+        if !list.contains(&spec.name) {
+            let listed: Vec<String> = list.iter().map(|n| format!("{n:?}")).collect();
+            return Err(model_err(
+                origin,
+                format!(
+                    "manifest field {what}.name is {:?} but the model's {what}s are {}",
+                    spec.name,
+                    listed.join(", ")
+                ),
+            ));
+        }
+    }
+    Ok(())
+}
+
 impl NeuralModel {
+    /// Checks the model `options` name without ONNX Runtime: the file and
+    /// its manifest are read, the manifest is validated, and the ONNX bytes
+    /// must be an ONNX model whose graph has the manifest's input and
+    /// output names. Errors name the file (or "in-memory model"). The
+    /// embedded model is not checked (it was checked when it was built).
+    pub fn check(options: &DeviceOptions) -> Result<()> {
+        if let Some((onnx, manifest, origin, manifest_origin)) = read_source(options)? {
+            let manifest = Manifest::from_json(&manifest, &manifest_origin)?;
+            check_graph(&onnx, &manifest, &origin)?;
+        }
+        Ok(())
+    }
+
     /// Loads the model the options name; `Ok(None)` for `Embedded` when this
     /// build embeds no model.
     pub fn load(options: &DeviceOptions) -> Result<Option<Arc<NeuralModel>>> {
@@ -100,27 +177,10 @@ impl NeuralModel {
                 Some(m) => Self::from_bytes(m.onnx, m.manifest, "embedded", options).map(Some),
                 None => Ok(None),
             },
-            ModelSource::File(path) => {
-                let json_path = manifest_path(path);
-                let onnx = std::fs::read(path).map_err(|e| Error::io(path, e))?;
-                let manifest = std::fs::read_to_string(&json_path).map_err(|e| {
-                    Error::Model(format!(
-                        "model {}: cannot read its manifest {}: {e}",
-                        path.display(),
-                        json_path.display()
-                    ))
-                })?;
-                Self::load_parts(
-                    &onnx,
-                    &manifest,
-                    &path.display().to_string(),
-                    &json_path.display().to_string(),
-                    options,
-                )
-                .map(Some)
-            }
-            ModelSource::Bytes { onnx, manifest } => {
-                Self::from_bytes(onnx, manifest, "in-memory model", options).map(Some)
+            _ => {
+                let (onnx, manifest, origin, manifest_origin) =
+                    read_source(options)?.expect("a file or bytes");
+                Self::load_parts(&onnx, &manifest, &origin, &manifest_origin, options).map(Some)
             }
         }
     }
@@ -143,6 +203,7 @@ impl NeuralModel {
         options: &DeviceOptions,
     ) -> Result<Arc<NeuralModel>> {
         let manifest = Manifest::from_json(manifest_text, manifest_origin)?;
+        check_graph(onnx, &manifest, origin)?;
         let (env, runtime) = runtime::environment(options.ort_library.as_deref())?;
         let threads = if options.threads == 0 {
             std::thread::available_parallelism()
@@ -234,24 +295,78 @@ impl NeuralModel {
 
     /// The tiling of a `width` x `height` frame under `params`: the requested
     /// tile size, shrunk (in steps of `spatial_multiple`) until the working
-    /// memory fits the device's `memory_limit`.
+    /// memory fits the device's `memory_limit` (the whole limit: see
+    /// [`NeuralModel::tile_plan_within`] for what a session leaves).
     pub fn tile_plan(&self, width: usize, height: usize, params: &Params) -> Result<TilePlan> {
+        let budget = match self.memory_limit {
+            0 => usize::MAX,
+            n => n,
+        };
+        self.tile_plan_within(width, height, params, budget)
+    }
+
+    /// Checks that the tile settings of `params` (`tile_size`,
+    /// `tile_overlap`, 0 = the manifest's) can tile a frame of any size with
+    /// this model (its `spatial_multiple` and static size), as
+    /// [`tiling::check_settings`] finds; the error names both parameters.
+    pub fn check_params(&self, params: &Params) -> Result<()> {
+        let m = self.manifest.spatial_multiple;
+        let (tile, overlap) = (self.tile_size(params), self.tile_overlap(params));
+        let named = |name: &str, set: usize, used: usize| match set {
+            0 => format!("{name} 0 (the model's {used})"),
+            _ => format!("{name} {used}"),
+        };
+        for fixed in [self.fixed.0, self.fixed.1] {
+            if let Err(why) = tiling::check_settings(tile, overlap, m, fixed) {
+                let fix = match fixed {
+                    Some(f) => format!(
+                        "the model's input is {f} px, so tile_size does not apply; lower tile_overlap"
+                    ),
+                    None => match tiling::smallest_tile(overlap, m) {
+                        Some(t) => format!("use tile_size >= {t} with tile_overlap {overlap}"),
+                        None => "lower tile_overlap".to_string(),
+                    },
+                };
+                return Err(Error::invalid(format!(
+                    "parameters {} and {} cannot tile frames with model {} (spatial_multiple {m}): {why}; {fix}",
+                    named("tile_size", params.tile_size, tile),
+                    named("tile_overlap", params.tile_overlap, overlap),
+                    self.name,
+                )));
+            }
+        }
+        Ok(())
+    }
+
+    /// [`NeuralModel::tile_plan`] with the tiles' working memory
+    /// ([`NeuralModel::working_bytes`]) kept within `budget` bytes
+    /// (`usize::MAX`: no limit).
+    pub fn tile_plan_within(
+        &self,
+        width: usize,
+        height: usize,
+        params: &Params,
+        budget: usize,
+    ) -> Result<TilePlan> {
         let m = self.manifest.spatial_multiple;
         let overlap = self.tile_overlap(params);
         let requested = self.tile_size(params);
         let plan = |tile: usize| TilePlan::new(width, height, tile, overlap, m, self.fixed);
         let mut tile = requested;
         let mut p = plan(tile).map_err(|e| Error::invalid(format!("model {}: {e}", self.name)))?;
-        if self.memory_limit == 0 || self.fixed.0.is_some() && self.fixed.1.is_some() {
+        if budget == usize::MAX || self.fixed.0.is_some() && self.fixed.1.is_some() {
             return Ok(p);
         }
-        while self.working_bytes(&p) > self.memory_limit {
+        while self.working_bytes(&p) > budget {
             let smaller = (p.x.window.max(p.y.window).min(tile) / m).saturating_sub(1) * m;
             if smaller < 4 * overlap + 2 || smaller < m {
+                let limit = match self.memory_limit {
+                    0 => "the memory of this machine".to_string(),
+                    n => format!("memory_limit {n} bytes"),
+                };
                 return Err(Error::OutOfMemory(format!(
-                    "memory_limit {} bytes: a {width}x{height} frame needs at least {} bytes with model {} \
-                     (tiles of {}x{} px, tile_overlap {overlap})",
-                    self.memory_limit,
+                    "{limit} ({budget} left for the tiles): a {width}x{height} frame needs \
+                     at least {} bytes with model {} (tiles of {}x{} px, tile_overlap {overlap})",
                     self.working_bytes(&p),
                     self.name,
                     p.x.window,
@@ -584,7 +699,7 @@ impl Neural {
         let frame = input.frame;
         let pool = input.pool;
         let (w, h) = (frame.width(), frame.height());
-        let plan = model.tile_plan(w, h, input.params)?;
+        let plan = model.tile_plan_within(w, h, input.params, input.memory_budget)?;
         let codec = stages.time("encode_stats", || {
             ColorCodec::for_frame(&m.encoding, &frame.color, frame.coverage.as_deref())
         });
@@ -646,7 +761,7 @@ impl Neural {
             frame.coverage.as_deref()
         };
         let mut tensor = model.buffer(cin * np);
-        let mut out = Image::zeros(w, h, 4);
+        let mut out = Image::try_zeros(w, h, 4)?;
         for (t, tile) in plan.tiles().enumerate() {
             stages.time("tile_input", || {
                 fill_window(&mut tensor.data, &sources, &codec, (w, h), tile, pool)
@@ -835,6 +950,20 @@ impl Backend for Neural {
             .channels
             .iter()
             .any(|ch| matches!(ch, InputChannel::Normal(_)))
+    }
+
+    fn check_params(&self, params: &Params) -> Result<()> {
+        self.model.check_params(params)
+    }
+
+    fn working_planes(&self, params: &Params) -> usize {
+        // The reprojected history frames the model reads (RGBA and validity,
+        // frame-sized); the tiles fit what is left of the limit.
+        5 * self
+            .model
+            .manifest
+            .context_frames
+            .min(params.context_frames)
     }
 
     fn process(

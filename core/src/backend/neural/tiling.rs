@@ -118,6 +118,41 @@ impl AxisPlan {
     }
 }
 
+/// Checks that [`AxisPlan::new`] plans an axis of every length with these
+/// settings, else says why (its message).
+///
+/// An axis longer than the largest window `L` (`round_up(tile, multiple)`,
+/// or `fixed`) is cut into `k = ceil(n / core)` cores, `core = tile - 2 *
+/// overlap`, the narrowest `floor(n / k)` wide, which must be at least `2 *
+/// max(overlap / 2, 1)` for the feathering. So `core` must be above 0, and
+/// over all `n > L` the narrowest core is smallest at the first length of
+/// some `k`: for the `k` of `n = L + 1` at `L + 1`, for every later `k` at
+/// `core * (k - 1) + 1`, where `floor((core * (k - 1) + 1) / k)` grows with
+/// `k`. Planning those two lengths decides all.
+pub fn check_settings(
+    tile: usize,
+    overlap: usize,
+    multiple: usize,
+    fixed: Option<usize>,
+) -> Result<()> {
+    let t = fixed.unwrap_or(tile);
+    let largest = fixed.unwrap_or_else(|| round_up(t, multiple.max(1)));
+    let core = t.saturating_sub(2 * overlap);
+    let first = largest + 1;
+    AxisPlan::new(first, tile, overlap, multiple, fixed)?;
+    if core > 0 {
+        let next = core * first.div_ceil(core) + 1;
+        AxisPlan::new(next, tile, overlap, multiple, fixed)?;
+    }
+    Ok(())
+}
+
+/// The smallest tile size up to 8192 (the parameter's range) that plans
+/// every axis length with `overlap` ([`check_settings`]), if any.
+pub fn smallest_tile(overlap: usize, multiple: usize) -> Option<usize> {
+    (1..=8192).find(|&t| check_settings(t, overlap, multiple, None).is_ok())
+}
+
 /// Index into `0..n` with mirror reflection at both ends (`-1 -> 1`, `n -> n - 2`).
 pub fn reflect(i: isize, n: usize) -> usize {
     if n <= 1 {
@@ -245,6 +280,31 @@ mod tests {
         let tiles: Vec<Tile> = plan.tiles().collect();
         assert_eq!(tiles.len(), 1);
         assert_eq!((tiles[0].origin, tiles[0].size), ((0, 0), (1024, 576)));
+    }
+
+    /// Regression (issue 12): settings that passed commit but failed every
+    /// frame wider than a tile. `check_settings` agrees with planning every
+    /// axis length up to several tiles.
+    #[test]
+    fn check_settings_agrees_with_planning_every_length() {
+        for multiple in [1, 8, 16] {
+            for overlap in [0, 1, 2, 3, 5, 8, 16] {
+                for tile in 1..=80 {
+                    let every = (1..=6 * tile + 40)
+                        .all(|n| AxisPlan::new(n, tile, overlap, multiple, None).is_ok());
+                    let checked = check_settings(tile, overlap, multiple, None).is_ok();
+                    assert_eq!(
+                        checked, every,
+                        "tile {tile} overlap {overlap} multiple {multiple}"
+                    );
+                }
+            }
+        }
+        for (tile, overlap) in [(32, 16), (1, 0), (1, 8), (64, 64)] {
+            assert!(check_settings(tile, overlap, 16, None).is_err());
+        }
+        assert!(check_settings(64, 8, 16, None).is_ok());
+        assert_eq!(smallest_tile(16, 1), Some(53));
     }
 
     #[test]
