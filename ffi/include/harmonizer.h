@@ -88,7 +88,9 @@ enum hz_status
      */
     HZ_ERROR_INVALID_OPERATION = 2,
     /**
-     * A buffer could not be allocated within the memory limit.
+     * A buffer could not be allocated within the memory limit: a frame
+     * whose working set exceeds the device's `memory_limit` (or the
+     * machine's memory), or an allocation the system refused.
      */
     HZ_ERROR_OUT_OF_MEMORY = 3,
     /**
@@ -281,7 +283,11 @@ typedef struct hz_device_options {
      */
     uint32_t threads;
     /**
-     * Soft limit on working memory for tiled inference, in bytes; 0 = none.
+     * Limit on the working memory of one frame, in bytes; 0 = the memory of
+     * the machine (RAM plus swap, or the cgroup's limit when lower). A frame
+     * whose estimated working set exceeds it is refused by
+     * `hz_session_process` with `HZ_ERROR_OUT_OF_MEMORY`; the neural
+     * backend's tiles shrink to fit what is left.
      */
     uint64_t memory_limit;
     /**
@@ -290,7 +296,8 @@ typedef struct hz_device_options {
      */
     const char *ort_library;
     /**
-     * An `.onnx` model file (its JSON manifest beside it); NULL = the embedded default.
+     * An `.onnx` model file (its JSON manifest beside it); NULL = the embedded
+     * default. Read and checked by `hz_device_new`.
      */
     const char *model_path;
     /**
@@ -399,7 +406,11 @@ typedef struct hz_frame {
      */
     const struct hz_image *motion;
     /**
-     * Normals, 3 channels, any space. Optional.
+     * Normals, 3 channels, any space. Optional. Validated like the other
+     * inputs (size, channel count); NaN and infinite samples are counted
+     * and reported as a warning (replaced by 0 where a backend reads them).
+     * Only a neural model whose manifest lists normal channels reads them;
+     * the classical and bypass backends give the same output without them.
      */
     const struct hz_image *normal;
     /**
@@ -509,6 +520,14 @@ hz_status hz_check_version(uint32_t major,
  * Creates a device. Pass `HZ_VERSION_MAJOR` as `version_major`: a library
  * of another major version refuses (`HZ_ERROR_NOT_SUPPORTED`). `options` may
  * be NULL for defaults. On failure `*out_device` is set to NULL.
+ *
+ * A model given by `model_path` or `model_data` is checked here: the file
+ * and its manifest are read (`HZ_ERROR_IO` naming the file when it cannot
+ * be), the manifest validated and the bytes checked to be an ONNX model
+ * with the manifest's input and output (`HZ_ERROR_MODEL` naming the file
+ * or "in-memory model"), and the model loaded when ONNX Runtime is found.
+ * A missing runtime is not an error here: `hz_session_new` with the
+ * neural backend reports it, and `auto` runs the classical backend.
  *
  * # Safety
  * `options` is NULL or a valid `hz_device_options`; `out_device` is writable.
@@ -652,7 +671,13 @@ hz_status hz_session_get_string(const struct hz_session *session,
 
 /**
  * Applies the staged parameters. A change of backend, `context_frames` or
- * `depth_kind` resets the temporal state. On failure nothing changes.
+ * `depth_kind` resets the temporal state. Settings the backend cannot run
+ * with are refused here (`HZ_ERROR_INVALID_ARGUMENT`, naming the
+ * parameters): with the neural backend, `tile_size` and `tile_overlap`
+ * (0 = the model's) that cannot tile every frame size with the model
+ * (a tile's core, `tile_size - 2 * tile_overlap`, must leave room for the
+ * feathered blend; the message says the smallest `tile_size` that works).
+ * On failure nothing changes.
  *
  * # Safety
  * `session` is a live handle.
@@ -698,6 +723,13 @@ hz_status hz_session_set_message_callback(struct hz_session *session,
  * (in place) or overlap any input. On failure (including
  * `HZ_ERROR_CANCELLED`) the output is not written and the temporal state,
  * the report and the parameters are exactly as before the call.
+ *
+ * A frame whose estimated working set (the session's frame-sized buffers
+ * and its history at `context_frames`) exceeds the device's
+ * `memory_limit`, or without one the machine's memory, is refused with
+ * `HZ_ERROR_OUT_OF_MEMORY` (the message names the size, the estimate and
+ * the limit) before any buffer is allocated or any input sample read; a
+ * buffer the system cannot allocate is the same error, never an abort.
  *
  * # Safety
  * `session` is a live handle; `frame` and `output` point to valid structs

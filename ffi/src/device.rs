@@ -24,12 +24,17 @@ pub struct hz_device_options {
     pub struct_size: usize,
     /// Worker threads of the device's private pool; 0 = one per core. Threads are not pinned.
     pub threads: u32,
-    /// Soft limit on working memory for tiled inference, in bytes; 0 = none.
+    /// Limit on the working memory of one frame, in bytes; 0 = the memory of
+    /// the machine (RAM plus swap, or the cgroup's limit when lower). A frame
+    /// whose estimated working set exceeds it is refused by
+    /// `hz_session_process` with `HZ_ERROR_OUT_OF_MEMORY`; the neural
+    /// backend's tiles shrink to fit what is left.
     pub memory_limit: u64,
     /// Path of `libonnxruntime`; NULL = `HARMONIZER_ORT_LIB`, `ORT_DYLIB_PATH`,
     /// then the project's `.venv`. Only the neural backend loads it.
     pub ort_library: *const c_char,
-    /// An `.onnx` model file (its JSON manifest beside it); NULL = the embedded default.
+    /// An `.onnx` model file (its JSON manifest beside it); NULL = the embedded
+    /// default. Read and checked by `hz_device_new`.
     pub model_path: *const c_char,
     /// An ONNX model in memory (copied); NULL = none. Needs `model_manifest`.
     pub model_data: *const c_void,
@@ -123,6 +128,14 @@ unsafe fn read_options(o: *const hz_device_options) -> Result<DeviceOptions, Err
 /// Creates a device. Pass `HZ_VERSION_MAJOR` as `version_major`: a library
 /// of another major version refuses (`HZ_ERROR_NOT_SUPPORTED`). `options` may
 /// be NULL for defaults. On failure `*out_device` is set to NULL.
+///
+/// A model given by `model_path` or `model_data` is checked here: the file
+/// and its manifest are read (`HZ_ERROR_IO` naming the file when it cannot
+/// be), the manifest validated and the bytes checked to be an ONNX model
+/// with the manifest's input and output (`HZ_ERROR_MODEL` naming the file
+/// or "in-memory model"), and the model loaded when ONNX Runtime is found.
+/// A missing runtime is not an error here: `hz_session_new` with the
+/// neural backend reports it, and `auto` runs the classical backend.
 ///
 /// # Safety
 /// `options` is NULL or a valid `hz_device_options`; `out_device` is writable.

@@ -43,7 +43,9 @@ pub enum hz_status {
     HZ_ERROR_INVALID_ARGUMENT = 1,
     /// The call is not allowed in the object's current state.
     HZ_ERROR_INVALID_OPERATION = 2,
-    /// A buffer could not be allocated within the memory limit.
+    /// A buffer could not be allocated within the memory limit: a frame
+    /// whose working set exceeds the device's `memory_limit` (or the
+    /// machine's memory), or an allocation the system refused.
     HZ_ERROR_OUT_OF_MEMORY = 3,
     /// The model or its manifest is missing, malformed or incompatible.
     HZ_ERROR_MODEL = 4,

@@ -7,7 +7,9 @@ use std::sync::{Mutex, MutexGuard};
 
 use harmonizer_core::params::PARAM_NAMES;
 use harmonizer_core::session::ResetReason;
-use harmonizer_core::{Camera, Error, FrameInput, FrameReport, ParamValue, Params, Session};
+use harmonizer_core::{
+    Camera, Error, FrameInput, FrameReport, FrameShape, ParamValue, Params, Session,
+};
 
 use crate::callbacks::{self, hz_message_fn, hz_message_level, hz_progress_fn};
 use crate::device::{device_ref, hz_device};
@@ -41,7 +43,11 @@ pub struct hz_frame {
     pub depth: *const hz_image,
     /// Motion vectors, 2 channels (see the conventions above). Optional.
     pub motion: *const hz_image,
-    /// Normals, 3 channels, any space. Optional.
+    /// Normals, 3 channels, any space. Optional. Validated like the other
+    /// inputs (size, channel count); NaN and infinite samples are counted
+    /// and reported as a warning (replaced by 0 where a backend reads them).
+    /// Only a neural model whose manifest lists normal channels reads them;
+    /// the classical and bypass backends give the same output without them.
     pub normal: *const hz_image,
     /// Coverage in [0, 1], 1 channel: 0 where the renderer had no data (a hole). Optional.
     pub coverage: *const hz_image,
@@ -501,7 +507,13 @@ pub unsafe extern "C" fn hz_session_get_string(
 }
 
 /// Applies the staged parameters. A change of backend, `context_frames` or
-/// `depth_kind` resets the temporal state. On failure nothing changes.
+/// `depth_kind` resets the temporal state. Settings the backend cannot run
+/// with are refused here (`HZ_ERROR_INVALID_ARGUMENT`, naming the
+/// parameters): with the neural backend, `tile_size` and `tile_overlap`
+/// (0 = the model's) that cannot tile every frame size with the model
+/// (a tile's core, `tile_size - 2 * tile_overlap`, must leave room for the
+/// feathered blend; the message says the smallest `tile_size` that works).
+/// On failure nothing changes.
 ///
 /// # Safety
 /// `session` is a live handle.
@@ -667,6 +679,20 @@ impl FrameDesc {
         })
     }
 
+    /// The frame's size and the inputs it has, for the memory check made
+    /// before any view of the host's buffers exists.
+    fn shape(&self) -> FrameShape {
+        FrameShape {
+            width: self.color.width,
+            height: self.color.height,
+            depth: self.depth.is_some(),
+            motion: self.motion.is_some(),
+            normal: self.normal.is_some(),
+            coverage: self.coverage.is_some(),
+            insert_mask: self.insert_mask.is_some(),
+        }
+    }
+
     /// Borrows the host's buffers as core views.
     ///
     /// # Safety
@@ -705,6 +731,13 @@ fn uncommitted(s: &Session) -> Option<&'static str> {
 /// `HZ_ERROR_CANCELLED`) the output is not written and the temporal state,
 /// the report and the parameters are exactly as before the call.
 ///
+/// A frame whose estimated working set (the session's frame-sized buffers
+/// and its history at `context_frames`) exceeds the device's
+/// `memory_limit`, or without one the machine's memory, is refused with
+/// `HZ_ERROR_OUT_OF_MEMORY` (the message names the size, the estimate and
+/// the limit) before any buffer is allocated or any input sample read; a
+/// buffer the system cannot allocate is the same error, never an abort.
+///
 /// # Safety
 /// `session` is a live handle; `frame` and `output` point to valid structs
 /// whose buffers are readable (inputs) and writable (output) for the extent
@@ -728,6 +761,9 @@ pub unsafe extern "C" fn hz_session_process(
                 "parameter {name:?} was set but not committed; call hz_session_commit first"
             )));
         }
+        // Before the views exist: a frame too large is refused without
+        // touching the host's buffers.
+        s.session.check_memory(&desc.shape())?;
         let progress = s.progress;
         let mut on_progress = progress.map(|p| move |v: f64| p.call(v));
         let (image, report) = {

@@ -7,7 +7,10 @@
  * RGBA with a 16-byte pixel stride where only RGB is color; NaN/Inf input;
  * zero size; NULL pointers; wrong struct_size; resize in the middle of a
  * sequence (implicit reset); cancel at the start, middle and end (state
- * unchanged); two sessions on two threads.
+ * unchanged); two sessions on two threads; frames too large for memory
+ * (refused, state unchanged); frame numbers that would wrap; tile settings
+ * refused at commit and bad models refused by hz_device_new; normals
+ * validated and their NaN/Inf warned.
  */
 #include "harmonizer.h"
 
@@ -16,6 +19,7 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <unistd.h>
 
 static int checks = 0;
 static int failures = 0;
@@ -635,6 +639,229 @@ static void test_threads(hz_device *device) {
     }
 }
 
+/* ---- regressions of issues 2, 11, 12 and 13 ---- */
+
+/* Issue 2: a frame too large to allocate aborted the host. It is refused with
+ * HZ_ERROR_OUT_OF_MEMORY naming the size and the limit, before the library
+ * allocates anything or reads the (here tiny) buffer, and the session goes
+ * on as if the call never happened. */
+static void check_too_large(hz_session *s, size_t side, const char *limit_text) {
+    float tiny[16];
+    hz_image huge = image(tiny, side, side, 3, 0), huge_out = image(tiny, side, side, 4, 0);
+    hz_frame fr;
+    char size_text[64];
+    memset(&fr, 0, sizeof fr);
+    fr.struct_size = sizeof fr;
+    fr.color = &huge;
+    fr.frame_index = 2;
+    fr.flags = HZ_FRAME_HAS_INDEX;
+    sprintf(size_text, "%zux%zu", side, side);
+    CHECK(hz_session_process(s, &fr, &huge_out) == HZ_ERROR_OUT_OF_MEMORY, "%s frame", size_text);
+    CHECK(strstr(hz_last_error_message(), size_text) != NULL && strstr(hz_last_error_message(), limit_text) != NULL,
+          "message names %s and %s: %s", size_text, limit_text, hz_last_error_message());
+}
+
+static void test_too_large(hz_device *device) {
+    size_t w = 64, h = 48, n = w * h * 4;
+    int pass, t;
+    hz_device *limited = NULL;
+    hz_device_options opts;
+    memset(&opts, 0, sizeof opts);
+    opts.struct_size = sizeof opts;
+    opts.threads = 2;
+    opts.memory_limit = 64u << 20;
+    CHECK_OK(hz_device_new(HZ_VERSION_MAJOR, &opts, &limited));
+    if (!limited) return;
+    for (pass = 0; pass < 2; pass++) {
+        hz_device *dev = pass == 0 ? device : limited;
+        hz_session *ref = new_session(dev, "classical");
+        hz_session *s = new_session(dev, "classical");
+        float *out_ref = alloc_floats(n), *out = alloc_floats(n);
+        for (t = 0; t < 4; t++) {
+            frame_data f = make_frame(w, h, t);
+            frame_desc d;
+            hz_image o_ref = image(out_ref, w, h, 4, 0), o = image(out, w, h, 4, 0);
+            describe(&d, &f, t, 1);
+            if (t == 2) {
+                size_t history_before = 0, history_after = 1;
+                hz_report before = report_of(s), after;
+                CHECK_OK(hz_session_get_history_length(s, &history_before));
+                if (pass == 0) {
+                    check_too_large(s, (size_t)1 << 20, "memory of this machine");
+                    check_too_large(s, 60000, "memory of this machine");
+                } else {
+                    check_too_large(s, 20000, "device memory_limit of 67108864 bytes");
+                }
+                CHECK_OK(hz_session_get_history_length(s, &history_after));
+                CHECK(history_before == history_after, "history %zu -> %zu", history_before, history_after);
+                after = report_of(s);
+                CHECK(after.frame_index == before.frame_index, "the report is the last good frame's");
+            }
+            CHECK_OK(hz_session_process(ref, &d.frame, &o_ref));
+            CHECK_OK(hz_session_process(s, &d.frame, &o));
+            CHECK(same_bits(out_ref, out, n), "pass %d: frame %d equals the session that never saw the large frame",
+                  pass, t);
+            free_frame(&f);
+        }
+        free(out_ref);
+        free(out);
+        CHECK_OK(hz_session_free(ref));
+        CHECK_OK(hz_session_free(s));
+    }
+    CHECK_OK(hz_device_free(limited));
+}
+
+/* Issue 11: INT64_MAX then INT64_MIN counted as consecutive frame numbers. */
+static void test_index_wrap(hz_device *device) {
+    size_t w = 32, h = 24;
+    hz_session *s = new_session(device, "classical");
+    float *out = alloc_floats(w * h * 4);
+    int t;
+    for (t = 0; t < 2; t++) {
+        frame_data f = make_frame(w, h, t);
+        frame_desc d;
+        hz_image o = image(out, w, h, 4, 0);
+        hz_report r;
+        describe(&d, &f, 0, 1);
+        d.frame.frame_index = t == 0 ? INT64_MAX : INT64_MIN;
+        CHECK_OK(hz_session_process(s, &d.frame, &o));
+        r = report_of(s);
+        if (t == 1) CHECK(r.reset_reason == HZ_RESET_FRAME_GAP, "INT64_MAX -> INT64_MIN: reset %u", (unsigned)r.reset_reason);
+        free_frame(&f);
+    }
+    free(out);
+    CHECK_OK(hz_session_free(s));
+}
+
+static const char *IDENTITY_MANIFEST =
+    "{\"format_version\": 1, \"name\": \"identity\", \"version\": \"1.0.0\", \"context_frames\": 0,"
+    " \"input\": {\"name\": \"input\", \"channels\": [\"color.r\", \"color.g\", \"color.b\"]},"
+    " \"output\": {\"name\": \"output\", \"channels\": [\"color.r\", \"color.g\", \"color.b\"]},"
+    " \"residual\": false, \"premultiplied\": true,"
+    " \"encoding\": {\"kind\": \"log\", \"key\": 0.18, \"exposure\": \"frame\", \"log_range\": 8.0},"
+    " \"tile_size\": 64, \"tile_overlap\": 8, \"spatial_multiple\": 16}";
+
+static int write_file(const char *path, const char *text) {
+    FILE *f = fopen(path, "wb");
+    if (!f) return 0;
+    fputs(text, f);
+    return fclose(f) == 0;
+}
+
+/* Issue 12: tile settings that fail every frame are refused at commit; a
+ * missing or garbage model is refused by hz_device_new, naming it. */
+static void test_settings_and_models(hz_device *device) {
+    hz_session *s = NULL;
+    hz_status st;
+    CHECK_OK(hz_session_new(device, &s));
+    CHECK_OK(hz_session_set_string(s, "backend", "neural"));
+    st = hz_session_commit(s);
+    if (st == HZ_ERROR_RUNTIME_MISSING) {
+        fprintf(stderr,
+                "NOT TESTED: tile settings at commit need ONNX Runtime for the neural backend (%s); "
+                "run scripts/setup-venv.sh or set HARMONIZER_ORT_LIB\n",
+                hz_last_error_message());
+        CHECK(getenv("HARMONIZER_ORT_LIB") == NULL, "HARMONIZER_ORT_LIB is set but the runtime is missing");
+    } else {
+        static const struct {
+            int64_t tile, overlap;
+        } bad[] = {{32, 16}, {1, 0}, {64, 64}};
+        size_t i;
+        int64_t v = -1;
+        CHECK(st == HZ_OK, "commit backend neural: %s", hz_status_name(st));
+        for (i = 0; i < sizeof bad / sizeof bad[0]; i++) {
+            CHECK_OK(hz_session_set_int(s, "tile_size", bad[i].tile));
+            CHECK_OK(hz_session_set_int(s, "tile_overlap", bad[i].overlap));
+            CHECK(hz_session_commit(s) == HZ_ERROR_INVALID_ARGUMENT, "tile_size %lld tile_overlap %lld",
+                  (long long)bad[i].tile, (long long)bad[i].overlap);
+            CHECK(strstr(hz_last_error_message(), "tile_size") != NULL &&
+                      strstr(hz_last_error_message(), "tile_overlap") != NULL,
+                  "message names the parameters: %s", hz_last_error_message());
+        }
+        CHECK_OK(hz_session_set_int(s, "tile_size", 0));
+        CHECK_OK(hz_session_set_int(s, "tile_overlap", 0));
+        CHECK_OK(hz_session_commit(s));
+        CHECK_OK(hz_session_get_int(s, "tile_size", &v));
+        CHECK(v == 0, "tile_size %lld", (long long)v);
+    }
+    CHECK_OK(hz_session_free(s));
+
+    {
+        char garbage[256], manifest[256], missing[256];
+        static const unsigned char not_onnx[] = "\x08\x07 this is not an ONNX model";
+        hz_device_options opts;
+        hz_device *dev = (hz_device *)&checks;
+        long pid = (long)getpid();
+        sprintf(garbage, "/tmp/harmonizer_c_test_%ld_garbage.onnx", pid);
+        sprintf(manifest, "/tmp/harmonizer_c_test_%ld_garbage.json", pid);
+        sprintf(missing, "/tmp/harmonizer_c_test_%ld_missing.onnx", pid);
+        CHECK(write_file(garbage, "this is not an ONNX model") && write_file(manifest, IDENTITY_MANIFEST),
+              "write %s", garbage);
+        memset(&opts, 0, sizeof opts);
+        opts.struct_size = sizeof opts;
+        opts.model_path = missing;
+        CHECK(hz_device_new(HZ_VERSION_MAJOR, &opts, &dev) == HZ_ERROR_IO && dev == NULL, "missing model file");
+        if (dev) hz_device_free(dev);
+        dev = NULL;
+        CHECK(strstr(hz_last_error_message(), missing) != NULL, "message names the path: %s", hz_last_error_message());
+        opts.model_path = garbage;
+        CHECK(hz_device_new(HZ_VERSION_MAJOR, &opts, &dev) == HZ_ERROR_MODEL && dev == NULL, "garbage model file");
+        if (dev) hz_device_free(dev);
+        dev = NULL;
+        CHECK(strstr(hz_last_error_message(), garbage) != NULL &&
+                  strstr(hz_last_error_message(), "not an ONNX model") != NULL,
+              "message names the path: %s", hz_last_error_message());
+        opts.model_path = NULL;
+        opts.model_data = not_onnx;
+        opts.model_data_size = sizeof not_onnx - 1;
+        opts.model_manifest = IDENTITY_MANIFEST;
+        CHECK(hz_device_new(HZ_VERSION_MAJOR, &opts, &dev) == HZ_ERROR_MODEL && dev == NULL, "garbage model bytes");
+        if (dev) hz_device_free(dev);
+        dev = NULL;
+        CHECK(strstr(hz_last_error_message(), "in-memory model") != NULL, "%s", hz_last_error_message());
+        remove(garbage);
+        remove(manifest);
+    }
+}
+
+/* Issue 13: normals are validated like the other inputs and their NaN/Inf
+ * samples warned; the classical backend gives the same output without them. */
+static void test_normals(hz_device *device) {
+    size_t w = 24, h = 16, i, n = w * h * 4;
+    hz_session *a = new_session(device, "classical");
+    hz_session *b = new_session(device, "classical");
+    frame_data f = make_frame(w, h, 0);
+    frame_desc d;
+    float *normal = alloc_floats(w * h * 3), *out_a = alloc_floats(n), *out_b = alloc_floats(n);
+    hz_image o_a = image(out_a, w, h, 4, 0), o_b = image(out_b, w, h, 4, 0);
+    hz_image nrm = image(normal, w, h, 3, 0);
+    messages m;
+    memset(&m, 0, sizeof m);
+    for (i = 0; i < w * h; i++) normal[i * 3 + 2] = -1.0f;
+    normal[1] = NAN;
+    normal[7] = INFINITY;
+    describe(&d, &f, 0, 1);
+    CHECK_OK(hz_session_process(b, &d.frame, &o_b));
+    d.frame.normal = &nrm;
+    CHECK_OK(hz_session_set_message_callback(a, on_message, &m));
+    CHECK_OK(hz_session_process(a, &d.frame, &o_a));
+    CHECK(same_bits(out_a, out_b, n), "the classical backend's output does not depend on the normals");
+    CHECK(m.warnings >= 1 && strstr(m.last, "2 normal samples were NaN or infinite") != NULL, "normals warning: %s",
+          m.last);
+    nrm.channels = 2;
+    CHECK(hz_session_process(a, &d.frame, &o_a) == HZ_ERROR_INVALID_ARGUMENT, "normals of 2 channels");
+    CHECK(strstr(hz_last_error_message(), "normal") != NULL, "%s", hz_last_error_message());
+    nrm.channels = 3;
+    nrm.width = w / 2;
+    CHECK(hz_session_process(a, &d.frame, &o_a) == HZ_ERROR_INVALID_ARGUMENT, "normals of another size");
+    free(normal);
+    free(out_a);
+    free(out_b);
+    free_frame(&f);
+    CHECK_OK(hz_session_free(a));
+    CHECK_OK(hz_session_free(b));
+}
+
 int main(void) {
     hz_device *device = NULL;
     hz_device_options opts;
@@ -658,6 +885,10 @@ int main(void) {
     test_cancel(device);
     test_reentry(device);
     test_threads(device);
+    test_too_large(device);
+    test_index_wrap(device);
+    test_settings_and_models(device);
+    test_normals(device);
     CHECK_OK(hz_device_free(device));
     printf("%s: %d checks, %d failures\n", failures ? "FAILED" : "ok", checks, failures);
     return failures ? 1 : 0;

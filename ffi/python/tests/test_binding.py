@@ -314,9 +314,11 @@ def test_model_and_runtime_errors():
         with pytest.raises(hz.RuntimeMissingError) as e:
             hz.Session(d, backend="neural")
         assert e.value.status == hz.Status.RUNTIME_MISSING and "/nonexistent/libonnxruntime.so" in str(e.value)
-    with hz.Device(model=FIXTURES / "no_such_model.onnx") as d:
-        with pytest.raises((hz.ModelError, hz.IoError)) as e:
-            hz.Session(d, backend="neural")
-        assert "no_such_model" in str(e.value)
+    # A missing or garbage model is refused by the device, naming it (issue 12).
+    with pytest.raises(hz.IoError) as e:
+        hz.Device(model=FIXTURES / "no_such_model.onnx")
+    assert "no_such_model" in str(e.value)
+    with pytest.raises(hz.ModelError, match="not an ONNX model"):
+        hz.Device(model=(b"this is not an ONNX model", (FIXTURES / "identity.json").read_text()))
     with pytest.raises(hz.InvalidArgumentError, match="model"):
         hz.Device(model=(b"", "{}"))
