@@ -57,8 +57,12 @@ pub struct FrameReport {
     pub backend: String,
     /// History frames used.
     pub history_used: usize,
-    /// Color samples replaced because they were NaN, infinite or negative.
+    /// Color samples replaced by 0 because they were NaN or infinite.
     pub sanitized: usize,
+    /// Pixels whose color has negative components (outside the Rec.709
+    /// gamut, from a wide-gamut host): the enhancement works on the color
+    /// clipped at 0 and the negative parts pass through to the result.
+    pub out_of_gamut: usize,
     /// Warnings (non-consecutive frames, huge motion vectors, NaN inputs, ...).
     pub warnings: Vec<String>,
     /// Per-stage times in ms.
@@ -372,7 +376,7 @@ impl Session {
         if frame.sanitized > 0 {
             report.sanitized = frame.sanitized;
             report.warnings.push(format!(
-                "frame {}: {} color samples were NaN, infinite or negative and were replaced by 0",
+                "frame {}: {} color samples were NaN or infinite and were replaced by 0",
                 fmt_index(input.frame_index),
                 frame.sanitized
             ));
@@ -578,6 +582,7 @@ impl Session {
             camera,
             frame_index,
             scan,
+            out_of_gamut,
             ..
         } = frame;
         let width = color.width;
@@ -640,6 +645,11 @@ impl Session {
             report.warnings.push(why);
         }
         report.stages = stages;
+        // The negative parts of out-of-gamut colors, added back after the
+        // history took its copy (the history stays what the backends
+        // produce, never negative).
+        report.out_of_gamut = out_of_gamut.len();
+        add_out_of_gamut(&mut out, &out_of_gamut);
         Ok(Attempt::Done(out, report))
     }
 
@@ -711,6 +721,17 @@ pub fn write_output(img: &Image, output: &mut ImageViewMut<'_>) {
         let plane = img.plane(c);
         for y in 0..img.height {
             output.write_row(y, c, &plane[y * w..(y + 1) * w]);
+        }
+    }
+}
+
+/// Adds the negative color parts split off while preparing (see
+/// `PreparedFrame::out_of_gamut`) to the result.
+fn add_out_of_gamut(out: &mut Image, parts: &[(usize, [f32; 3])]) {
+    let n = out.len();
+    for &(i, neg) in parts {
+        for (c, v) in neg.into_iter().enumerate() {
+            out.data[c * n + i] += v;
         }
     }
 }

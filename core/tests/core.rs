@@ -3,6 +3,8 @@
 
 #[path = "core/classical.rs"]
 mod classical;
+#[path = "core/gamut.rs"]
+mod gamut;
 #[path = "core/hostile.rs"]
 mod hostile;
 #[path = "core/io.rs"]

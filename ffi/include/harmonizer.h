@@ -474,7 +474,8 @@ typedef struct hz_report {
      */
     size_t history_used;
     /**
-     * Color samples replaced because they were NaN, infinite or negative.
+     * Color samples replaced by 0 because they were NaN or infinite
+     * (negative components of out-of-gamut colors are kept, not replaced).
      */
     size_t sanitized;
     /**
@@ -706,7 +707,7 @@ hz_status hz_session_set_progress_callback(struct hz_session *session,
 
 /**
  * Sets (or with NULL `callback` clears) the message callback: after each
- * successful frame it receives the frame's warnings (NaN or negative color,
+ * successful frame it receives the frame's warnings (NaN or infinite color,
  * NaN AOVs, a non-consecutive frame index, ...) and resets other than the
  * first frame.
  *
@@ -827,7 +828,7 @@ hz_status hz_session_get_report_warning(const struct hz_session *session,
 
 /**
  * The last frame's report as JSON: `{"frame_index", "reset", "backend",
- * "history_used", "sanitized", "warnings": [..], "stages": {name: ms},
+ * "history_used", "sanitized", "out_of_gamut", "warnings": [..], "stages": {name: ms},
  * "total_ms"}` (`reset` is null or a name such as `"frame_gap"`).
  *
  * # Safety

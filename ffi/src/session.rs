@@ -136,7 +136,8 @@ pub struct hz_report {
     pub reset_reason: hz_reset_reason,
     /// History frames used.
     pub history_used: usize,
-    /// Color samples replaced because they were NaN, infinite or negative.
+    /// Color samples replaced by 0 because they were NaN or infinite
+    /// (negative components of out-of-gamut colors are kept, not replaced).
     pub sanitized: usize,
     /// Warnings (`hz_session_get_report_warning`).
     pub warning_count: usize,
@@ -561,7 +562,7 @@ pub unsafe extern "C" fn hz_session_set_progress_callback(
 }
 
 /// Sets (or with NULL `callback` clears) the message callback: after each
-/// successful frame it receives the frame's warnings (NaN or negative color,
+/// successful frame it receives the frame's warnings (NaN or infinite color,
 /// NaN AOVs, a non-consecutive frame index, ...) and resets other than the
 /// first frame.
 ///
@@ -1027,7 +1028,7 @@ pub unsafe extern "C" fn hz_session_get_report_warning(
 }
 
 /// The last frame's report as JSON: `{"frame_index", "reset", "backend",
-/// "history_used", "sanitized", "warnings": [..], "stages": {name: ms},
+/// "history_used", "sanitized", "out_of_gamut", "warnings": [..], "stages": {name: ms},
 /// "total_ms"}` (`reset` is null or a name such as `"frame_gap"`).
 ///
 /// # Safety
@@ -1063,6 +1064,7 @@ pub fn report_json(r: &FrameReport) -> String {
         "backend": r.backend,
         "history_used": r.history_used,
         "sanitized": r.sanitized,
+        "out_of_gamut": r.out_of_gamut,
         "warnings": r.warnings,
         "stages": stages,
         "total_ms": r.total_ms,

@@ -316,7 +316,7 @@ static void test_nan_inf(hz_device *device) {
     f.rgba[0] = NAN;
     f.rgba[5] = INFINITY;
     f.rgba[10] = -INFINITY;
-    f.rgba[17] = -1.0f;
+    f.rgba[17] = -1.0f; /* finite and negative: a color outside Rec.709 */
     f.depth[3] = NAN;
     f.motion[6] = 1e6f; /* far longer than the image */
     describe(&d, &f, 0, 1);
@@ -324,12 +324,16 @@ static void test_nan_inf(hz_device *device) {
     CHECK_OK(hz_session_process(s, &d.frame, &o));
     for (i = 0; i < w * h * 4; i++) finite &= isfinite(out[i]);
     CHECK(finite, "NaN/Inf never reach the output");
-    CHECK(out[0] == 0.0f && out[5] == 0.0f && out[10] == 0.0f && out[17] == 0.0f, "bad samples become 0");
+    CHECK(out[0] == 0.0f && out[5] == 0.0f && out[10] == 0.0f, "NaN and infinite samples become 0");
+    CHECK(out[17] == -1.0f, "a negative (out-of-gamut) component passes through unclipped: %g", out[17]);
     CHECK(out[4] == f.rgba[4], "good samples pass through the bypass backend unchanged");
     {
         hz_report r = report_of(s);
         char text[512];
-        CHECK(r.sanitized == 4, "sanitized %zu", r.sanitized);
+        char json[4096];
+        CHECK(r.sanitized == 3, "sanitized %zu", r.sanitized);
+        CHECK_OK(hz_session_get_report_json(s, json, sizeof json, NULL));
+        CHECK(strstr(json, "\"out_of_gamut\":1") != NULL, "report counts the out-of-gamut pixel: %s", json);
         CHECK(r.warning_count >= 1, "warnings %zu", r.warning_count);
         CHECK_OK(hz_session_get_report_warning(s, 0, text, sizeof text, NULL));
         CHECK(strstr(text, "NaN") != NULL, "warning text: %s", text);

@@ -361,8 +361,15 @@ pub struct PreparedFrame {
     pub camera: Option<Camera>,
     /// The host's frame number.
     pub frame_index: Option<i64>,
-    /// Color samples that were NaN, infinite or negative and were replaced.
+    /// Color samples that were NaN or infinite and were replaced by 0.
     pub sanitized: usize,
+    /// The negative parts of finite color samples, pixel by pixel in row
+    /// order: `(y * width + x, [min(r, 0), min(g, 0), min(b, 0)])`. Colors
+    /// outside the Rec.709 gamut (from an ACEScg or Rec.2020 host) have
+    /// negative components in Linear Rec.709; the planes of `color` hold
+    /// `max(c, 0)`, what every backend works on, and the session adds these
+    /// parts back to the result, so they pass through untouched.
+    pub out_of_gamut: Vec<(usize, [f32; 3])>,
     /// Samples of the other AOVs that were NaN or infinite and were replaced.
     pub sanitized_aovs: usize,
     /// Normal samples that were NaN or infinite (replaced by 0 when the
@@ -575,6 +582,9 @@ impl PreparedFrame {
         let mut color = take(color_planes)?;
         let lattice = Lattice::new(w, h);
         let scene_rows = LatticeRows::new(&lattice);
+        // Negative parts of finite colors, split off row by row (see
+        // `PreparedFrame::out_of_gamut`); sorted after the parallel pass.
+        let gamut_rows = std::sync::Mutex::new(Vec::new());
         // The `fix` functions are written without branches (selects), so
         // their loops vectorize.
         let (sanitized, cov_found) = read_image_with(
@@ -584,13 +594,33 @@ impl PreparedFrame {
             3,
             coverage.as_deref_mut().into_iter().collect(),
             |_, v| {
-                // Finite and not negative, as two plain compares (NaN fails both).
-                let good = (*v >= 0.0) & (*v < f32::INFINITY);
+                // Finite, as one plain compare (NaN fails it); negative
+                // finite samples are split off below.
+                let good = v.abs() < f32::INFINITY;
                 *v = if good { *v } else { 0.0 };
                 !good
             },
             |y, rows| {
                 // Rows: R, G, B, then A when `rgba`, then the coverage when given.
+                let lowest = crate::ops::row_min(rows[0])
+                    .min(crate::ops::row_min(rows[1]))
+                    .min(crate::ops::row_min(rows[2]));
+                if lowest < 0.0 {
+                    let mut parts = Vec::new();
+                    for x in 0..rows[0].len() {
+                        let neg = [rows[0][x], rows[1][x], rows[2][x]].map(|v| v.min(0.0));
+                        if neg.iter().any(|&v| v < 0.0) {
+                            parts.push((y * w + x, neg));
+                            for row in rows[..3].iter_mut() {
+                                row[x] = row[x].max(0.0);
+                            }
+                        }
+                    }
+                    gamut_rows
+                        .lock()
+                        .unwrap_or_else(|e| e.into_inner())
+                        .extend(parts);
+                }
                 let mut found = Found::default();
                 if let Some(v) = cov_view {
                     let c = &mut *rows[color_planes];
@@ -706,6 +736,11 @@ impl PreparedFrame {
             camera: input.camera,
             frame_index: input.frame_index,
             sanitized,
+            out_of_gamut: {
+                let mut g = gamut_rows.into_inner().unwrap_or_else(|e| e.into_inner());
+                g.sort_unstable_by_key(|p| p.0);
+                g
+            },
             sanitized_aovs: sanitized_aovs + cov_bad,
             sanitized_normals,
             huge_motion,

@@ -171,7 +171,7 @@ pub fn check(bytes: &[u8], limits: &ReadLimits) -> Result<(), Refusal> {
             return Err(format!("{part}: deep data is not supported").into());
         }
         let (w, ht) = (h.layer_size.0, h.layer_size.1);
-        let pixels = w.checked_mul(ht).unwrap_or(usize::MAX);
+        let pixels = w.saturating_mul(ht);
         if w > limits.max_side || ht > limits.max_side || pixels > limits.max_pixels {
             return Err(Refusal::Invalid(format!(
                 "{part}: data window {w}x{ht} is larger than the {}x{} / {} pixels this reader accepts",

@@ -638,6 +638,7 @@ mod tests {
                 camera: cams.map(|c| c.0),
                 frame_index: None,
                 sanitized: 0,
+                out_of_gamut: Vec::new(),
                 sanitized_aovs: 0,
                 sanitized_normals: 0,
                 huge_motion: 0,
