@@ -148,7 +148,7 @@ impl Device {
 /// The memory this process can use, in bytes: RAM plus swap
 /// (`/proc/meminfo`), or the cgroup's limit when lower; `usize::MAX` where
 /// neither can be read.
-fn machine_memory() -> usize {
+pub fn machine_memory() -> usize {
     let kib = |text: &str, key: &str| -> Option<usize> {
         let line = text.lines().find(|l| l.starts_with(key))?;
         let n: usize = line[key.len()..]

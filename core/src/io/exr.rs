@@ -382,7 +382,17 @@ pub struct OutputMeta {
 impl LoadedFrame {
     /// Reads frame `frame` from `path` with `options`.
     pub fn read(path: &Path, frame: Option<i64>, options: &LayoutOptions) -> Result<LoadedFrame> {
-        let file = ExrFile::open(path, frame)?;
+        Self::read_with(path, frame, options, &ReadLimits::default())
+    }
+
+    /// [`LoadedFrame::read`] within `limits` (see [`ExrFile::open_with`]).
+    pub fn read_with(
+        path: &Path,
+        frame: Option<i64>,
+        options: &LayoutOptions,
+        limits: &ReadLimits,
+    ) -> Result<LoadedFrame> {
+        let file = ExrFile::open_with(path, frame, limits)?;
         Self::from_file(file, options)
     }
 

@@ -7,7 +7,7 @@
 //! file can claim a 65535 x 65535 window; an allocation that cannot succeed
 //! aborts the process. So every claim is checked here first, against:
 //! - sane limits on channels, sides and pixels ([`ReadLimits`]);
-//! - the memory budget (the device's memory limit, else the memory available);
+//! - the memory budget (the device's memory limit, else the machine's memory);
 //! - the file's own size: each compression has a bound on how many bytes one
 //!   stored byte can decompress to ([`expansion_bound`]), so a file of `n`
 //!   bytes cannot legitimately hold more than about `n * bound` decoded bytes;
@@ -27,7 +27,8 @@ use exr::meta::header::Header;
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct ReadLimits {
     /// Most bytes the decoded pixels of all parts may take; 0 = the memory
-    /// available to the process ([`available_memory`]), read at each open.
+    /// of this machine ([`crate::device::machine_memory`], the budget a
+    /// device without `memory_limit` uses).
     pub max_bytes: usize,
     /// Most channels in the whole file.
     pub max_channels: usize,
@@ -71,20 +72,12 @@ impl ReadLimits {
         if self.max_bytes > 0 {
             (self.max_bytes, "the memory limit")
         } else {
-            match available_memory() {
-                Some(n) => (n, "the memory available"),
-                None => (usize::MAX, "the address space"),
-            }
+            (
+                crate::device::machine_memory(),
+                "the memory of this machine",
+            )
         }
     }
-}
-
-/// `MemAvailable` of `/proc/meminfo` in bytes, where the system tells it.
-pub fn available_memory() -> Option<usize> {
-    let text = std::fs::read_to_string("/proc/meminfo").ok()?;
-    let line = text.lines().find(|l| l.starts_with("MemAvailable:"))?;
-    let kib: usize = line.split_whitespace().nth(1)?.parse().ok()?;
-    kib.checked_mul(1024)
 }
 
 /// The most bytes one stored byte of pixel data can decompress to, per

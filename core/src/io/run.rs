@@ -6,6 +6,7 @@
 use std::path::PathBuf;
 
 use super::exr::{refuse_input, LoadedFrame, OutputMeta};
+use super::guard::ReadLimits;
 use super::layout::LayoutOptions;
 use super::pattern::{select_frames, FramePattern, FrameRange};
 use crate::error::{Error, Result};
@@ -104,7 +105,10 @@ pub fn run_sequence(
     for p in planned {
         let here = format!("frame {} ({})", p.frame, p.input.display());
         let t = std::time::Instant::now();
-        let mut loaded = LoadedFrame::read(&p.input, Some(p.frame), &options.layout)?;
+        // The file's claims are checked against the device's memory limit
+        // (or the machine's memory) before it is decoded.
+        let limits = ReadLimits::with_memory_limit(session.device().options().memory_limit);
+        let mut loaded = LoadedFrame::read_with(&p.input, Some(p.frame), &options.layout, &limits)?;
         let read_ms = t.elapsed().as_secs_f64() * 1e3;
         match &first {
             None => first = Some((loaded.width, loaded.height, p.input.clone())),
