@@ -17,7 +17,8 @@ fn ramp(w: usize, h: usize, k: f32) -> Vec<f32> {
     (0..w * h).map(|i| k + i as f32 * 0.001).collect()
 }
 
-fn read_all(path: &Path) -> exr::image::FlatImage {
+/// Every part and channel of `path`, read by the `exr` crate directly.
+pub fn try_read_all(path: &Path) -> exr::error::Result<exr::image::FlatImage> {
     exr::prelude::read()
         .no_deep_data()
         .largest_resolution_level()
@@ -25,7 +26,10 @@ fn read_all(path: &Path) -> exr::image::FlatImage {
         .all_layers()
         .all_attributes()
         .from_file(path)
-        .unwrap()
+}
+
+fn read_all(path: &Path) -> exr::image::FlatImage {
+    try_read_all(path).unwrap()
 }
 
 fn f32s(s: &FlatSamples) -> Vec<f32> {
