@@ -32,6 +32,30 @@ def _link(obj: bpy.types.Object, collection: bpy.types.Collection) -> None:
     collection.objects.link(obj)
 
 
+def _render_settings(
+    scene: bpy.types.Scene, output_pattern: str, samples: int, size: tuple[int, int], frames: tuple[int, int]
+) -> bpy.types.RenderSettings:
+    """Cycles on the CPU, no denoising or motion blur, one thread, float multilayer EXR output."""
+    render = scene.render
+    render.engine = "CYCLES"
+    scene.cycles.device = "CPU"
+    scene.cycles.samples = samples
+    scene.cycles.use_denoising = False
+    scene.cycles.use_adaptive_sampling = False
+    render.resolution_x, render.resolution_y = size
+    render.resolution_percentage = 100
+    render.use_motion_blur = False
+    render.threads_mode = "FIXED"
+    render.threads = 1
+    render.filepath = output_pattern
+    settings = render.image_settings
+    settings.media_type = "MULTI_LAYER_IMAGE"
+    settings.file_format = "OPEN_EXR_MULTILAYER"
+    settings.color_depth = "32"
+    scene.frame_start, scene.frame_end = frames
+    return render
+
+
 def build(output_pattern: str, *, samples: int = 4, frames: tuple[int, int] = FRAMES) -> bpy.types.Scene:
     """Reset Blender to an empty file and build the fixture scene.
 
@@ -42,25 +66,9 @@ def build(output_pattern: str, *, samples: int = 4, frames: tuple[int, int] = FR
     scene = bpy.context.scene
     scene.name = "Fixture"
 
-    render = scene.render
-    render.engine = "CYCLES"
-    scene.cycles.device = "CPU"
-    scene.cycles.samples = samples
-    scene.cycles.use_denoising = False
-    scene.cycles.use_adaptive_sampling = False
-    render.resolution_x, render.resolution_y = WIDTH, HEIGHT
-    render.resolution_percentage = 100
-    render.use_motion_blur = False
+    render = _render_settings(scene, output_pattern, samples, (WIDTH, HEIGHT), frames)
     render.film_transparent = False
-    render.threads_mode = "FIXED"
-    render.threads = 1
-    render.filepath = output_pattern
-    settings = render.image_settings
-    settings.media_type = "MULTI_LAYER_IMAGE"
-    settings.file_format = "OPEN_EXR_MULTILAYER"
-    settings.color_depth = "32"
-    settings.exr_codec = "ZIP"
-    scene.frame_start, scene.frame_end = frames
+    render.image_settings.exr_codec = "ZIP"
 
     world = bpy.data.worlds.new("World")
     world.use_nodes = True
@@ -153,23 +161,7 @@ def build_wide_gamut(output_pattern: str, *, frames: tuple[int, int] = (1, 2)) -
         assert bpy.ops.wm.set_working_color_space(working_space="ACEScg", convert_colors=False) == {"FINISHED"}
     scene = bpy.context.scene
     scene.name = "WideGamut"
-    render = scene.render
-    render.engine = "CYCLES"
-    scene.cycles.device = "CPU"
-    scene.cycles.samples = 1
-    scene.cycles.use_denoising = False
-    scene.cycles.use_adaptive_sampling = False
-    render.resolution_x, render.resolution_y = 48, 27
-    render.resolution_percentage = 100
-    render.use_motion_blur = False
-    render.threads_mode = "FIXED"
-    render.threads = 1
-    render.filepath = output_pattern
-    settings = render.image_settings
-    settings.media_type = "MULTI_LAYER_IMAGE"
-    settings.file_format = "OPEN_EXR_MULTILAYER"
-    settings.color_depth = "32"
-    scene.frame_start, scene.frame_end = frames
+    render = _render_settings(scene, output_pattern, 1, (48, 27), frames)
 
     world = bpy.data.worlds.new("World")
     world.use_nodes = True
