@@ -447,6 +447,14 @@ mod safety {
         v
     }
 
+    /// `run INPUT -o OUT --backend bypass EXTRA...` fails, naming every
+    /// string of `want` on stderr.
+    fn run_refused(input: &str, out: &Path, extra: &[&str], want: &[&str]) -> String {
+        let mut args = vec!["run", input, "-o", s(out), "--backend", "bypass"];
+        args.extend_from_slice(extra);
+        refused(&args, want)
+    }
+
     /// Fails, naming every string of `want` on stderr.
     fn refused(args: &[&str], want: &[&str]) -> String {
         let o = harmonize(args);
@@ -468,19 +476,7 @@ mod safety {
         let out_dir = d.join("out");
         let out = out_dir.join("o.####.exr");
         let run = |report: &Path, want: &[&str]| {
-            refused(
-                &[
-                    "run",
-                    &input,
-                    "-o",
-                    s(&out),
-                    "--backend",
-                    "bypass",
-                    "--report",
-                    s(report),
-                ],
-                want,
-            )
+            run_refused(&input, &out, &["--report", s(report)], want)
         };
         // The report is an input frame, by its own path.
         let p1 = ip.path(1);
@@ -512,14 +508,10 @@ mod safety {
         // The model's manifest is an input too.
         std::fs::write(d.join("m.onnx"), b"not a model").unwrap();
         std::fs::write(d.join("m.json"), b"{}").unwrap();
-        refused(
+        run_refused(
+            &input,
+            &out,
             &[
-                "run",
-                &input,
-                "-o",
-                s(&out),
-                "--backend",
-                "bypass",
                 "--model",
                 s(&d.join("m.onnx")),
                 "--report",
@@ -560,17 +552,10 @@ mod safety {
         let input = small(d);
         let out_dir = d.join("out");
         let out = out_dir.join("o.####.exr");
-        refused(
-            &[
-                "run",
-                &input,
-                "-o",
-                s(&out),
-                "--backend",
-                "bypass",
-                "--report",
-                s(&out_dir.join("o.0002.exr")),
-            ],
+        run_refused(
+            &input,
+            &out,
+            &["--report", s(&out_dir.join("o.0002.exr"))],
             &["--report", "output frame 2", "o.0002.exr", "same file"],
         );
         assert_eq!(names(&out_dir), Vec::<String>::new());
