@@ -97,7 +97,9 @@ impl Device {
             neural: Mutex::new(None),
         };
         if device.options.model != ModelSource::Embedded {
-            crate::backend::neural::NeuralModel::check(&device.options)?;
+            // Loading reads and checks the files, the manifest and the
+            // graph's names before it needs ONNX Runtime, so a bad model is
+            // refused here with or without the runtime.
             match device.neural_model() {
                 Ok(_) => {}
                 Err(e @ (Error::Model(_) | Error::Io(_))) => return Err(e),

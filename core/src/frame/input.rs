@@ -232,12 +232,17 @@ fn count_non_finite(
 ) -> usize {
     let (w, h) = (view.width(), view.height());
     let rows = |ys: std::ops::Range<usize>| -> usize {
+        // One row buffer per band, read through its channel slices.
         let mut buf = vec![0.0f32; channels * w];
+        let mut outs: Vec<&mut [f32]> = buf.chunks_mut(w).collect();
         let mut n = 0;
         for y in ys {
-            let mut outs: Vec<&mut [f32]> = buf.chunks_mut(w).collect();
             view.read_row_channels(y, &mut outs);
-            n += buf.iter().map(|v| u32::from(!v.is_finite())).sum::<u32>() as usize;
+            n += outs
+                .iter()
+                .flat_map(|c| c.iter())
+                .map(|v| u32::from(!v.is_finite()))
+                .sum::<u32>() as usize;
         }
         n
     };

@@ -156,19 +156,6 @@ fn check_graph(onnx: &[u8], manifest: &Manifest, origin: &str) -> Result<()> {
 }
 
 impl NeuralModel {
-    /// Checks the model `options` name without ONNX Runtime: the file and
-    /// its manifest are read, the manifest is validated, and the ONNX bytes
-    /// must be an ONNX model whose graph has the manifest's input and
-    /// output names. Errors name the file (or "in-memory model"). The
-    /// embedded model is not checked (it was checked when it was built).
-    pub fn check(options: &DeviceOptions) -> Result<()> {
-        if let Some((onnx, manifest, origin, manifest_origin)) = read_source(options)? {
-            let manifest = Manifest::from_json(&manifest, &manifest_origin)?;
-            check_graph(&onnx, &manifest, &origin)?;
-        }
-        Ok(())
-    }
-
     /// Loads the model the options name; `Ok(None)` for `Embedded` when this
     /// build embeds no model.
     pub fn load(options: &DeviceOptions) -> Result<Option<Arc<NeuralModel>>> {
