@@ -16,7 +16,7 @@ set -uo pipefail
 cd "$(dirname "$0")/.."
 export PATH="$HOME/.cargo/bin:$PATH"
 
-all_steps=(setup fmt clippy doc header rust release c python usd blender training fuzz)
+all_steps=(setup fmt clippy doc header rust release c python usd blender training quality fuzz)
 steps=("$@")
 [ ${#steps[@]} -gt 0 ] || steps=("${all_steps[@]}")
 
@@ -64,6 +64,7 @@ want python && run_step python env PYTHONPATH="$PWD/ffi/python" .venv/bin/python
 want usd && run_step usd ./tests/usd/run.sh -q
 want blender && run_step blender ./tests/blender/run.sh
 want training && run_step training ./training/smoke_test.sh
+want quality && run_step quality ./scripts/quality.sh --smoke
 want fuzz && run_step fuzz ./scripts/fuzz.sh "${HARMONIZER_FUZZ_SECONDS:-45}"
 
 printf '\n'

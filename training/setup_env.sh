@@ -2,7 +2,7 @@
 # Creates (or completes) the two Python environments of training/, idempotently:
 #   .venv-bpy    Blender as a module for data synthesis (training/requirements-synth.txt)
 #   .venv-train  PyTorch, ONNX, ONNX Runtime for training and export (training/requirements.txt)
-# Only what is missing is installed. Environment: PYTHON311 (interpreter),
+# `setup_env.sh bpy` creates only .venv-bpy. Only what is missing is installed. Environment: PYTHON311 (interpreter),
 # HZ_BPY_VENV, HZ_TRAIN_VENV (venv paths).
 set -euo pipefail
 here="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
@@ -27,4 +27,5 @@ ensure() {
 }
 
 ensure "$bpy_venv" "import bpy, numpy, OpenEXR" "$here/requirements-synth.txt"
+[ "${1:-}" = bpy ] && exit 0  # `setup_env.sh bpy`: the Blender environment only
 ensure "$train_venv" "import torch, numpy, onnx, onnxruntime, OpenEXR, pytest" "$here/requirements.txt"

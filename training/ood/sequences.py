@@ -1,0 +1,153 @@
+"""The out-of-domain benchmark's sequences, built from the rendered passes (numpy only).
+
+Every sequence is a dict of float32 arrays, the same for every method:
+
+- what a host gives the enhancer: ``input [T,H,W,4]`` (RGB premultiplied by
+  coverage, A = coverage), ``depth [T,H,W]`` (planar, empty 1e10), ``motion
+  [T,H,W,2]`` (pixels, current -> previous, y down), ``normal [T,H,W,3]``
+  (world), ``mask_insert [T,H,W]``, optionally ``albedo``/``aux_normal``
+  (the noisy render's denoising passes, for the OIDN peer);
+- what only the metrics see: ``target [T,H,W,3]`` (the clean render), the clean
+  ``gt_depth``/``gt_motion`` (occlusion-masked warping error), ``mask_shadow``;
+- ``region``: which region the sequence degrades (``hole``, ``insert``,
+  ``shadow`` or ``None``), and ``about``: one line for the report.
+
+Sequences (``SEQUENCES``; the parameters are fixed, so building is deterministic):
+
+| name | scene | input |
+|---|---|---|
+| ``recon_courtyard`` | courtyard (outdoor) | three static views re-rendered as point splats: holes, ghosting, seams |
+| ``recon_hall`` | hall (indoor) | the same with the hall's three views |
+| ``insert_tone`` | courtyard | insert A with +0.9 stop, warm white balance, more saturation; its shadow present |
+| ``insert_relight`` | courtyard | insert A lit by another sun and sky (low, warm, from the side); shadow present |
+| ``insert_noshadow`` | courtyard | inserts A and B correctly lit, composited over the plate: no contact shadows |
+| ``two_inserts`` | courtyard | A tone-shifted (cool, darker) and B relit, over the plate: no contact shadows |
+| ``insert_control`` | courtyard | the clean render with both inserts' mask: nothing should change |
+| ``clean_hall`` | hall | the clean render, no mask: nothing should change |
+| ``noisy_raw`` | hall | 4 samples per pixel, a new seed per frame |
+| ``noisy_denoised`` | hall | the same through Cycles' own denoiser (OIDN) per frame: residual flicker |
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from training.synth import degrade
+
+DATA = Path(__file__).resolve().parent / "data"
+
+SEQUENCES = (
+    "recon_courtyard",
+    "recon_hall",
+    "insert_tone",
+    "insert_relight",
+    "insert_noshadow",
+    "two_inserts",
+    "insert_control",
+    "clean_hall",
+    "noisy_raw",
+    "noisy_denoised",
+)
+
+TONE_A = {"exposure": 0.9, "wb": [1.22, 0.98, 0.72], "gamma": 1.0, "saturation": 1.25}
+TONE_A_COOL = {"exposure": -0.7, "wb": [0.8, 1.0, 1.3], "gamma": 1.15, "saturation": 0.8}
+
+
+class SequenceError(RuntimeError):
+    """The rendered passes a sequence needs are missing."""
+
+
+def load_scene(name: str, data: Path = DATA) -> dict:
+    f = Path(data) / name / "scene.npz"
+    if not f.exists():
+        raise SequenceError(f"{f} missing: render it with `.venv-bpy/bin/python -m training.ood.render --scene {name}`")
+    with np.load(f) as z:
+        out = {k: z[k].astype(np.float32) for k in z.files}
+    out["meta"] = json.loads((f.parent / "meta.json").read_text())
+    return out
+
+
+def _tone(rgb: np.ndarray, p: dict) -> np.ndarray:
+    q = dict(p)
+    q["wb"] = list(np.asarray(p["wb"], np.float32) / (np.asarray(p["wb"], np.float32) @ degrade.LUMA))
+    return degrade.apply_tone(rgb, q)
+
+
+def build(name: str, data: Path = DATA, cache: dict | None = None, frames: int = 0) -> dict:
+    """One sequence (``frames`` > 0: only its first frames)."""
+    if name not in SEQUENCES:
+        raise SequenceError(f"unknown sequence '{name}' (have {', '.join(SEQUENCES)})")
+    scene_name = "hall" if name in ("recon_hall", "clean_hall", "noisy_raw", "noisy_denoised") else "courtyard"
+    cache = {} if cache is None else cache
+    if scene_name not in cache:
+        cache[scene_name] = load_scene(scene_name, data)
+    sc = cache[scene_name]
+    T = sc["truth"].shape[0] if frames <= 0 else min(frames, sc["truth"].shape[0])
+    gt = sc["truth"][:T]
+    ones = np.ones(gt.shape[:3] + (1,), np.float32)
+    zeros = np.zeros(gt.shape[:3], np.float32)
+    s = {
+        "name": name,
+        "scene": scene_name,
+        "kind": sc["meta"]["kind"],
+        "target": gt,
+        "gt_depth": sc["depth"][:T],
+        "gt_motion": sc["motion"][:T],
+        "depth": sc["depth"][:T],
+        "motion": sc["motion"][:T],
+        "normal": sc["normal"][:T],
+        "world_to_camera": sc["world_to_camera"][:T],
+        "world_to_ndc": sc["world_to_ndc"][:T],
+        "mask_insert": zeros,
+        "mask_shadow": zeros,
+        "region": None,
+    }
+    if scene_name == "courtyard":
+        a, b = sc["mask_a"][:T], sc["mask_b"][:T]
+        ab = np.clip(a + b, 0.0, 1.0)
+        plate = sc["noinsert_ab"][:T]
+        s["mask_shadow"] = degrade.shadow_mask(gt, plate, ab)
+    if name.startswith("recon_"):
+        rgba, depth, params = degrade.reconstruction_inputs(
+            np.random.default_rng([2026, 17, SEQUENCES.index(name)]),
+            list(sc["ctx_rgb"]),
+            list(sc["ctx_depth"]),
+            list(zip(sc["ctx_world_to_camera"], sc["ctx_world_to_ndc"], strict=True)),
+            list(zip(sc["world_to_camera"][:T], sc["world_to_ndc"][:T], strict=True)),
+            gt.shape[2],
+            gt.shape[1],
+        )
+        s.update(input=rgba, depth=depth, region="hole", params=params)
+        s["about"] = f"sparse-view reconstruction ({len(sc['ctx_rgb'])} views, point splats), {s['kind']}"
+    elif name == "insert_tone":
+        s.update(input=np.concatenate([degrade.composite(gt, _tone(gt, TONE_A), a), ones], -1), mask_insert=a)
+        s.update(region="insert", about="insert with a tone / white-balance mismatch (shadow present)")
+    elif name == "insert_relight":
+        s.update(input=np.concatenate([degrade.composite(gt, sc["relit"][:T], a), ones], -1), mask_insert=a)
+        s.update(region="insert", about="insert lit by another sun and sky (shadow present)")
+    elif name == "insert_noshadow":
+        s.update(input=np.concatenate([degrade.composite(plate, gt, ab), ones], -1), mask_insert=ab)
+        s.update(region="shadow", about="two correctly lit inserts over the plate: contact shadows missing")
+    elif name == "two_inserts":
+        fg = degrade.composite(_tone(gt, TONE_A_COOL), sc["relit"][:T], b)
+        s.update(input=np.concatenate([degrade.composite(plate, fg, ab), ones], -1), mask_insert=ab)
+        s.update(region="insert", about="two inserts, one tone-shifted, one relit, no contact shadows")
+    elif name == "insert_control":
+        s.update(input=np.concatenate([gt, ones], -1), mask_insert=ab)
+        s.update(region="insert", about="correctly lit inserts with their shadows (input = truth)")
+    elif name == "clean_hall":
+        s.update(input=np.concatenate([gt, ones], -1), about="clean render, no mask (input = truth)")
+    elif name in ("noisy_raw", "noisy_denoised"):
+        key = "noisy" if name == "noisy_raw" else "noisy_denoised"
+        s.update(input=np.concatenate([sc[key][:T], ones], -1), albedo=sc["noisy_albedo"][:T])
+        s["aux_normal"] = sc["noisy_normal"][:T]
+        s["about"] = (
+            "4 samples per pixel, raw, new seed per frame"
+            if name == "noisy_raw"
+            else "4 samples per pixel through Cycles' denoiser per frame"
+        )
+    s["frames"] = T
+    return s

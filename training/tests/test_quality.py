@@ -1,0 +1,126 @@
+"""The quality benchmark's harness: metrics, peers and the committed out-of-domain set.
+
+Runs in .venv-quality (scripts/quality.sh creates it):
+
+    .venv-quality/bin/python -m pytest -q training/tests/test_quality.py
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from training import quality
+from training.ood import sequences as ood
+
+H, W = 48, 64
+
+
+def _seq(frames: list[np.ndarray], motion_x: float = 0.0, depth: float = 5.0) -> dict:
+    T = len(frames)
+    motion = np.zeros((T, H, W, 2), np.float32)
+    motion[..., 0] = motion_x
+    d = np.full((T, H, W), depth, np.float32)
+    return {
+        "frames": T,
+        "input": np.concatenate([np.stack(frames), np.ones((T, H, W, 1), np.float32)], -1),
+        "target": np.stack(frames),
+        "depth": d,
+        "motion": motion,
+        "gt_depth": d,
+        "gt_motion": motion,
+        "mask_insert": np.zeros((T, H, W), np.float32),
+        "mask_shadow": np.zeros((T, H, W), np.float32),
+    }
+
+
+def _texture(shift: int = 0) -> np.ndarray:
+    y, x = np.mgrid[0:H, 0:W].astype(np.float32)
+    x = x + shift
+    return np.stack([0.3 + 0.2 * np.sin(x / 5), 0.3 + 0.2 * np.cos(y / 7), 0.2 + 0.1 * np.sin((x + y) / 9)], -1)
+
+
+def test_warp_error_is_zero_for_motion_the_vectors_explain_and_counts_flicker():
+    # The image moves 2 px right per frame; motion (current -> previous) is -2 px.
+    frames = [_texture(-2 * t) for t in range(4)]
+    s = _seq(frames, motion_x=-2.0)
+    enc = [quality.srgb(f) for f in frames]
+    err = quality.warp_error(enc, s)
+    assert err[0] is None
+    assert max(err[1:]) < 1e-6
+    flicker = [quality.srgb(f * (1.0 + 0.2 * (t % 2))) for t, f in enumerate(frames)]
+    assert min(quality.warp_error(flicker, s)[1:]) > 1e-3
+
+
+def test_occlusion_mask_drops_pixels_whose_surface_was_not_visible():
+    frames = [_texture(), _texture()]
+    s = _seq(frames)
+    s["gt_depth"][0, :, :20] = 1.0  # an occluder in the previous frame only
+    ok, _ = quality.occlusion_mask(s["gt_depth"], s["gt_motion"], 1)
+    assert not ok[:, :20].any() and ok[:, 25:].all()
+
+
+def test_psnr_and_ssim_of_identical_frames():
+    a = quality.srgb(_texture())
+    assert quality.psnr(a, a) == pytest.approx(120.0)
+    assert quality.ssim_map(a, a).mean() == pytest.approx(1.0, abs=1e-4)
+    assert quality.psnr(a, a, np.zeros((H, W), bool)) is None
+
+
+def test_inpainting_peers_fill_holes_and_leave_hole_free_frames_alone():
+    img = _texture()
+    inp = np.concatenate([img, np.ones((H, W, 1), np.float32)], -1)
+    holed = inp.copy()
+    holed[20:28, 30:38] = 0.0
+    tgt = quality.srgb(img)
+    hole = holed[..., 3] < 0.5
+    before = quality.psnr(quality.srgb(holed[..., :3]), tgt, hole)
+    for m in ("telea", "navier_stokes"):
+        out = quality.inpaint(holed, m)
+        assert quality.psnr(quality.srgb(out), tgt, hole) > before + 15
+        np.testing.assert_array_equal(quality.inpaint(inp, m), img)
+
+
+def test_oidn_peer_removes_noise_with_and_without_auxiliary_images():
+    rng = np.random.default_rng(0)
+    img = _texture()
+    noisy = np.maximum(img * rng.exponential(1.0, img.shape).astype(np.float32), 0.0)
+    inp = np.concatenate([noisy, np.ones((H, W, 1), np.float32)], -1)
+    tgt = quality.srgb(img)
+    base = quality.psnr(quality.srgb(noisy), tgt)
+    assert quality.psnr(quality.srgb(quality.oidn(inp, None, None)), tgt) > base + 5
+    normal = np.zeros_like(img)
+    normal[..., 2] = 1.0
+    assert quality.psnr(quality.srgb(quality.oidn(inp, img, normal)), tgt) > base + 5
+
+
+def test_ema_peer_steadies_a_flickering_static_sequence_and_keeps_disocclusions():
+    rng = np.random.default_rng(1)
+    frames = [_texture() * np.float32(1 + rng.normal(0, 0.1)) for _ in range(6)]
+    s = _seq(frames)
+    out = quality.ema(frames, s)
+    e_in = np.mean(quality.warp_error([quality.srgb(f) for f in frames], s)[1:])
+    e_out = np.mean(quality.warp_error([quality.srgb(f) for f in out], s)[1:])
+    assert e_out < 0.5 * e_in
+    s["depth"][3, :, :10] = 1.0  # a surface that was not there before: no history
+    out = quality.ema(frames, s)
+    np.testing.assert_array_equal(out[3][:, :10], frames[3][:, :10])
+
+
+@pytest.mark.parametrize("name", ood.SEQUENCES)
+def test_committed_out_of_domain_sequences_build(name):
+    s = ood.build(name, frames=2)
+    T, h, w = s["input"].shape[:3]
+    assert (T, s["frames"]) == (2, 2) and (h, w) == (180, 320)
+    for k in ("target", "depth", "motion", "normal", "mask_insert", "mask_shadow", "gt_depth", "gt_motion"):
+        assert s[k].shape[:3] == (T, h, w), k
+        assert np.isfinite(s[k]).all(), k
+    diff = np.abs(s["input"][..., :3] - s["target"]).max()
+    if name in ("insert_control", "clean_hall"):
+        assert diff == 0.0
+    else:
+        assert diff > 0.05
+    if s["region"]:
+        assert quality.regions(s, 1)[s["region"]].sum() > 200, "the degraded region must be visible"
+    if name.startswith("recon_"):
+        assert (s["input"][..., 3] < 0.5).mean() > 0.005
