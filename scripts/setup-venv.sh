@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# Creates the project's .venv (python3.11) with ONNX Runtime, onnx, numpy and
-# pytest, which the neural backend's tests and fixture scripts use. Idempotent
+# Creates the project's .venv (python3.11) with ONNX Runtime, onnx, numpy,
+# pytest and pyoidn (Open Image Denoise), which the neural backend's and the
+# denoiser's tests and the fixture scripts use. Idempotent
 # and quiet: installs only what is missing. Prints the HARMONIZER_ORT_LIB line.
 #
 #   scripts/setup-venv.sh            # .venv in the repository root
@@ -19,7 +20,7 @@ if [ ! -x "$venv/bin/python" ]; then
     "$python" -m venv "$venv"
 fi
 
-want=("onnxruntime==1.31.*" "onnx" "numpy" "pytest")
+want=("onnxruntime==1.31.*" "onnx" "numpy" "pytest" "pyoidn==2.*")
 missing=()
 for spec in "${want[@]}"; do
     if ! "$venv/bin/python" - "$spec" <<'PY' >/dev/null 2>&1

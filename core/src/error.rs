@@ -23,8 +23,9 @@ pub enum Error {
     /// The model or its manifest is missing, malformed or incompatible.
     #[error("model error: {0}")]
     Model(String),
-    /// The ONNX Runtime shared library could not be found or loaded.
-    #[error("ONNX Runtime missing: {0}")]
+    /// A shared library loaded at run time (ONNX Runtime, Open Image
+    /// Denoise) could not be found or loaded.
+    #[error("runtime library missing: {0}")]
     RuntimeMissing(String),
     /// The caller's progress callback asked to stop; state is unchanged.
     #[error("cancelled: {0}")]

@@ -3,6 +3,8 @@
 
 #[path = "core/classical.rs"]
 mod classical;
+#[path = "core/denoise.rs"]
+mod denoise;
 #[path = "core/gamut.rs"]
 mod gamut;
 #[path = "core/hostile.rs"]
