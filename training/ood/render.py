@@ -20,7 +20,7 @@ with the denoiser's albedo and normal passes), plus three context views.
 
 Clean passes: ``--samples`` (default 128) samples, adaptive (noise threshold
 0.005), then OIDN with albedo and normal, which Cycles' production renders use.
-Writes ``<out>/<scene>/scene.npz`` (float16 unless noted) and ``meta.json``;
+Writes ``<out>/<scene>/scene.npz`` (packed by ``sequences.pack``) and ``meta.json``;
 ``sequences.py`` builds the benchmark sequences from them.
 """
 
@@ -44,6 +44,7 @@ except ImportError:  # pragma: no cover - run with the bpy venv
     raise
 
 from training.ood.assets import ASSETS, fetch
+from training.ood.sequences import pack
 from training.synth import degrade
 from training.synth.exr import _channels, read_blender_exr
 from training.synth.render_scene import camera_matrices, crypto_mask, scene_checks
@@ -475,17 +476,13 @@ def render_scene(name: str, out_root: Path, cfg: dict) -> dict:
         arrays[k] = a
     arrays["ctx_rgb"] = np.stack(ctx_rgb) * k_exp
     arrays["ctx_depth"] = np.stack(ctx_depth)
-    f16 = {k: v.astype(np.float16) for k, v in arrays.items() if k not in ("depth", "ctx_depth")}
-    np.savez_compressed(
-        tmp / "scene.npz",
-        **f16,
-        depth=arrays["depth"].astype(np.float32),
-        ctx_depth=arrays["ctx_depth"].astype(np.float32),
+    arrays.update(
         world_to_camera=np.stack([c[0] for c in cams]),
         world_to_ndc=np.stack([c[1] for c in cams]),
         ctx_world_to_camera=np.stack([c[0] for c in ctx_cams]),
         ctx_world_to_ndc=np.stack([c[1] for c in ctx_cams]),
     )
+    np.savez_compressed(tmp / "scene.npz", **pack(arrays))
     meta = {
         "scene": name,
         "kind": info["kind"],
