@@ -8,8 +8,10 @@ Sets:
 - ``ood`` (out of domain, first): ``training/ood/`` renders (assets, light and
   camera motion never used in training; ``training/ood/sequences.py`` lists the
   ten sequences), 24 frames at 320x180;
-- ``in_domain``: the training generator's held-out scenes
-  (``training/data/test``, every stream), when they are rendered.
+- ``in_domain``: the training generator's held-out scenes, every stream:
+  ``training/data/test`` when they are rendered there (ids 9, 19, 29:
+  ``scripts/quality.sh --render-in-domain``), else scene 9, committed in
+  ``training/heldout/test``.
 
 Methods, all on the same inputs:
 
@@ -27,8 +29,10 @@ Methods, all on the same inputs:
 - ``oidn_ema``: OIDN, then that average;
 - ``classical``, ``neural``, ``neural_k0``: ``harmonize run`` with
   ``--backend classical``, ``--backend neural`` (the embedded model, K from its
-  manifest, which is what ``--backend auto`` runs) and the same with
-  ``--context 0`` (the ablation).
+  manifest, which is what ``--backend auto`` runs), the same with
+  ``--context 0`` (no history, hence no stabilization either) and with
+  ``--set stabilize=false`` (the network alone with its history: against
+  ``neural_k0`` it is the network's own use of its temporal context).
 
 Metrics on display-encoded values (sRGB transfer of the scene-linear color,
 clipped to [0, 1]): PSNR and SSIM (7x7 box window) over the frame and in the
@@ -68,6 +72,7 @@ OURS = {
     "classical": ["--backend", "classical"],
     "neural": ["--backend", "neural"],
     "neural_k0": ["--backend", "neural", "--context", "0"],
+    "neural_nostab": ["--backend", "neural", "--set", "stabilize=false"],
 }
 METHODS = PEERS + tuple(OURS)
 IN_DOMAIN_REGION = {
@@ -467,7 +472,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sets", default="ood,in_domain")
     ap.add_argument("--methods", default=",".join(METHODS))
     ap.add_argument("--only", default="", help="comma-separated sequence names")
-    ap.add_argument("--data", type=Path, default=REPO / "training" / "data", help="in-domain data (test split)")
+    ap.add_argument(
+        "--data",
+        type=Path,
+        help="in-domain data with a test split (default: training/data when it has held-out scenes, "
+        "else the one committed in training/heldout)",
+    )
     ap.add_argument("--harmonize", type=Path, default=REPO / "target" / "release" / "harmonize")
     ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args(argv)
@@ -496,6 +506,9 @@ def main(argv: list[str] | None = None) -> int:
             elif set_name == "in_domain":
                 from training.synth.dataset import list_scenes
 
+                if args.data is None:
+                    rendered = REPO / "training" / "data"
+                    args.data = rendered if list_scenes(rendered, "test") else REPO / "training" / "heldout"
                 if not list_scenes(args.data, "test"):
                     msg = (
                         f"no held-out scene in {args.data / 'test'}: render them with "
