@@ -234,31 +234,11 @@ def run_peer(name: str, s: dict, cache: dict) -> tuple[list[np.ndarray], float]:
 
 
 def write_inputs(s: dict, d: Path) -> None:
-    from training.synth.to_exr import write_exr
+    from training.synth.to_exr import frame_channels, write_exr
 
     d.mkdir(parents=True, exist_ok=True)
     for t in range(s["frames"]):
-        inp = s["input"][t]
-        chans = {
-            "R": inp[..., 0],
-            "G": inp[..., 1],
-            "B": inp[..., 2],
-            "A": inp[..., 3],
-            "Z": s["depth"][t],
-            "motion.X": s["motion"][t, ..., 0],
-            "motion.Y": s["motion"][t, ..., 1],
-            "N.X": s["normal"][t, ..., 0],
-            "N.Y": s["normal"][t, ..., 1],
-            "N.Z": s["normal"][t, ..., 2],
-            "mask.insert": s["mask_insert"][t],
-        }
-        header = {}
-        if "world_to_camera" in s:
-            header = {
-                "worldToCamera": np.ascontiguousarray(s["world_to_camera"][t], np.float32),
-                "worldToNDC": np.ascontiguousarray(s["world_to_ndc"][t], np.float32),
-            }
-        write_exr(d / f"input.{t + 1:04d}.exr", chans, header)
+        write_exr(d / f"input.{t + 1:04d}.exr", *frame_channels(s, t))
 
 
 def read_rgb(path: Path) -> np.ndarray:

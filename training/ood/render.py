@@ -47,39 +47,14 @@ from training.ood.assets import ASSETS, fetch
 from training.ood.sequences import pack
 from training.synth import degrade
 from training.synth.exr import _channels, read_blender_exr
-from training.synth.render_scene import camera_matrices, crypto_mask, scene_checks
+from training.synth.render_scene import camera_matrices, crypto_mask, reset_blender, scene_checks
 
 SCENES = ("courtyard", "hall")
 
 
 def reset(width: int, height: int, threads: int) -> bpy.types.Scene:
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    sc = bpy.context.scene
-    sc.render.engine = "CYCLES"
-    sc.cycles.device = "CPU"
-    sc.render.resolution_x, sc.render.resolution_y = width, height
-    sc.render.resolution_percentage = 100
-    sc.render.use_motion_blur = False
-    sc.render.threads_mode = "FIXED"
-    sc.render.threads = threads
-    sc.render.film_transparent = False
-    sc.cycles.max_bounces = 4
-    sc.cycles.diffuse_bounces = 3
-    sc.cycles.glossy_bounces = 3
-    sc.cycles.use_animated_seed = False
-    sc.view_settings.view_transform = "Standard"
-    vl = sc.view_layers[0]
-    vl.use_pass_z = True
-    vl.use_pass_vector = True
-    vl.use_pass_normal = True
-    vl.use_pass_cryptomatte_object = True
-    vl.pass_cryptomatte_depth = 4
-    ims = sc.render.image_settings
-    ims.media_type = "MULTI_LAYER_IMAGE"
-    ims.file_format = "OPEN_EXR_MULTILAYER"
-    ims.color_depth = "32"
-    ims.exr_codec = "ZIP"
-    return sc
+    """The training renderer's settings (passes, EXR, 4 bounces, no motion blur)."""
+    return reset_blender({"width": width, "height": height, "threads": threads})
 
 
 def textured(name: str, image: str, scale: float, roughness: float = 0.6, tint=(1, 1, 1), bump: float = 0.0):

@@ -30,29 +30,37 @@ def write_exr(path: Path, channels: dict[str, np.ndarray], header: dict | None =
     tmp.replace(path)
 
 
+def frame_channels(s: dict, t: int) -> tuple[dict[str, np.ndarray], dict]:
+    """The generic-layout channels and the camera header of frame ``t`` of a sample."""
+    inp = s["input"][t]
+    chans = {
+        "R": inp[..., 0],
+        "G": inp[..., 1],
+        "B": inp[..., 2],
+        "A": inp[..., 3],
+        "Z": s["depth"][t],
+        "motion.X": s["motion"][t, ..., 0],
+        "motion.Y": s["motion"][t, ..., 1],
+        "N.X": s["normal"][t, ..., 0],
+        "N.Y": s["normal"][t, ..., 1],
+        "N.Z": s["normal"][t, ..., 2],
+        "mask.insert": s["mask_insert"][t],
+    }
+    header = {}
+    if "world_to_camera" in s:
+        header = {
+            "worldToCamera": np.ascontiguousarray(s["world_to_camera"][t], np.float32),
+            "worldToNDC": np.ascontiguousarray(s["world_to_ndc"][t], np.float32),
+        }
+    return chans, header
+
+
 def sample_to_exr(scene_dir: Path, stream: str, out: Path) -> int:
     s = load_sample(scene_dir, stream)
     out.mkdir(parents=True, exist_ok=True)
     T = s["input"].shape[0]
     for t in range(T):
-        inp = s["input"][t]
-        chans = {
-            "R": inp[..., 0],
-            "G": inp[..., 1],
-            "B": inp[..., 2],
-            "A": inp[..., 3],
-            "Z": s["depth"][t],
-            "motion.X": s["motion"][t, ..., 0],
-            "motion.Y": s["motion"][t, ..., 1],
-            "N.X": s["normal"][t, ..., 0],
-            "N.Y": s["normal"][t, ..., 1],
-            "N.Z": s["normal"][t, ..., 2],
-            "mask.insert": s["mask_insert"][t],
-        }
-        header = {
-            "worldToCamera": np.ascontiguousarray(s["world_to_camera"][t], np.float32),
-            "worldToNDC": np.ascontiguousarray(s["world_to_ndc"][t], np.float32),
-        }
+        chans, header = frame_channels(s, t)
         write_exr(out / f"input.{t + 1:04d}.exr", chans, header)
         tg = s["target"][t]
         write_exr(
