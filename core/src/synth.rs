@@ -78,6 +78,11 @@ pub struct SynthInput {
     pub coverage: Vec<f32>,
     /// Insert mask in `[0,1]`: 1 on the inserted sphere.
     pub insert_mask: Vec<f32>,
+    /// Albedo (3 channels): the mean surface reflectance over the pixel's
+    /// rays, times the coverage (0 in holes), what a renderer's denoising
+    /// albedo holds. Not in [`SynthInput::frame_input`] (a host gives it
+    /// for the denoise stage): see [`SynthInput::frame_input_with_albedo`].
+    pub albedo: Vec<f32>,
     /// The camera.
     pub camera: Camera,
 }
@@ -101,7 +106,18 @@ impl SynthInput {
         f
     }
 
-    /// Bytes of all input buffers.
+    /// [`SynthInput::frame_input`] with the albedo.
+    pub fn frame_input_with_albedo(&self) -> FrameInput<'_> {
+        let mut f = self.frame_input();
+        f.albedo = Some(
+            ImageView::from_f32("albedo", &self.albedo, self.width, self.height, 3)
+                .expect("synthetic buffers match their size"),
+        );
+        f
+    }
+
+    /// Bytes of the input buffers of [`SynthInput::frame_input`] (the
+    /// albedo not counted).
     pub fn bytes(&self) -> usize {
         4 * (self.color.len()
             + self.depth.len()
@@ -406,6 +422,7 @@ impl Scene {
             motion: [f32; 2],
             truth_motion: [f32; 2],
             normal: [f32; 3],
+            albedo: [f32; 3],
             coverage: f32,
             insert: bool,
             shadow: bool,
@@ -427,14 +444,17 @@ impl Scene {
                         // pixel filter does), so textures do not alias and the
                         // truth is temporally consistent; geometry and AOVs
                         // come from the centre ray.
-                        let (mut truth, mut input) = (DVec3::ZERO, DVec3::ZERO);
+                        let (mut truth, mut input, mut albedo) =
+                            (DVec3::ZERO, DVec3::ZERO, DVec3::ZERO);
                         for (sx, sy) in SUBPIXELS {
                             let ds = un.world_point(px + DVec2::new(sx, sy), 1.0) - eye;
                             let Some(hs) = self.trace(frame, eye, ds) else {
                                 continue;
                             };
                             let ps = eye + hs.s * ds;
-                            let lit = self.shade(self.albedo(hs.obj, ps), hs.normal);
+                            let a = self.albedo(hs.obj, ps);
+                            albedo += a;
+                            let lit = self.shade(a, hs.normal);
                             let shadow = if hs.obj == Obj::Ground {
                                 self.contact_shadow(frame, ps)
                             } else {
@@ -449,6 +469,7 @@ impl Scene {
                         }
                         truth /= SUBPIXELS.len() as f64;
                         input /= SUBPIXELS.len() as f64;
+                        albedo /= SUBPIXELS.len() as f64;
                         let key = seed ^ ((frame as u64) << 40) ^ ((i as u64) << 20) ^ j as u64;
                         let mut noisy = [0f64; 3];
                         for (c, v) in noisy.iter_mut().enumerate() {
@@ -500,6 +521,7 @@ impl Scene {
                                     hit.normal.z as f32,
                                 ]
                             },
+                            albedo: (albedo * cov).as_vec3().to_array(),
                             coverage: cov as f32,
                             insert: hit.obj == Obj::Sphere,
                             shadow: hit.obj == Obj::Ground && self.contact_shadow(frame, p) < 0.95,
@@ -521,6 +543,7 @@ impl Scene {
             normal: Vec::with_capacity(3 * n),
             coverage: Vec::with_capacity(n),
             insert_mask: Vec::with_capacity(n),
+            albedo: Vec::with_capacity(3 * n),
             camera: cam,
         };
         let mut out = SynthFrame {
@@ -531,6 +554,7 @@ impl Scene {
                 normal: vec![],
                 coverage: vec![],
                 insert_mask: vec![],
+                albedo: vec![],
                 ..input.clone()
             },
             truth: Vec::with_capacity(3 * n),
@@ -547,6 +571,7 @@ impl Scene {
             input.normal.extend_from_slice(&p.normal);
             input.coverage.push(p.coverage);
             input.insert_mask.push(if p.insert { 1.0 } else { 0.0 });
+            input.albedo.extend_from_slice(&p.albedo);
             out.truth.extend_from_slice(&p.truth);
             out.truth_motion.extend_from_slice(&p.truth_motion);
             out.hole_mask.push(p.coverage < 0.5);
@@ -587,6 +612,34 @@ impl Sequence {
         }
         Ok((ip.as_str().to_string(), tp.as_str().to_string()))
     }
+}
+
+/// Monte Carlo-like noise of a render with `samples` samples per pixel,
+/// applied to the interleaved color `rgb` (`channels` per pixel, the first
+/// 3 RGB, premultiplied or not: the noise multiplies): each pixel is the
+/// mean of `samples` draws of its value times an exponential variable of
+/// mean 1 (a path that finds the light or not), each channel of a draw
+/// varying by up to 15 % (colored noise). Relative standard deviation
+/// about `1 / sqrt(samples)`; deterministic in `seed` (give each frame
+/// its own).
+pub fn render_noise(rgb: &mut [f32], channels: usize, samples: u32, seed: u64) {
+    assert!(channels >= 3 && samples > 0);
+    rgb.par_chunks_mut(channels)
+        .enumerate()
+        .for_each(|(p, px)| {
+            let mut sum = [0f64; 3];
+            for k in 0..samples as u64 {
+                let key = splitmix(seed ^ ((p as u64) << 20) ^ (k << 52));
+                let e = -(1.0 - uniform(key)).ln();
+                for (c, s) in sum.iter_mut().enumerate() {
+                    let tint = 1.0 + 0.3 * (uniform(key ^ (1 + c as u64)) - 0.5);
+                    *s += e * tint;
+                }
+            }
+            for (v, s) in px.iter_mut().zip(sum) {
+                *v = (*v as f64 * s / samples as f64) as f32;
+            }
+        });
 }
 
 /// An interleaved copy of the first `channels` planes of a planar image.

@@ -689,6 +689,9 @@ impl FrameDesc {
             depth: self.depth.is_some(),
             motion: self.motion.is_some(),
             normal: self.normal.is_some(),
+            // The C ABI has no albedo yet (`hz_frame` gains it later).
+            albedo: false,
+            denoise_normal: false,
             coverage: self.coverage.is_some(),
             insert_mask: self.insert_mask.is_some(),
         }

@@ -300,6 +300,14 @@ pub struct FrameInput<'a> {
     pub motion: Option<ImageView<'a>>,
     /// Normals (3 channels), any space.
     pub normal: Option<ImageView<'a>>,
+    /// Albedo (3 channels, linear, in `[0, 1]`): the surface reflectance
+    /// the renderer saw, what Cycles' Denoising Albedo pass holds; read by
+    /// the denoise stage (`denoise` parameter) only.
+    pub albedo: Option<ImageView<'a>>,
+    /// Normals for the denoise stage (3 channels, any space), for example
+    /// Cycles' Denoising Normal pass (camera space, consistent with its
+    /// Denoising Albedo); when absent the denoiser reads `normal`.
+    pub denoise_normal: Option<ImageView<'a>>,
     /// Coverage in `[0,1]` (1 channel): 0 where the renderer had no data (a hole).
     pub coverage: Option<ImageView<'a>>,
     /// Insert mask in `[0,1]` (1 channel): where an inserted object is.
@@ -323,6 +331,8 @@ impl<'a> FrameInput<'a> {
             depth: None,
             motion: None,
             normal: None,
+            albedo: None,
+            denoise_normal: None,
             coverage: None,
             insert_mask: None,
             camera: None,
@@ -360,6 +370,13 @@ pub struct PreparedFrame {
     pub motion: Option<Image>,
     /// Normals (3 planes).
     pub normal: Option<Image>,
+    /// Albedo (3 planes): non-finite samples 0, the rest clamped to
+    /// `[0, 1]`. Prepared only for the denoise stage
+    /// ([`PrepareOptions::denoise_aux`]).
+    pub albedo: Option<Image>,
+    /// The denoise stage's normals (3 planes, non-finite samples 0), from
+    /// [`FrameInput::denoise_normal`]; prepared as `albedo` is.
+    pub denoise_normal: Option<Image>,
     /// Insert mask in `[0,1]`.
     pub insert_mask: Option<Vec<f32>>,
     /// The frame's camera.
@@ -378,8 +395,12 @@ pub struct PreparedFrame {
     /// Samples of the other AOVs that were NaN or infinite and were replaced.
     pub sanitized_aovs: usize,
     /// Normal samples that were NaN or infinite (replaced by 0 when the
-    /// normals are prepared, counted either way).
+    /// normals are prepared, counted either way), those of
+    /// `denoise_normal` included.
     pub sanitized_normals: usize,
+    /// Albedo samples that were NaN or infinite (replaced by 0 when the
+    /// albedo is prepared, counted either way).
+    pub sanitized_albedo: usize,
     /// Motion vectors longer than the image in either axis (a wrong scale
     /// or AOV), counted after scaling.
     pub huge_motion: usize,
@@ -410,6 +431,33 @@ pub struct Scan {
     pub insert: Option<Rect>,
 }
 
+/// Which of a frame's inputs [`PreparedFrame::from_input_with`] reads into
+/// planes. An input not read is still checked (size, channels) and its
+/// NaN and infinite samples counted.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct PrepareOptions {
+    /// Read the normals (a backend that uses them, or the denoise stage
+    /// without [`FrameInput::denoise_normal`]).
+    pub normals: bool,
+    /// Prepare the color as 4 planes, the 4th the coverage (1 where it is
+    /// absent), written in the same pass: the working image of a backend
+    /// that works in place ([`crate::backend::Backend::works_in_place`]).
+    pub rgba: bool,
+    /// Read the albedo and the denoise stage's normals.
+    pub denoise_aux: bool,
+}
+
+impl Default for PrepareOptions {
+    /// Everything read, the color as 3 planes.
+    fn default() -> Self {
+        PrepareOptions {
+            normals: true,
+            rgba: false,
+            denoise_aux: true,
+        }
+    }
+}
+
 impl PreparedFrame {
     /// Width in pixels.
     pub fn width(&self) -> usize {
@@ -422,7 +470,7 @@ impl PreparedFrame {
 
     /// Validates `input` and converts it to the planar form (on the calling thread).
     pub fn from_input(input: &FrameInput<'_>, depth_kind: DepthKind) -> Result<PreparedFrame> {
-        Self::prepare(input, depth_kind, None, None, true, false)
+        Self::prepare(input, depth_kind, None, None, PrepareOptions::default())
     }
 
     /// Like [`PreparedFrame::from_input`], row-parallel on `pool`; the result
@@ -432,7 +480,13 @@ impl PreparedFrame {
         depth_kind: DepthKind,
         pool: &rayon::ThreadPool,
     ) -> Result<PreparedFrame> {
-        Self::prepare(input, depth_kind, Some(pool), None, true, false)
+        Self::prepare(
+            input,
+            depth_kind,
+            Some(pool),
+            None,
+            PrepareOptions::default(),
+        )
     }
 
     /// Like [`PreparedFrame::from_input_on`], with its buffers taken from
@@ -451,7 +505,25 @@ impl PreparedFrame {
         normals: bool,
         rgba: bool,
     ) -> Result<PreparedFrame> {
-        Self::prepare(input, depth_kind, Some(pool), Some(recycler), normals, rgba)
+        let options = PrepareOptions {
+            normals,
+            rgba,
+            denoise_aux: false,
+        };
+        Self::prepare(input, depth_kind, Some(pool), Some(recycler), options)
+    }
+
+    /// Like [`PreparedFrame::from_input_recycled`], reading what `options`
+    /// says (the albedo and the denoise stage's normals are counted only
+    /// unless [`PrepareOptions::denoise_aux`]).
+    pub fn from_input_with(
+        input: &FrameInput<'_>,
+        depth_kind: DepthKind,
+        pool: &rayon::ThreadPool,
+        recycler: &Recycler,
+        options: PrepareOptions,
+    ) -> Result<PreparedFrame> {
+        Self::prepare(input, depth_kind, Some(pool), Some(recycler), options)
     }
 
     /// Takes the color out (for a backend that works on it in place),
@@ -480,7 +552,10 @@ impl PreparedFrame {
         for b in [self.coverage, self.depth].into_iter().flatten() {
             recycler.give(b);
         }
-        for img in [self.motion, self.normal].into_iter().flatten() {
+        for img in [self.motion, self.normal, self.albedo, self.denoise_normal]
+            .into_iter()
+            .flatten()
+        {
             recycler.give(img.data);
         }
     }
@@ -490,9 +565,13 @@ impl PreparedFrame {
         depth_kind: DepthKind,
         pool: Option<&rayon::ThreadPool>,
         recycler: Option<&Recycler>,
-        normals: bool,
-        rgba: bool,
+        options: PrepareOptions,
     ) -> Result<PreparedFrame> {
+        let PrepareOptions {
+            normals,
+            rgba,
+            denoise_aux,
+        } = options;
         let (w, h) = (input.width(), input.height());
         if input.color.channels() < 3 {
             return Err(Error::invalid(format!(
@@ -521,6 +600,8 @@ impl PreparedFrame {
         check("depth", &input.depth, 1)?;
         check("motion", &input.motion, 2)?;
         check("normal", &input.normal, 3)?;
+        check("albedo", &input.albedo, 3)?;
+        check("denoise_normal", &input.denoise_normal, 3)?;
         check("coverage", &input.coverage, 1)?;
         check("insert_mask", &input.insert_mask, 1)?;
         let s = input.motion_vector_scale;
@@ -675,6 +756,29 @@ impl PreparedFrame {
             }
             None => None,
         };
+        // The denoise stage's albedo and normals, validated as the normals
+        // are: non-finite samples are 0 (counted); the albedo is clamped
+        // to [0, 1] (Open Image Denoise's range for it).
+        let aux = |v: Option<&ImageView<'_>>, albedo: bool| -> Result<(Option<Image>, usize)> {
+            let Some(v) = v else {
+                return Ok((None, 0));
+            };
+            if !denoise_aux {
+                return Ok((None, count_non_finite(pool, v, 3)));
+            }
+            let hi = if albedo { 1.0 } else { f32::MAX };
+            let lo = if albedo { 0.0 } else { -f32::MAX };
+            let mut img = take(3)?;
+            let bad = read_image(pool, v, &mut img, move |_, x| {
+                let bad = !x.is_finite();
+                *x = if bad { 0.0 } else { clamp(*x, lo, hi) };
+                bad
+            });
+            Ok((Some(img), bad))
+        };
+        let (albedo, sanitized_albedo) = aux(input.albedo.as_ref(), true)?;
+        let (denoise_normal, bad_denoise_normals) = aux(input.denoise_normal.as_ref(), false)?;
+        sanitized_normals += bad_denoise_normals;
         let limit = 4.0 * (w.max(h) as f32);
         let (wf, hf) = (w as f32, h as f32);
         let mut huge_motion = 0;
@@ -735,6 +839,8 @@ impl PreparedFrame {
             depth,
             motion,
             normal,
+            albedo,
+            denoise_normal,
             insert_mask,
             scan: Some(Scan { holes, insert }),
             scene_samples: scene_rows.finish(),
@@ -748,6 +854,7 @@ impl PreparedFrame {
             },
             sanitized_aovs: sanitized_aovs + cov_bad,
             sanitized_normals,
+            sanitized_albedo,
             huge_motion,
         })
     }

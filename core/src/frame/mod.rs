@@ -10,6 +10,6 @@ mod view;
 pub use camera::Camera;
 pub use image::{sample_count, try_zeros, Image, Recycler, RgbaImage};
 pub(crate) use input::recycle_mask;
-pub use input::{DepthKind, FrameInput, PreparedFrame, Scan};
+pub use input::{DepthKind, FrameInput, PrepareOptions, PreparedFrame, Scan};
 pub use shape::FrameShape;
 pub use view::{ImageView, ImageViewMut, PixelFormat};

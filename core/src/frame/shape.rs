@@ -17,6 +17,10 @@ pub struct FrameShape {
     pub motion: bool,
     /// Normals given.
     pub normal: bool,
+    /// Albedo given.
+    pub albedo: bool,
+    /// The denoise stage's own normals given.
+    pub denoise_normal: bool,
     /// Coverage given.
     pub coverage: bool,
     /// Insert mask given.
@@ -41,6 +45,8 @@ impl FrameShape {
             depth: input.depth.is_some(),
             motion: input.motion.is_some(),
             normal: input.normal.is_some(),
+            albedo: input.albedo.is_some(),
+            denoise_normal: input.denoise_normal.is_some(),
             coverage: input.coverage.is_some(),
             insert_mask: input.insert_mask.is_some(),
         }

@@ -348,6 +348,10 @@ pub struct LoadedFrame {
     pub motion: Option<Vec<f32>>,
     /// Normals (x, y, z interleaved).
     pub normal: Option<Vec<f32>>,
+    /// Albedo (RGB interleaved).
+    pub albedo: Option<Vec<f32>>,
+    /// The denoise stage's normals (x, y, z interleaved).
+    pub denoise_normal: Option<Vec<f32>>,
     /// Insert mask in `[0,1]`.
     pub insert_mask: Option<Vec<f32>>,
     /// The camera, from the header.
@@ -477,6 +481,16 @@ impl LoadedFrame {
             .as_ref()
             .map(|m| many(m, "normal"))
             .transpose()?;
+        let albedo = layout
+            .albedo
+            .as_ref()
+            .map(|m| many(m, "albedo"))
+            .transpose()?;
+        let denoise_normal = layout
+            .denoise_normal
+            .as_ref()
+            .map(|m| many(m, "denoise_normal"))
+            .transpose()?;
         let insert_mask = match &layout.insert {
             None => None,
             Some(InsertSource::Channel(r)) => Some(read1(r, "insert")?.1),
@@ -518,6 +532,8 @@ impl LoadedFrame {
             depth,
             motion,
             normal,
+            albedo,
+            denoise_normal,
             insert_mask,
             camera,
             warnings,
@@ -554,6 +570,16 @@ impl LoadedFrame {
             .normal
             .as_deref()
             .map(|d| view("normal", d, 3))
+            .transpose()?;
+        f.albedo = self
+            .albedo
+            .as_deref()
+            .map(|d| view("albedo", d, 3))
+            .transpose()?;
+        f.denoise_normal = self
+            .denoise_normal
+            .as_deref()
+            .map(|d| view("denoise_normal", d, 3))
             .transpose()?;
         f.insert_mask = self
             .insert_mask
@@ -941,6 +967,8 @@ pub fn info(path: &Path) -> Result<FileInfo> {
         ("motion", l.motion.is_some()),
         ("normal", l.normal.is_some()),
         ("insert", l.insert.is_some()),
+        ("albedo", l.albedo.is_some()),
+        ("denoise_normal", l.denoise_normal.is_some()),
     ] {
         if present {
             roles.push(r);

@@ -1,13 +1,20 @@
 //! Channel layouts: which EXR channels hold color, coverage, depth, motion,
-//! normals and the insert mask. Channels are always found by name.
+//! normals, the insert mask and the denoise stage's albedo and normals.
+//! Channels are always found by name.
 //!
 //! - `generic` (single part): `R,G,B` (premultiplied), `A` (coverage), `Z`
-//!   (planar depth), `motion.X`, `motion.Y`, `N.X`, `N.Y`, `N.Z`, `mask.insert`.
+//!   (planar depth), `motion.X`, `motion.Y`, `N.X`, `N.Y`, `N.Z`,
+//!   `mask.insert`, `albedo.R`, `albedo.G`, `albedo.B`, `denoise_normal.X`,
+//!   `denoise_normal.Y`, `denoise_normal.Z`.
 //! - `blender`: the multi-part multilayer EXR of Blender 5: `<layer>.Combined`
 //!   (.R .G .B .A), `<layer>.Depth` (.Z), `<layer>.Vector` (.X .Y, +y up: the
 //!   y component is negated), `<layer>.Normal` (.X .Y .Z), `<layer>.Object
-//!   Index` (.X, the insert mask is `Object Index == --insert-index`). The
-//!   view layer name is detected; a `Composite.Combined` part is left alone.
+//!   Index` (.X, the insert mask is `Object Index == --insert-index`),
+//!   `<layer>.Denoising Albedo` (.R .G .B, the albedo) and `<layer>.Denoising
+//!   Normal` (.X .Y .Z, the denoiser's normals: Cycles writes them in camera
+//!   space, consistent with its albedo, so they do not replace `Normal`).
+//!   The view layer name is detected; a `Composite.Combined` part is left
+//!   alone.
 //! - a user mapping (`color=beauty.R,beauty.G,beauty.B`, ...) overrides or
 //!   completes a preset; `auto` picks `blender` when a view layer's
 //!   `Combined` pass is present, else `generic`.
@@ -108,11 +115,15 @@ pub struct ChannelMapping {
     pub normal: Option<[ChannelRef; 3]>,
     /// Insert mask channel.
     pub insert: Option<ChannelRef>,
+    /// Albedo (R, G, B).
+    pub albedo: Option<[ChannelRef; 3]>,
+    /// The denoise stage's normals (x, y, z).
+    pub denoise_normal: Option<[ChannelRef; 3]>,
 }
 
 impl ChannelMapping {
     /// Adds one `role=CH[,CH...]` entry (roles: color, coverage, depth,
-    /// motion, normal, insert).
+    /// motion, normal, insert, albedo, denoise_normal).
     pub fn add(&mut self, spec: &str) -> Result<()> {
         let bad = |why: String| Error::invalid(format!("--channel {spec:?}: {why}"));
         let (role, list) = spec
@@ -158,9 +169,18 @@ impl ChannelMapping {
                 want(1)?;
                 self.insert = Some(chans[0].clone());
             }
+            "albedo" => {
+                want(3)?;
+                self.albedo = Some([chans[0].clone(), chans[1].clone(), chans[2].clone()]);
+            }
+            "denoise_normal" => {
+                want(3)?;
+                self.denoise_normal = Some([chans[0].clone(), chans[1].clone(), chans[2].clone()]);
+            }
             other => {
                 return Err(bad(format!(
-                    "unknown role {other:?} (expected color, coverage, depth, motion, normal or insert)"
+                    "unknown role {other:?} (expected color, coverage, depth, motion, normal, insert, albedo or \
+                     denoise_normal)"
                 )))
             }
         }
@@ -204,6 +224,10 @@ pub struct ResolvedLayout {
     pub normal: Option<[ChannelRef; 3]>,
     /// Insert mask.
     pub insert: Option<InsertSource>,
+    /// Albedo, for the denoise stage.
+    pub albedo: Option<[ChannelRef; 3]>,
+    /// Normals for the denoise stage.
+    pub denoise_normal: Option<[ChannelRef; 3]>,
     /// Roles the user mapped explicitly (they must exist).
     pub required: Vec<&'static str>,
 }
@@ -255,6 +279,9 @@ pub fn resolve(
             mv[1].negate = true;
             let motion = Some(mv).filter(|m| all(m));
             let normal = Some(refs(&p("Normal"), ["X", "Y", "Z"])).filter(|m| all(m));
+            let albedo = Some(refs(&p("Denoising Albedo"), ["R", "G", "B"])).filter(|m| all(m));
+            let denoise_normal =
+                Some(refs(&p("Denoising Normal"), ["X", "Y", "Z"])).filter(|m| all(m));
             let index_channel = [
                 format!("{}X", p("Object Index")),
                 format!("{}X", p("IndexOB")),
@@ -283,6 +310,8 @@ pub fn resolve(
                 motion,
                 normal,
                 insert,
+                albedo,
+                denoise_normal,
                 required: vec![],
             }
         }
@@ -297,6 +326,12 @@ pub fn resolve(
                 motion: Some(refs("", ["motion.X", "motion.Y"])).filter(|m| all(m)),
                 normal: Some(refs("", ["N.X", "N.Y", "N.Z"])).filter(|m| all(m)),
                 insert: opt1("mask.insert").map(InsertSource::Channel),
+                albedo: Some(refs("", ["albedo.R", "albedo.G", "albedo.B"])).filter(|m| all(m)),
+                denoise_normal: Some(refs(
+                    "",
+                    ["denoise_normal.X", "denoise_normal.Y", "denoise_normal.Z"],
+                ))
+                .filter(|m| all(m)),
                 required: vec![],
             }
         }
@@ -325,6 +360,14 @@ pub fn resolve(
     if let Some(c) = &m.insert {
         out.insert = Some(InsertSource::Channel(c.clone()));
         out.required.push("insert");
+    }
+    if let Some(c) = &m.albedo {
+        out.albedo = Some(c.clone());
+        out.required.push("albedo");
+    }
+    if let Some(c) = &m.denoise_normal {
+        out.denoise_normal = Some(c.clone());
+        out.required.push("denoise_normal");
     }
     Ok(out)
 }
@@ -392,6 +435,67 @@ mod tests {
         let e = opts.mapping.add("color=a,b").unwrap_err().to_string();
         assert!(e.contains("color") && e.contains("3"), "{e}");
         let e = opts.mapping.add("albedo=x").unwrap_err().to_string();
-        assert!(e.contains("albedo"), "{e}");
+        assert!(e.contains("albedo") && e.contains('3'), "{e}");
+        let e = opts.mapping.add("sheen=x").unwrap_err().to_string();
+        assert!(e.contains("sheen") && e.contains("albedo"), "{e}");
+    }
+
+    #[test]
+    fn albedo_and_the_denoisers_normals() {
+        // Generic: `albedo.R/G/B` and `denoise_normal.X/Y/Z` when all three are there.
+        let n = names(&[
+            "R", "G", "B", "albedo.R", "albedo.G", "albedo.B", "N.X", "N.Y", "N.Z",
+        ]);
+        let has = |s: &str| n.iter().any(|x| x == s);
+        let r = resolve(&LayoutOptions::default(), &n, &has).unwrap();
+        assert_eq!(
+            r.albedo,
+            Some(refs("", ["albedo.R", "albedo.G", "albedo.B"]))
+        );
+        assert_eq!(r.denoise_normal, None);
+        let partial = names(&["R", "G", "B", "albedo.R", "albedo.G"]);
+        let has_partial = |s: &str| partial.iter().any(|x| x == s);
+        let r = resolve(&LayoutOptions::default(), &partial, &has_partial).unwrap();
+        assert_eq!(r.albedo, None);
+        // Blender: the Denoising Albedo and Denoising Normal passes; the
+        // Normal pass stays the normal.
+        let b = names(&[
+            "View Layer.Combined.R",
+            "View Layer.Combined.G",
+            "View Layer.Combined.B",
+            "View Layer.Normal.X",
+            "View Layer.Normal.Y",
+            "View Layer.Normal.Z",
+            "View Layer.Denoising Albedo.R",
+            "View Layer.Denoising Albedo.G",
+            "View Layer.Denoising Albedo.B",
+            "View Layer.Denoising Normal.X",
+            "View Layer.Denoising Normal.Y",
+            "View Layer.Denoising Normal.Z",
+        ]);
+        let has_b = |s: &str| b.iter().any(|x| x == s);
+        let r = resolve(&LayoutOptions::default(), &b, &has_b).unwrap();
+        assert_eq!(r.preset, LayoutPreset::Blender);
+        assert_eq!(
+            r.albedo.as_ref().unwrap()[0].name,
+            "View Layer.Denoising Albedo.R"
+        );
+        assert_eq!(
+            r.albedo.as_ref().unwrap()[2].name,
+            "View Layer.Denoising Albedo.B"
+        );
+        assert_eq!(
+            r.denoise_normal.as_ref().unwrap()[1].name,
+            "View Layer.Denoising Normal.Y"
+        );
+        assert_eq!(r.normal.as_ref().unwrap()[0].name, "View Layer.Normal.X");
+        // The user mapping.
+        let mut opts = LayoutOptions::default();
+        opts.mapping.add("albedo=alb.r,alb.g,alb.b").unwrap();
+        opts.mapping.add("denoise_normal=dn.x,dn.y,dn.z").unwrap();
+        let r = resolve(&opts, &n, &has).unwrap();
+        assert_eq!(r.albedo.as_ref().unwrap()[1].name, "alb.g");
+        assert_eq!(r.denoise_normal.as_ref().unwrap()[2].name, "dn.z");
+        assert_eq!(r.required, vec!["albedo", "denoise_normal"]);
     }
 }
