@@ -102,6 +102,7 @@ fn tiling(c: &mut Criterion) {
         ort_library: Some(lib),
         memory_limit: 0,
         model: ModelSource::File(model_path),
+        oidn_library: None,
     })
     .expect("device");
     let model = device.neural_model().expect("box3 model").expect("a model");

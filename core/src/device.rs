@@ -1,5 +1,6 @@
 //! The device: a private thread pool, the ONNX Runtime location, a memory
-//! limit and the model. Shared (via `Arc`) by all sessions on it.
+//! limit, the model and Open Image Denoise. Shared (via `Arc`) by all
+//! sessions on it.
 
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
@@ -39,6 +40,10 @@ pub struct DeviceOptions {
     pub memory_limit: usize,
     /// The neural model.
     pub model: ModelSource,
+    /// Path of `libOpenImageDenoise.so` for the denoise stage; `None` =
+    /// `HARMONIZER_OIDN_LIB`, the `pyoidn` wheel in a `.venv*`, the
+    /// system's library ([`crate::denoise::locate`]). Loaded on first use.
+    pub oidn_library: Option<PathBuf>,
 }
 
 /// A device. Create once, share between sessions.
@@ -48,6 +53,7 @@ pub struct Device {
     memory: (usize, &'static str),
     pool: rayon::ThreadPool,
     neural: Mutex<Option<Arc<crate::backend::neural::NeuralModel>>>,
+    oidn: Mutex<Option<Arc<crate::denoise::Oidn>>>,
 }
 
 impl std::fmt::Debug for Device {
@@ -95,6 +101,7 @@ impl Device {
             memory,
             pool,
             neural: Mutex::new(None),
+            oidn: Mutex::new(None),
         };
         if device.options.model != ModelSource::Embedded {
             // Loading reads and checks the files, the manifest and the
@@ -144,6 +151,25 @@ impl Device {
             *slot = Some(m.clone());
         }
         Ok(loaded)
+    }
+}
+
+impl Device {
+    /// Open Image Denoise and its CPU device with this device's thread
+    /// count, loaded on first use ([`crate::denoise::Oidn::new`] with
+    /// `oidn_library`) and shared by the sessions on this device. A
+    /// failure is not kept: the next call tries again.
+    ///
+    /// Errors: [`Error::RuntimeMissing`] naming the library looked for and
+    /// what to install; see [`crate::denoise::Oidn::new`].
+    pub fn oidn(&self) -> Result<Arc<crate::denoise::Oidn>> {
+        let mut slot = self.oidn.lock().unwrap_or_else(|p| p.into_inner());
+        if let Some(o) = slot.as_ref() {
+            return Ok(o.clone());
+        }
+        let o = crate::denoise::Oidn::new(self.options.oidn_library.as_deref(), self.threads())?;
+        *slot = Some(o.clone());
+        Ok(o)
     }
 }
 

@@ -2,9 +2,11 @@
 //!
 //! A host hands the [`Session`] one rendered frame at a time (scene-linear
 //! Linear Rec.709 color plus AOVs: depth, motion vectors, normals, coverage,
-//! insert mask, camera). The session reprojects its last K enhanced frames into
-//! the current view, runs a [`backend`] (the embedded neural model or the
-//! classical pipeline) and returns the enhanced frame.
+//! insert mask, albedo, camera). When `denoise` is on for the sequence it
+//! first denoises the color ([`denoise`], Open Image Denoise). The session
+//! reprojects its last K enhanced frames into the current view, runs a
+//! [`backend`] (the embedded neural model or the classical pipeline) and
+//! returns the enhanced frame.
 //!
 //! Conventions (see `ARCHITECTURE.md` and `../shared/CONVENTIONS.md`):
 //! - color is scene-linear Linear Rec.709, premultiplied by coverage;

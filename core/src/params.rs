@@ -1,6 +1,7 @@
 //! Session parameters, set by name (the C ABI's `hz_session_set_*`) and
 //! validated on commit. Adding a parameter never changes the ABI.
 
+use crate::denoise::Quality;
 use crate::error::{Error, Result};
 use crate::frame::DepthKind;
 
@@ -56,6 +57,72 @@ impl BackendKind {
     }
 }
 
+/// Whether the session denoises the color before the backend (`denoise`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum DenoiseMode {
+    /// On when the host says `samples` is 1..=64, off when it says more;
+    /// with `samples` 0 (unknown), on when the first frame after a reset
+    /// looks noisy ([`crate::denoise::noise_level`]). Decided once per
+    /// sequence; never on with the `bypass` backend. The default.
+    #[default]
+    Auto,
+    /// Always (Open Image Denoise must be found).
+    On,
+    /// Never.
+    Off,
+}
+
+impl DenoiseMode {
+    /// Parses `auto|on|off`.
+    pub fn parse(s: &str) -> Result<Self> {
+        Ok(match s {
+            "auto" => DenoiseMode::Auto,
+            "on" => DenoiseMode::On,
+            "off" => DenoiseMode::Off,
+            _ => {
+                return Err(Error::invalid(format!(
+                    "parameter denoise: unknown value {s:?} (expected auto, on or off)"
+                )))
+            }
+        })
+    }
+
+    /// The name used in parameters and reports.
+    pub fn name(self) -> &'static str {
+        match self {
+            DenoiseMode::Auto => "auto",
+            DenoiseMode::On => "on",
+            DenoiseMode::Off => "off",
+        }
+    }
+}
+
+/// Parses the `denoise_quality` values `high|balanced|fast`.
+fn parse_quality(s: &str) -> Result<Quality> {
+    Ok(match s {
+        "high" => Quality::High,
+        "balanced" => Quality::Balanced,
+        "fast" => Quality::Fast,
+        _ => {
+            return Err(Error::invalid(format!(
+                "parameter denoise_quality: unknown value {s:?} (expected high, balanced or fast)"
+            )))
+        }
+    })
+}
+
+/// The `denoise_quality` name of `q` (`Default` is OIDN's default, high).
+fn quality_name(q: Quality) -> &'static str {
+    match q {
+        Quality::High | Quality::Default => "high",
+        Quality::Balanced => "balanced",
+        Quality::Fast => "fast",
+    }
+}
+
+/// The most samples per pixel `samples` accepts.
+pub const MAX_SAMPLES: i64 = 1 << 30;
+
 /// What to do when a frame number is not the previous one plus one.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum GapPolicy {
@@ -102,6 +169,15 @@ pub struct Params {
     pub tile_size: usize,
     /// Neural tile overlap in pixels, 0 = the manifest's (`tile_overlap`).
     pub tile_overlap: usize,
+    /// Denoise the color with Open Image Denoise before the backend
+    /// (`denoise`: "auto", "on" or "off").
+    pub denoise: DenoiseMode,
+    /// Open Image Denoise's quality (`denoise_quality`: "high", "balanced"
+    /// or "fast").
+    pub denoise_quality: Quality,
+    /// The host's samples per pixel, 0 = unknown (`samples`); `denoise
+    /// auto` is on for 1..=64 and off above.
+    pub samples: u32,
 }
 
 impl Default for Params {
@@ -123,6 +199,9 @@ impl Default for Params {
             classical_post: false,
             tile_size: 0,
             tile_overlap: 0,
+            denoise: DenoiseMode::Auto,
+            denoise_quality: Quality::High,
+            samples: 0,
         }
     }
 }
@@ -145,6 +224,9 @@ pub const PARAM_NAMES: &[&str] = &[
     "classical_post",
     "tile_size",
     "tile_overlap",
+    "denoise",
+    "denoise_quality",
+    "samples",
 ];
 
 fn want_int(name: &str, v: &ParamValue, lo: i64, hi: i64) -> Result<i64> {
@@ -242,6 +324,9 @@ impl Params {
             "classical_post" => self.classical_post = want_bool(name, v)?,
             "tile_size" => self.tile_size = want_int(name, v, 0, 8192)? as usize,
             "tile_overlap" => self.tile_overlap = want_int(name, v, 0, 1024)? as usize,
+            "denoise" => self.denoise = DenoiseMode::parse(want_str(name, v)?)?,
+            "denoise_quality" => self.denoise_quality = parse_quality(want_str(name, v)?)?,
+            "samples" => self.samples = want_int(name, v, 0, MAX_SAMPLES)? as u32,
             _ => {
                 return Err(Error::invalid(format!(
                     "unknown parameter {name:?} (known: {})",
@@ -283,6 +368,9 @@ impl Params {
             "classical_post" => ParamValue::Bool(self.classical_post),
             "tile_size" => ParamValue::Int(self.tile_size as i64),
             "tile_overlap" => ParamValue::Int(self.tile_overlap as i64),
+            "denoise" => ParamValue::Str(self.denoise.name().into()),
+            "denoise_quality" => ParamValue::Str(quality_name(self.denoise_quality).into()),
+            "samples" => ParamValue::Int(self.samples as i64),
             _ => {
                 return Err(Error::invalid(format!(
                     "unknown parameter {name:?} (known: {})",
@@ -322,5 +410,37 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("gpu"), "{e}");
+        for (name, v, needle) in [
+            ("denoise", ParamValue::Str("maybe".into()), "maybe"),
+            ("denoise_quality", ParamValue::Str("best".into()), "best"),
+            ("samples", ParamValue::Int(-1), "-1"),
+            ("samples", ParamValue::Str("4".into()), "integer"),
+        ] {
+            let e = p.set(name, &v).unwrap_err().to_string();
+            assert!(e.contains(name) && e.contains(needle), "{e}");
+        }
+    }
+
+    #[test]
+    fn denoise_parameters_parse() {
+        let mut p = Params::default();
+        assert_eq!(
+            (p.denoise, p.denoise_quality, p.samples),
+            (DenoiseMode::Auto, Quality::High, 0)
+        );
+        p.set("denoise", &ParamValue::Str("on".into())).unwrap();
+        p.set("denoise_quality", &ParamValue::Str("fast".into()))
+            .unwrap();
+        p.set("samples", &ParamValue::Int(4)).unwrap();
+        assert_eq!(
+            (p.denoise, p.denoise_quality, p.samples),
+            (DenoiseMode::On, Quality::Fast, 4)
+        );
+        assert_eq!(p.get("denoise").unwrap(), ParamValue::Str("on".into()));
+        assert_eq!(
+            p.get("denoise_quality").unwrap(),
+            ParamValue::Str("fast".into())
+        );
+        assert_eq!(p.get("samples").unwrap(), ParamValue::Int(4));
     }
 }

@@ -3,12 +3,14 @@
 use std::sync::Arc;
 
 use crate::backend::{self, Backend, BackendInput, Carry, KeptColor, Progress, Stages};
+use crate::denoise::stage::{Decision, Stage};
+use crate::denoise::{noise_level, NOISE_THRESHOLD};
 use crate::device::Device;
 use crate::error::{Error, Result};
 use crate::frame::{
-    FrameInput, FrameShape, Image, ImageViewMut, PreparedFrame, Recycler, RgbaImage,
+    FrameInput, FrameShape, Image, ImageViewMut, PrepareOptions, PreparedFrame, Recycler, RgbaImage,
 };
-use crate::params::{BackendKind, GapPolicy, ParamValue, Params};
+use crate::params::{BackendKind, DenoiseMode, GapPolicy, ParamValue, Params};
 use crate::temporal::scene_cut::{current_samples, geometric, history_samples, score_samples};
 use crate::temporal::{History, HistoryFrame, HistoryView, Lattice, LatticeRows};
 
@@ -65,6 +67,15 @@ pub struct FrameReport {
     pub out_of_gamut: usize,
     /// Warnings (non-consecutive frames, huge motion vectors, NaN inputs, ...).
     pub warnings: Vec<String>,
+    /// Whether the denoise stage ran on this frame (`denoise`).
+    pub denoised: bool,
+    /// On the frame where `denoise` was decided for the sequence (the
+    /// first after a reset other than a scene cut): what was decided and
+    /// why, e.g. `denoise auto: on (noise level 0.93, threshold 0.20)`.
+    pub denoise_decision: Option<String>,
+    /// The noise estimate ([`crate::denoise::noise_level`], stops) when
+    /// `denoise auto` measured it (on the deciding frame, `samples` 0).
+    pub noise_level: Option<f32>,
     /// Per-stage times in ms.
     pub stages: Stages,
     /// Total time in ms.
@@ -89,6 +100,9 @@ struct State {
     last: Option<Signature>,
     last_index: Option<i64>,
     pending_reset: Option<ResetReason>,
+    /// `denoise` for the current sequence (`None`: decided at the next
+    /// frame).
+    denoise: Option<Decision>,
 }
 
 /// One camera's temporal enhancer. Calls on one session are serialized by `&mut`.
@@ -103,6 +117,10 @@ pub struct Session {
     /// Why `auto` did not pick the neural backend, reported with the frames
     /// until one succeeds.
     fallback: Option<String>,
+    /// The denoise stage (its Open Image Denoise filters, made on the first
+    /// denoised frame, and buffers). Not temporal state: a frame gives the
+    /// same result through it whatever ran before.
+    denoiser: Stage,
 }
 
 impl std::fmt::Debug for Session {
@@ -161,6 +179,7 @@ impl Session {
             state: State::default(),
             recycler: Recycler::new(),
             fallback,
+            denoiser: Stage::new(),
         })
     }
 
@@ -184,8 +203,9 @@ impl Session {
         self.staged.get(name)
     }
 
-    /// Applies staged parameters. A change of backend or context resets the
-    /// state. Settings the backend cannot run with (tile settings that
+    /// Applies staged parameters. A change of backend, context,
+    /// `depth_kind`, `denoise` or `samples` resets the state (the history
+    /// would mix frames denoised and not; `denoise` is decided again). Settings the backend cannot run with (tile settings that
     /// cannot tile a frame with the neural model, see
     /// [`Backend::check_params`]) are refused here, naming the parameters;
     /// on error nothing changes.
@@ -196,7 +216,9 @@ impl Session {
         let (backend, fallback) = make_backend(&self.device, &self.staged)?;
         let reset = self.staged.backend != self.params.backend
             || self.staged.context_frames != self.params.context_frames
-            || self.staged.depth_kind != self.params.depth_kind;
+            || self.staged.depth_kind != self.params.depth_kind
+            || self.staged.denoise != self.params.denoise
+            || self.staged.samples != self.params.samples;
         self.backend = backend;
         self.fallback = fallback;
         self.params = self.staged.clone();
@@ -255,11 +277,26 @@ impl Session {
         let b = usize::from;
         let in_place = self.backend.works_in_place() && p.strength >= 1.0;
         let color = if in_place { 4 } else { 3 + 4 };
+        // The denoise stage: the albedo and its normals prepared, and its
+        // own buffers (`Stage::working_planes`).
+        let denoise = self.may_denoise();
+        let aux = denoise && shape.albedo;
+        let denoise_normal = aux && (shape.denoise_normal || shape.normal);
+        let normals =
+            shape.normal && (self.backend.uses_normals() || (aux && !shape.denoise_normal));
         let aovs = b(shape.coverage)
             + b(shape.insert_mask)
             + b(shape.depth)
             + 2 * b(shape.motion)
-            + 3 * b(shape.normal && self.backend.uses_normals());
+            + 3 * b(normals)
+            + 3 * b(aux)
+            + 3 * b(aux && shape.denoise_normal)
+            + if denoise {
+                // With `strength` below 1, the input's color kept for the blend.
+                Stage::working_planes(aux, denoise_normal) + 3 * b(p.strength < 1.0)
+            } else {
+                0
+            };
         let k = p.context_frames;
         let history = match k {
             0 => 0,
@@ -276,6 +313,40 @@ impl Session {
                      is larger than the address space"
                 ))
             })
+    }
+
+    /// Whether the denoise stage may run on the next frame: `denoise on`,
+    /// or `auto` unless the parameters or the sequence's decision say off.
+    fn may_denoise(&self) -> bool {
+        match self.params.denoise {
+            DenoiseMode::Off => false,
+            DenoiseMode::On => true,
+            DenoiseMode::Auto => match self.decide_from_params() {
+                Some((d, _)) => d.on,
+                None => self.state.denoise.is_none_or(|d| d.on),
+            },
+        }
+    }
+
+    /// The `denoise` decision the parameters make alone, and why; `None`
+    /// when `auto` has to look at the frame (`samples` 0).
+    fn decide_from_params(&self) -> Option<(Decision, String)> {
+        let p = &self.params;
+        let (on, why) = match p.denoise {
+            DenoiseMode::Off => (false, "denoise off".to_string()),
+            DenoiseMode::On => (true, "denoise on".to_string()),
+            DenoiseMode::Auto if p.backend == BackendKind::Bypass => (
+                false,
+                "denoise auto: off (backend bypass passes the input through; set denoise on to denoise)"
+                    .to_string(),
+            ),
+            DenoiseMode::Auto => match p.samples {
+                0 => return None,
+                n @ 1..=64 => (true, format!("denoise auto: on (the host renders {n} samples per pixel, 1 to 64)")),
+                n => (false, format!("denoise auto: off (the host renders {n} samples per pixel, over 64)")),
+            },
+        };
+        Some((Decision { on }, why))
     }
 
     /// Checks a frame of `shape` against the device's memory limit
@@ -320,14 +391,15 @@ impl Session {
         let budget = self.check_memory(&FrameShape::of(input))?;
         let mut progress = Progress::new(progress);
         let (out, mut report) = match self.process_once(input, budget, &mut progress, false)? {
-            Attempt::Done(out, report) => (out, report),
+            Attempt::Done(out, report) => (out, *report),
             Attempt::Cut => {
                 // The backend ran with the history before the detector,
                 // which found a cut: the frame again, from a reset. Its
                 // first run counts as the detector's time.
                 let ms = t0.elapsed().as_secs_f64() * 1e3;
                 match self.process_once(input, budget, &mut progress, true)? {
-                    Attempt::Done(out, mut report) => {
+                    Attempt::Done(out, report) => {
+                        let mut report = *report;
                         report.stages.0.insert(0, ("scene_cut".to_string(), ms));
                         (out, report)
                     }
@@ -360,17 +432,49 @@ impl Session {
         progress.report(0.0)?;
 
         let pool = self.device.pool();
+        // The reset decision, from what the frame has (before its samples
+        // are read: the denoise stage needs it to know whether `denoise` is
+        // decided again).
+        let sig = Signature {
+            width: input.width(),
+            height: input.height(),
+            depth: input.depth.is_some(),
+            motion: input.motion.is_some(),
+            camera: input.camera.is_some(),
+        };
+        let (mut reset, gap_warning) = self.reset_reason(input, &sig, cut);
+        // `denoise` for this frame: the sequence's decision, else what the
+        // parameters say, else `auto` looks at the frame once it is
+        // prepared. A scene cut keeps the decision (same render settings;
+        // the frame was denoised before the detector compared it).
+        let kept_decision = match reset {
+            Some(r) if r != ResetReason::SceneCut => None,
+            _ => self.state.denoise,
+        };
+        let from_params = match kept_decision {
+            Some(_) => None,
+            None => self.decide_from_params(),
+        };
+        let may_denoise = kept_decision
+            .or(from_params.as_ref().map(|d| d.0))
+            .is_none_or(|d| d.on);
+
         // The backend may work on the frame's color itself when nothing
         // after it reads that color (`apply_strength` does).
         let in_place = self.backend.works_in_place() && self.params.strength >= 1.0;
+        let aux = may_denoise && input.albedo.is_some();
+        let options = PrepareOptions {
+            normals: self.backend.uses_normals() || (aux && input.denoise_normal.is_none()),
+            rgba: in_place,
+            denoise_aux: aux,
+        };
         let mut frame = stages.time("prepare", || {
-            PreparedFrame::from_input_recycled(
+            PreparedFrame::from_input_with(
                 input,
                 self.params.depth_kind,
                 pool,
                 &self.recycler,
-                self.backend.uses_normals(),
-                in_place,
+                options,
             )
         })?;
         if frame.sanitized > 0 {
@@ -395,6 +499,13 @@ impl Session {
                 frame.sanitized_normals
             ));
         }
+        if frame.sanitized_albedo > 0 {
+            report.warnings.push(format!(
+                "frame {}: {} albedo samples were NaN or infinite and were replaced by 0",
+                fmt_index(input.frame_index),
+                frame.sanitized_albedo
+            ));
+        }
         if frame.huge_motion > 0 {
             report.warnings.push(format!(
                 "frame {}: {} motion vectors are longer than the image ({}x{}); check motion_vector_scale and the motion AOV",
@@ -404,6 +515,57 @@ impl Session {
                 frame.height()
             ));
         }
+
+        // The denoise stage, before the scene-cut detector and the backend,
+        // so both (and the history) see the denoised color.
+        let decision = match self.denoise_decision(
+            kept_decision,
+            from_params,
+            &frame,
+            &mut report,
+            &mut stages,
+        ) {
+            Ok(d) => d,
+            Err(e) => {
+                frame.recycle(&self.recycler);
+                return Err(e);
+            }
+        };
+        // `strength` blends with the host's input, not the denoised frame
+        // (so `strength 0` returns the input exactly, denoising or not):
+        // keep its color when the stage changes it.
+        let mut original = None;
+        if decision.on && self.params.strength < 1.0 {
+            let n = frame.width() * frame.height();
+            match self.recycler.try_take(3 * n) {
+                Ok(mut data) => {
+                    data.copy_from_slice(&frame.color.data[..3 * n]);
+                    original = Some(data);
+                }
+                Err(e) => {
+                    frame.recycle(&self.recycler);
+                    return Err(e);
+                }
+            }
+        }
+        if decision.on {
+            let quality = self.params.denoise_quality;
+            let ran = self.device.oidn().and_then(|oidn| {
+                stages.time("denoise", || {
+                    self.denoiser.run(&oidn, &mut frame, quality, pool)
+                })
+            });
+            // The stage takes long (OIDN has no cancellation point of
+            // ours inside): the host may stop right after it.
+            if let Err(e) = ran.and_then(|_| progress.report(0.05)) {
+                frame.recycle(&self.recycler);
+                return Err(e);
+            }
+            report.denoised = true;
+        }
+        // The temporal accumulation of denoised frames (the next step of
+        // the denoising work) goes here: see `denoise::stage`.
+        let denoise_state = Some(decision);
 
         // The history's copy of the result, written by the backend's last
         // pass when it can (nothing after the backend changes the result
@@ -425,45 +587,10 @@ impl Session {
                 return Err(e);
             }
         };
-
-        let sig = Signature {
-            width: frame.width(),
-            height: frame.height(),
-            depth: frame.depth.is_some(),
-            motion: frame.motion.is_some(),
-            camera: frame.camera.is_some(),
-        };
+        if let Some(w) = gap_warning {
+            report.warnings.push(w);
+        }
         let st = &self.state;
-        let mut reset = st.pending_reset;
-        if input.reset {
-            reset = Some(ResetReason::Requested);
-        } else if let Some(last) = st.last {
-            if last.width != sig.width || last.height != sig.height {
-                reset = Some(ResetReason::SizeChanged);
-            } else if last != sig {
-                reset = Some(ResetReason::LayoutChanged);
-            } else if let (Some(prev), Some(cur)) = (st.last_index, input.frame_index) {
-                // Checked: i64::MAX then i64::MIN is a gap, not a wrap.
-                if prev.checked_add(1) != Some(cur) {
-                    match self.params.gap_policy {
-                        GapPolicy::Reset => {
-                            reset = Some(ResetReason::FrameGap);
-                            report.warnings.push(format!(
-                                "frame {cur}: not consecutive to frame {prev}; temporal state reset (gap_policy reset)"
-                            ));
-                        }
-                        GapPolicy::Keep => report.warnings.push(format!(
-                            "frame {cur}: not consecutive to frame {prev}; temporal state kept (gap_policy keep)"
-                        )),
-                    }
-                }
-            }
-        } else if reset.is_none() {
-            reset = Some(ResetReason::FirstFrame);
-        }
-        if cut && reset.is_none() {
-            reset = Some(ResetReason::SceneCut);
-        }
         let empty = History::default();
         let context = self.params.context_frames;
         // The scene-cut detector compares the frame with history frame 0
@@ -554,9 +681,13 @@ impl Session {
         };
         progress.set_span(0.0, 1.0);
         if self.params.strength < 1.0 {
+            let input = original.as_deref().unwrap_or(&frame.color.data);
             stages.time("strength", || {
-                apply_strength(&mut out, &frame, self.params.strength)
+                apply_strength(&mut out, input, &frame, self.params.strength)
             });
+        }
+        if let Some(data) = original {
+            self.recycler.give(data);
         }
         let done = progress.report(1.0);
         drop(view);
@@ -636,6 +767,7 @@ impl Session {
             last: Some(sig),
             last_index: input.frame_index,
             pending_reset: None,
+            denoise: denoise_state,
         };
         // The history copy of the result and the buffers handed back.
         let commit_ms = t_commit.elapsed().as_secs_f64() * 1e3;
@@ -650,7 +782,118 @@ impl Session {
         // produce, never negative).
         report.out_of_gamut = out_of_gamut.len();
         add_out_of_gamut(&mut out, &out_of_gamut);
-        Ok(Attempt::Done(out, report))
+        Ok(Attempt::Done(out, Box::new(report)))
+    }
+
+    /// Why the state is dropped before `input` (whose optional inputs
+    /// are `sig`), before any scene-cut test (`cut`: the run after a cut
+    /// found late), and the warning a frame-number gap gives.
+    fn reset_reason(
+        &self,
+        input: &FrameInput<'_>,
+        sig: &Signature,
+        cut: bool,
+    ) -> (Option<ResetReason>, Option<String>) {
+        let st = &self.state;
+        let mut reset = st.pending_reset;
+        let mut warning = None;
+        if input.reset {
+            reset = Some(ResetReason::Requested);
+        } else if let Some(last) = st.last {
+            if last.width != sig.width || last.height != sig.height {
+                reset = Some(ResetReason::SizeChanged);
+            } else if last != *sig {
+                reset = Some(ResetReason::LayoutChanged);
+            } else if let (Some(prev), Some(cur)) = (st.last_index, input.frame_index) {
+                // Checked: i64::MAX then i64::MIN is a gap, not a wrap.
+                if prev.checked_add(1) != Some(cur) {
+                    warning = Some(match self.params.gap_policy {
+                        GapPolicy::Reset => {
+                            reset = Some(ResetReason::FrameGap);
+                            format!(
+                                "frame {cur}: not consecutive to frame {prev}; temporal state reset (gap_policy reset)"
+                            )
+                        }
+                        GapPolicy::Keep => format!(
+                            "frame {cur}: not consecutive to frame {prev}; temporal state kept (gap_policy keep)"
+                        ),
+                    });
+                }
+            }
+        } else if reset.is_none() {
+            reset = Some(ResetReason::FirstFrame);
+        }
+        if cut && reset.is_none() {
+            reset = Some(ResetReason::SceneCut);
+        }
+        (reset, warning)
+    }
+
+    /// `denoise` for the prepared `frame`: the sequence's decision
+    /// (`kept`), else the one the parameters make (`from_params`), else
+    /// (`auto`, `samples` 0) on when the frame's noise level is above
+    /// [`NOISE_THRESHOLD`]. A new decision goes into the report. Turned on,
+    /// Open Image Denoise is loaded here: when it cannot be, `denoise on`
+    /// is an error naming the library and what to install, and `auto`
+    /// decides off for the sequence with a warning saying why.
+    fn denoise_decision(
+        &self,
+        kept: Option<Decision>,
+        from_params: Option<(Decision, String)>,
+        frame: &PreparedFrame,
+        report: &mut FrameReport,
+        stages: &mut Stages,
+    ) -> Result<Decision> {
+        if let Some(d) = kept {
+            return Ok(d);
+        }
+        let (decision, why) = match from_params {
+            Some(d) => d,
+            None => {
+                let level = stages.time("noise_estimate", || {
+                    noise_level(
+                        &frame.color,
+                        frame.coverage.as_deref(),
+                        Some(self.device.pool()),
+                    )
+                });
+                report.noise_level = level;
+                let on = level.is_some_and(|l| l > NOISE_THRESHOLD);
+                let why = match level {
+                    Some(l) => format!(
+                        "denoise auto: {} (noise level {l:.3} on frame {}, threshold {NOISE_THRESHOLD:.2})",
+                        if on { "on" } else { "off" },
+                        fmt_index(frame.frame_index)
+                    ),
+                    None => format!(
+                        "denoise auto: off (frame {} has too few covered pixels to measure its noise)",
+                        fmt_index(frame.frame_index)
+                    ),
+                };
+                (Decision { on }, why)
+            }
+        };
+        if decision.on {
+            if let Err(e) = self.device.oidn() {
+                if self.params.denoise == DenoiseMode::On {
+                    return Err(match e {
+                        Error::RuntimeMissing(m) => Error::RuntimeMissing(format!(
+                            "denoise on needs Open Image Denoise: {m}"
+                        )),
+                        e => e,
+                    });
+                }
+                let why = format!(
+                    "{why}, but Open Image Denoise cannot be used, so the frames of this sequence are not \
+                     denoised: {e}"
+                );
+                report.warnings.push(why.clone());
+                report.denoise_decision = Some(why);
+                return Ok(Decision { on: false });
+            }
+        }
+        report.denoise_decision = Some(why);
+        Ok(decision)
     }
 
     /// Gives the buffers of a run that commits nothing (an error, a cancel,
@@ -683,7 +926,7 @@ impl Session {
 /// How one run of [`Session::process`] ended.
 enum Attempt {
     /// The enhanced frame and its report; the state committed.
-    Done(Image, FrameReport),
+    Done(Image, Box<FrameReport>),
     /// A scene cut found after the backend ran with the history; nothing
     /// committed, the frame's buffers given back.
     Cut,
@@ -736,10 +979,13 @@ fn add_out_of_gamut(out: &mut Image, parts: &[(usize, [f32; 3])]) {
     }
 }
 
-fn apply_strength(out: &mut Image, frame: &PreparedFrame, s: f32) {
+/// Blends the backend's result `out` with the input: `input` holds the
+/// input's RGB planes (the frame's own color, or its copy from before the
+/// denoise stage), `frame` its coverage.
+fn apply_strength(out: &mut Image, input: &[f32], frame: &PreparedFrame, s: f32) {
     let n = out.len();
     for c in 0..3 {
-        let src = frame.color.plane(c);
+        let src = &input[c * n..(c + 1) * n];
         for (o, i) in out.data[c * n..(c + 1) * n].iter_mut().zip(src) {
             *o = i + s * (*o - i);
         }

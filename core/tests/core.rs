@@ -5,6 +5,8 @@
 mod classical;
 #[path = "core/denoise.rs"]
 mod denoise;
+#[path = "core/denoise_session.rs"]
+mod denoise_session;
 #[path = "core/gamut.rs"]
 mod gamut;
 #[path = "core/hostile.rs"]

@@ -18,10 +18,16 @@
 //! the wheel's copy by absolute path works. A library is loaded once per
 //! process and never unloaded.
 //!
-//! The C calls live in `oidn.rs`, the crate's only `unsafe` code.
+//! The C calls live in `oidn.rs`, the crate's only `unsafe` code. The
+//! session's denoise stage (`stage.rs`) and the noise estimate that
+//! `denoise auto` decides on ([`noise_level`], `detect.rs`) build on them.
 
+mod detect;
 #[allow(unsafe_code)]
 mod oidn;
+pub(crate) mod stage;
+
+pub use detect::{noise_level, NOISE_THRESHOLD};
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
