@@ -8,10 +8,11 @@ use std::process::ExitCode;
 use std::sync::Arc;
 
 use clap::{Parser, Subcommand};
+use harmonizer_core::denoise::{DenoiseInput, DenoiseOptions, Denoiser};
 use harmonizer_core::io::layout::{ChannelMapping, LayoutOptions, LayoutPreset};
 use harmonizer_core::io::pattern::{FramePattern, FrameRange};
 use harmonizer_core::io::run::{plan, run_sequence, FrameResult, RunOptions};
-use harmonizer_core::params::BackendKind;
+use harmonizer_core::params::{BackendKind, DenoiseMode};
 use harmonizer_core::synth::{self, Scene, Sequence, SynthConfig};
 use harmonizer_core::{
     Device, DeviceOptions, Error, ModelSource, ParamValue, Params, Result, Session,
@@ -115,6 +116,11 @@ enum Command {
         /// Previous frames used as context.
         #[arg(long, default_value_t = 4)]
         context: usize,
+        /// Any session parameter, `name=value` (repeatable), e.g. `--set
+        /// denoise=on`: with the denoise stage on, the frames carry an
+        /// albedo and Open Image Denoise alone is timed on them too.
+        #[arg(long = "set", value_name = "NAME=VALUE")]
+        set: Vec<String>,
     },
     /// Describe an EXR file: parts, channels, detected layout, camera.
     Info {
@@ -156,7 +162,8 @@ fn main() -> ExitCode {
             backend,
             model,
             context,
-        } => cmd_bench(json, threads, &sizes, frames, backend, model, context),
+            set,
+        } => cmd_bench(json, threads, &sizes, frames, backend, model, context, &set),
         Command::Info { file } => cmd_info(&file),
     };
     match r {
@@ -181,14 +188,9 @@ fn parse_value(v: &str) -> ParamValue {
     }
 }
 
-fn make_session(args: &SessionArgs, gap: Option<&str>) -> Result<Session> {
-    let mut params = Params::default();
-    params.set("backend", &ParamValue::Str(args.backend.clone()))?;
-    params.set("context_frames", &ParamValue::Int(args.context as i64))?;
-    if let Some(g) = gap {
-        params.set("gap_policy", &ParamValue::Str(g.to_string()))?;
-    }
-    for s in &args.set {
+/// Applies `--set NAME=VALUE` entries to `params`.
+fn apply_sets(params: &mut Params, sets: &[String]) -> Result<()> {
+    for s in sets {
         let (k, v) = s.split_once('=').ok_or_else(|| {
             Error::invalid(format!(
                 "--set {s:?}: expected NAME=VALUE, e.g. strength=0.8"
@@ -196,6 +198,17 @@ fn make_session(args: &SessionArgs, gap: Option<&str>) -> Result<Session> {
         })?;
         params.set(k.trim(), &parse_value(v.trim()))?;
     }
+    Ok(())
+}
+
+fn make_session(args: &SessionArgs, gap: Option<&str>) -> Result<Session> {
+    let mut params = Params::default();
+    params.set("backend", &ParamValue::Str(args.backend.clone()))?;
+    params.set("context_frames", &ParamValue::Int(args.context as i64))?;
+    if let Some(g) = gap {
+        params.set("gap_policy", &ParamValue::Str(g.to_string()))?;
+    }
+    apply_sets(&mut params, &args.set)?;
     let device = Device::new(DeviceOptions {
         threads: args.threads,
         model: args
@@ -239,6 +252,9 @@ fn frame_json(r: &FrameResult) -> Value {
         "history_used": r.report.history_used,
         "sanitized": r.report.sanitized,
         "out_of_gamut": r.report.out_of_gamut,
+        "denoised": r.report.denoised,
+        "denoise_decision": r.report.denoise_decision,
+        "noise_level": r.report.noise_level,
         "warnings": warnings,
         "read_ms": r.read_ms,
         "process_ms": r.report.total_ms,
@@ -262,6 +278,7 @@ fn summary_json(results: &[FrameResult]) -> Value {
         "resets": resets,
         "sanitized": results.iter().map(|r| r.report.sanitized).sum::<usize>(),
         "out_of_gamut": results.iter().map(|r| r.report.out_of_gamut).sum::<usize>(),
+        "denoised": results.iter().filter(|r| r.report.denoised).count(),
         "warnings": results.iter().map(|r| r.report.warnings.len() + r.read_warnings.len()).sum::<usize>(),
         "mean_process_ms": results.iter().map(|r| r.report.total_ms).sum::<f64>() / n,
         "mean_read_ms": results.iter().map(|r| r.read_ms).sum::<f64>() / n,
@@ -320,6 +337,12 @@ fn print_summary(results: &[FrameResult], output: &str) {
         "  sanitized color samples (NaN, Inf): {}; out-of-gamut pixels passed through: {}; warnings: {}",
         s["sanitized"], s["out_of_gamut"], s["warnings"]
     );
+    for r in results {
+        if let Some(d) = &r.report.denoise_decision {
+            println!("  frame {}: {d}", r.planned.frame);
+        }
+    }
+    println!("  frames denoised: {}", s["denoised"]);
     for r in results {
         for w in r.read_warnings.iter().chain(&r.report.warnings) {
             println!("  warning: {w}");
@@ -591,12 +614,56 @@ fn median(mut v: Vec<f64>) -> f64 {
     }
 }
 
+/// Whether a session with `params` denoises (on, or auto told a sample
+/// count of 1 to 64): its bench frames then carry an albedo.
+fn denoising(params: &Params) -> bool {
+    match params.denoise {
+        DenoiseMode::On => true,
+        DenoiseMode::Auto => (1..=64).contains(&params.samples),
+        DenoiseMode::Off => false,
+    }
+}
+
+/// Open Image Denoise alone on one synthetic frame: the time of the
+/// `Denoiser::denoise` call, in ms, on the frame's interleaved RGB with its
+/// albedo and normal (what the session's stage hands it).
+fn oidn_alone(
+    d: &mut Denoiser,
+    f: &harmonizer_core::synth::SynthInput,
+    params: &Params,
+) -> Result<f64> {
+    let rgb: Vec<f32> = f
+        .color
+        .chunks_exact(4)
+        .flat_map(|p| [p[0], p[1], p[2]])
+        .collect();
+    let mut out = vec![0.0f32; rgb.len()];
+    let input = DenoiseInput {
+        width: f.width,
+        height: f.height,
+        color: &rgb,
+        albedo: Some(&f.albedo),
+        normal: Some(&f.normal),
+    };
+    let options = DenoiseOptions {
+        hdr: true,
+        quality: params.denoise_quality,
+        clean_aux: false,
+    };
+    let t = std::time::Instant::now();
+    d.denoise(&input, options, &mut out)?;
+    let ms = t.elapsed().as_secs_f64() * 1e3;
+    std::hint::black_box(&out);
+    Ok(ms)
+}
+
 fn bench_one(
     device: &Arc<Device>,
     backend: &str,
     size: (usize, usize),
     frames: usize,
     context: usize,
+    sets: &[String],
 ) -> Result<Value> {
     // Steady state: the first `context` frames fill the history, and until
     // it is full every frame's kept buffers are fresh memory (page faults).
@@ -604,7 +671,14 @@ fn bench_one(
     let mut params = Params::default();
     params.set("backend", &ParamValue::Str(backend.to_string()))?;
     params.set("context_frames", &ParamValue::Int(context as i64))?;
-    let mut session = Session::new(device.clone(), params)?;
+    apply_sets(&mut params, sets)?;
+    let denoise = denoising(&params);
+    // Open Image Denoise alone, on the device's library and threads.
+    let mut alone = match denoise {
+        true => Some(Denoiser::new(&device.oidn()?)?),
+        false => None,
+    };
+    let mut session = Session::new(device.clone(), params.clone())?;
     let scene = Scene::new(SynthConfig {
         width: size.0,
         height: size.1,
@@ -614,6 +688,7 @@ fn bench_one(
     })?;
     let mut totals = Vec::new();
     let mut copies = Vec::new();
+    let mut alone_ms = Vec::new();
     let mut dst: Vec<Vec<f32>> = Vec::new();
     let mut stages: Vec<(String, Vec<f64>)> = Vec::new();
     for t in 0..(warmup + frames) {
@@ -623,7 +698,11 @@ fn bench_one(
         // 35-60 % slower on a 2-core machine, an effect of the bench's own
         // extra threads on scheduling, not of the library.
         let f = device.pool().install(|| scene.frame(1 + t as i64));
-        let (out, report) = session.process(&f.input.frame_input(), None)?;
+        let input = match denoise {
+            true => f.input.frame_input_with_albedo(),
+            false => f.input.frame_input(),
+        };
+        let (out, report) = session.process(&input, None)?;
         // The memory-bandwidth floor: copy the same bytes (input buffers and output).
         let bufs: [&[f32]; 7] = [
             &f.input.color,
@@ -647,11 +726,18 @@ fn bench_one(
         let copy_ms = tc.elapsed().as_secs_f64() * 1e3;
         // A host copies the result out and hands the buffer back.
         session.recycle(out);
+        // The same frame through Open Image Denoise alone (its first call
+        // sets the filters up, as the session's first frame does).
+        let alone = match alone.as_mut() {
+            Some(d) => Some(oidn_alone(d, &f.input, &params)?),
+            None => None,
+        };
         if t < warmup {
             continue;
         }
         totals.push(report.total_ms);
         copies.push(copy_ms);
+        alone_ms.extend(alone);
         for (k, v) in &report.stages.0 {
             match stages.iter_mut().find(|(n, _)| n == k) {
                 Some(e) => e.1.push(*v),
@@ -663,7 +749,7 @@ fn bench_one(
     for (k, v) in stages {
         sm.insert(k, json!(median(v)));
     }
-    Ok(json!({
+    let mut run = json!({
         "backend": session.backend_name(),
         "width": size.0,
         "height": size.1,
@@ -674,9 +760,17 @@ fn bench_one(
         "ms_per_frame": median(totals),
         "copy_floor_ms": median(copies),
         "stages": Value::Object(sm),
-    }))
+    });
+    if !sets.is_empty() {
+        run["set"] = json!(sets);
+    }
+    if !alone_ms.is_empty() {
+        run["oidn_alone_ms"] = json!(median(alone_ms));
+    }
+    Ok(run)
 }
 
+#[allow(clippy::too_many_arguments)]
 fn cmd_bench(
     as_json: bool,
     threads: usize,
@@ -685,6 +779,7 @@ fn cmd_bench(
     backends: Vec<String>,
     model: Option<PathBuf>,
     context: usize,
+    sets: &[String],
 ) -> Result<()> {
     let sizes = parse_sizes(sizes)?;
     if frames == 0 {
@@ -712,7 +807,7 @@ fn cmd_bench(
     let mut runs = Vec::new();
     for b in &backends {
         for &size in &sizes {
-            let run = bench_one(&device, b, size, frames, context)?;
+            let run = bench_one(&device, b, size, frames, context, sets)?;
             if !as_json {
                 let stages: Vec<String> = run["stages"]
                     .as_object()
@@ -722,8 +817,12 @@ fn cmd_bench(
                             .collect()
                     })
                     .unwrap_or_default();
+                let alone = run["oidn_alone_ms"]
+                    .as_f64()
+                    .map(|ms| format!("  OIDN alone {ms:.1} ms"))
+                    .unwrap_or_default();
                 println!(
-                    "{:<10} {:>5}x{:<5} K={} threads={}  {:8.2} ms/frame  copy floor {:6.2} ms  ({:.1}x)  stages: {}",
+                    "{:<10} {:>5}x{:<5} K={} threads={}  {:8.2} ms/frame  copy floor {:6.2} ms  ({:.1}x){alone}  stages: {}",
                     run["backend"].as_str().unwrap_or("?"),
                     size.0,
                     size.1,

@@ -394,6 +394,193 @@ mod tools {
     }
 }
 
+/// The denoise stage from the command line (`--set denoise=...`,
+/// `--set samples=...`), the albedo of the generic layout, and the bench's
+/// denoise entry. Needs Open Image Denoise (the `pyoidn` wheel in `.venv`).
+mod denoise {
+    use super::*;
+    use harmonizer_core::io::exr::{write_channels, OutChannel};
+
+    /// Three noisy frames (4 samples per pixel) of 64x36 in the generic
+    /// layout with the albedo channels; the input pattern.
+    fn noisy_sequence(dir: &Path) -> String {
+        let seq = Sequence::generate(SynthConfig {
+            width: 64,
+            height: 36,
+            frames: 3,
+            ..Default::default()
+        })
+        .unwrap();
+        let pattern = FramePattern::parse(&dir.join("in.####.exr").to_string_lossy()).unwrap();
+        for f in &seq.frames {
+            let mut color = f.input.color.clone();
+            harmonizer_core::synth::render_noise(&mut color, 4, 4, f.input.frame_index as u64);
+            let plane = |d: &[f32], ch: usize, c: usize| -> Vec<f32> {
+                d.iter().skip(c).step_by(ch).copied().collect()
+            };
+            let rgba: Vec<Vec<f32>> = (0..4).map(|c| plane(&color, 4, c)).collect();
+            let n: Vec<Vec<f32>> = (0..3).map(|c| plane(&f.input.normal, 3, c)).collect();
+            let a: Vec<Vec<f32>> = (0..3).map(|c| plane(&f.input.albedo, 3, c)).collect();
+            let ch = |name, data| OutChannel {
+                name,
+                data,
+                half: false,
+            };
+            write_channels(
+                &pattern.path(f.input.frame_index),
+                64,
+                36,
+                &[
+                    ch("R", &rgba[0]),
+                    ch("G", &rgba[1]),
+                    ch("B", &rgba[2]),
+                    ch("A", &rgba[3]),
+                    ch("N.X", &n[0]),
+                    ch("N.Y", &n[1]),
+                    ch("N.Z", &n[2]),
+                    ch("albedo.R", &a[0]),
+                    ch("albedo.G", &a[1]),
+                    ch("albedo.B", &a[2]),
+                ],
+                None,
+            )
+            .unwrap();
+        }
+        pattern.as_str().to_string()
+    }
+
+    fn run_report(dir: &Path, input: &str, set: &[&str]) -> (String, serde_json::Value) {
+        let out = dir.join("out.####.exr").to_string_lossy().to_string();
+        let report = dir.join("r.json");
+        let mut args = vec![
+            "run",
+            input,
+            "-o",
+            &out,
+            "--backend",
+            "classical",
+            "--threads",
+            "2",
+            "--report",
+            report.to_str().unwrap(),
+        ];
+        for kv in set {
+            args.extend(["--set", kv]);
+        }
+        let o = harmonize(&args);
+        let (stdout, stderr) = text(&o);
+        assert!(o.status.success(), "{set:?}: {stdout}\n{stderr}");
+        let r = serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+        (stdout, r)
+    }
+
+    #[test]
+    fn run_denoises_through_set_and_info_shows_the_albedo() {
+        let dir = tempfile::tempdir().unwrap();
+        let input = noisy_sequence(dir.path());
+        let o = harmonize(&[
+            "info",
+            &FramePattern::parse(&input)
+                .unwrap()
+                .path(1)
+                .to_string_lossy(),
+        ]);
+        let (out, err) = text(&o);
+        assert!(o.status.success(), "{err}");
+        assert!(
+            out.contains("albedo.R (float)")
+                && out.contains("roles found: color, coverage, normal, albedo"),
+            "{out}"
+        );
+        for (set, decision) in [
+            (&["denoise=on", "samples=4"][..], "denoise on"),
+            (
+                &["samples=4"][..],
+                "denoise auto: on (the host renders 4 samples per pixel",
+            ),
+            (
+                &["denoise_quality=fast"][..],
+                "denoise auto: on (noise level",
+            ),
+            (&["denoise=off"][..], "denoise off"),
+        ] {
+            let (stdout, r) = run_report(dir.path(), &input, set);
+            let on = decision != "denoise off";
+            let frames = r["frames"].as_array().unwrap();
+            assert_eq!(frames.len(), 3);
+            let d = frames[0]["denoise_decision"].as_str().unwrap();
+            assert!(d.starts_with(decision), "{set:?}: {d}");
+            assert!(stdout.contains(&format!("frame 1: {d}")), "{stdout}");
+            for f in frames {
+                assert_eq!(f["denoised"], on, "{set:?}: {f}");
+                assert_eq!(f["stages"]["denoise"].is_number(), on, "{set:?}: {f}");
+            }
+            assert!(frames[1]["denoise_decision"].is_null());
+            assert_eq!(r["summary"]["denoised"], if on { 3 } else { 0 });
+            assert!(
+                stdout.contains(&format!("frames denoised: {}", if on { 3 } else { 0 })),
+                "{stdout}"
+            );
+            if set == ["denoise_quality=fast"] {
+                assert!(
+                    frames[0]["noise_level"].as_f64().unwrap() > 0.2,
+                    "{}",
+                    frames[0]
+                );
+            }
+        }
+        let out = dir.path().join("x.####.exr").to_string_lossy().to_string();
+        let o = harmonize(&["run", &input, "-o", &out, "--set", "denoise=maybe"]);
+        let (_, stderr) = text(&o);
+        assert!(
+            !o.status.success() && stderr.contains("denoise") && stderr.contains("maybe"),
+            "{stderr}"
+        );
+    }
+
+    #[test]
+    fn bench_times_the_stage_beside_oidn_alone() {
+        let o = harmonize(&[
+            "bench",
+            "--json",
+            "--sizes",
+            "64x36",
+            "--frames",
+            "2",
+            "--threads",
+            "2",
+            "--backend",
+            "classical",
+            "--set",
+            "denoise=on",
+        ]);
+        let (out, err) = text(&o);
+        assert!(o.status.success(), "{err}");
+        let v: serde_json::Value = serde_json::from_str(out.trim()).unwrap();
+        let run = &v["runs"][0];
+        assert_eq!(run["set"][0], "denoise=on");
+        assert!(run["stages"]["denoise"].as_f64().unwrap() > 0.0, "{run}");
+        assert!(run["oidn_alone_ms"].as_f64().unwrap() > 0.0, "{run}");
+        // Without the stage, no OIDN timing.
+        let o = harmonize(&[
+            "bench",
+            "--json",
+            "--sizes",
+            "64x36",
+            "--frames",
+            "1",
+            "--threads",
+            "2",
+            "--backend",
+            "classical",
+        ]);
+        let v: serde_json::Value = serde_json::from_str(text(&o).0.trim()).unwrap();
+        assert!(
+            v["runs"][0]["oidn_alone_ms"].is_null() && v["runs"][0]["stages"]["denoise"].is_null()
+        );
+    }
+}
+
 /// What a run writes is checked before any frame is read: no output may be
 /// an input or another output, and every directory written to must be
 /// writable (issue 3, defects 3 and 4).
