@@ -27,7 +27,10 @@ Methods, all on the same inputs:
   history taken where the renderer's motion vectors land inside the frame on
   a surface whose depth agrees within 10 %;
 - ``oidn_ema``: OIDN, then that average;
-- ``classical``, ``neural``, ``neural_k0``: ``harmonize run`` with
+- ``classical``, ``neural``, ``neural_k0``, ``neural_nostab``: ``harmonize run``
+  (given the same AOVs as the peers: the noisy render's albedo and denoising
+  normal where the set has them; the session's defaults otherwise, so
+  ``denoise auto``) with
   ``--backend classical``, ``--backend neural`` (the embedded model, K from its
   manifest, which is what ``--backend auto`` runs), the same with
   ``--context 0`` (no history, hence no stabilization either) and with

@@ -46,6 +46,11 @@ def frame_channels(s: dict, t: int) -> tuple[dict[str, np.ndarray], dict]:
         "N.Z": s["normal"][t, ..., 2],
         "mask.insert": s["mask_insert"][t],
     }
+    # The render's denoising passes when the sample has them (Cycles' Denoising Albedo / Normal).
+    if "albedo" in s:
+        chans.update({f"albedo.{c}": s["albedo"][t, ..., i] for i, c in enumerate("RGB")})
+    if "aux_normal" in s:
+        chans.update({f"denoise_normal.{c}": s["aux_normal"][t, ..., i] for i, c in enumerate("XYZ")})
     header = {}
     if "world_to_camera" in s:
         header = {
