@@ -210,3 +210,37 @@ pub fn machine_memory() -> usize {
         (None, None) => usize::MAX,
     }
 }
+
+/// A non-empty path from the environment variable `var`.
+pub(crate) fn env_path(var: &str) -> Option<std::path::PathBuf> {
+    std::env::var_os(var)
+        .filter(|v| !v.is_empty())
+        .map(std::path::PathBuf::from)
+}
+
+/// The file named `prefix*` in `<venv>/lib/python3*/site-packages/<package_dir>`
+/// (a library a Python wheel ships), the most specific name when there are
+/// several (`libx.so.1.2.3` over `libx.so`).
+pub(crate) fn wheel_library(
+    venv: &std::path::Path,
+    package_dir: &str,
+    prefix: &str,
+) -> Option<std::path::PathBuf> {
+    let pythons = std::fs::read_dir(venv.join("lib")).ok()?;
+    let mut found = Vec::new();
+    for py in pythons.flatten() {
+        if !py.file_name().to_string_lossy().starts_with("python3") {
+            continue;
+        }
+        let Ok(files) = std::fs::read_dir(py.path().join("site-packages").join(package_dir)) else {
+            continue;
+        };
+        for f in files.flatten() {
+            if f.file_name().to_string_lossy().starts_with(prefix) && f.path().is_file() {
+                found.push(f.path());
+            }
+        }
+    }
+    found.sort();
+    found.pop()
+}

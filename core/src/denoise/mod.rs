@@ -61,12 +61,6 @@ struct Candidate {
     from: String,
 }
 
-fn env_path(var: &str) -> Option<PathBuf> {
-    std::env::var_os(var)
-        .filter(|v| !v.is_empty())
-        .map(PathBuf::from)
-}
-
 /// Finds `libOpenImageDenoise.so*` of the `pyoidn` wheel in a virtual
 /// environment `.venv*` in `start` or any of its ancestors: `.venv` first,
 /// then the others by name.
@@ -92,32 +86,13 @@ pub fn find_in_venv(start: &Path) -> Option<PathBuf> {
 }
 
 fn find_in_one_venv(venv: &Path) -> Option<PathBuf> {
-    let pythons = std::fs::read_dir(venv.join("lib")).ok()?;
-    let mut found: Vec<PathBuf> = Vec::new();
-    for py in pythons.flatten() {
-        if !py.file_name().to_string_lossy().starts_with("python3") {
-            continue;
-        }
-        let dir = py.path().join("site-packages/pyoidn/oidn/lib");
-        let Ok(files) = std::fs::read_dir(&dir) else {
-            continue;
-        };
-        for f in files.flatten() {
-            let name = f.file_name().to_string_lossy().into_owned();
-            if name.starts_with("libOpenImageDenoise.so") && f.path().is_file() {
-                found.push(f.path());
-            }
-        }
-    }
-    // The most specific name (libOpenImageDenoise.so.2.5.1 over .so).
-    found.sort();
-    found.pop()
+    crate::device::wheel_library(venv, "pyoidn/oidn/lib", "libOpenImageDenoise.so")
 }
 
 fn candidate(explicit: Option<&Path>) -> Result<Candidate> {
     let given = [
         (explicit.map(Path::to_path_buf), "the library path given"),
-        (env_path(LIBRARY_ENV), LIBRARY_ENV),
+        (crate::device::env_path(LIBRARY_ENV), LIBRARY_ENV),
     ];
     for (path, from) in given {
         if let Some(path) = path {

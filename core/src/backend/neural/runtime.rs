@@ -39,46 +39,11 @@ fn missing(path: &Path, from: &str) -> Error {
     ))
 }
 
-fn env_path(var: &str) -> Option<PathBuf> {
-    std::env::var_os(var)
-        .filter(|v| !v.is_empty())
-        .map(PathBuf::from)
-}
-
 /// Finds `libonnxruntime.so*` in a `.venv` in `start` or any of its ancestors.
 pub fn find_in_venv(start: &Path) -> Option<PathBuf> {
-    for dir in start.ancestors() {
-        let lib = dir.join(".venv").join("lib");
-        let Ok(pythons) = std::fs::read_dir(&lib) else {
-            continue;
-        };
-        let mut found: Vec<PathBuf> = Vec::new();
-        for py in pythons.flatten() {
-            if !py.file_name().to_string_lossy().starts_with("python3") {
-                continue;
-            }
-            let capi = py
-                .path()
-                .join("site-packages")
-                .join("onnxruntime")
-                .join("capi");
-            let Ok(files) = std::fs::read_dir(&capi) else {
-                continue;
-            };
-            for f in files.flatten() {
-                let name = f.file_name().to_string_lossy().into_owned();
-                if name.starts_with("libonnxruntime.so") && f.path().is_file() {
-                    found.push(f.path());
-                }
-            }
-        }
-        // The most specific name (libonnxruntime.so.1.31.1 over libonnxruntime.so).
-        found.sort();
-        if let Some(p) = found.pop() {
-            return Some(p);
-        }
-    }
-    None
+    start.ancestors().find_map(|dir| {
+        crate::device::wheel_library(&dir.join(".venv"), "onnxruntime/capi", "libonnxruntime.so")
+    })
 }
 
 /// Resolves the library path without loading it.
@@ -88,8 +53,11 @@ pub fn locate(explicit: Option<&Path>) -> Result<PathBuf> {
             explicit.map(Path::to_path_buf),
             "the device option ort_library",
         ),
-        (env_path("HARMONIZER_ORT_LIB"), "HARMONIZER_ORT_LIB"),
-        (env_path("ORT_DYLIB_PATH"), "ORT_DYLIB_PATH"),
+        (
+            crate::device::env_path("HARMONIZER_ORT_LIB"),
+            "HARMONIZER_ORT_LIB",
+        ),
+        (crate::device::env_path("ORT_DYLIB_PATH"), "ORT_DYLIB_PATH"),
     ];
     for (path, from) in candidates {
         if let Some(p) = path {
