@@ -244,3 +244,19 @@ pub(crate) fn wheel_library(
     found.sort();
     found.pop()
 }
+
+/// Where a runtime library's `.venv` is looked for: the working directory and
+/// the executable's directory (and, by the callers, their ancestors).
+pub(crate) fn search_starts() -> Vec<std::path::PathBuf> {
+    let mut starts = Vec::new();
+    if let Ok(cwd) = std::env::current_dir() {
+        starts.push(cwd);
+    }
+    if let Some(dir) = std::env::current_exe()
+        .ok()
+        .and_then(|e| e.parent().map(std::path::Path::to_path_buf))
+    {
+        starts.push(dir);
+    }
+    starts
+}

@@ -109,16 +109,7 @@ fn candidate(explicit: Option<&Path>) -> Result<Candidate> {
             });
         }
     }
-    let mut starts = Vec::new();
-    if let Ok(cwd) = std::env::current_dir() {
-        starts.push(cwd);
-    }
-    if let Some(dir) = std::env::current_exe()
-        .ok()
-        .and_then(|e| e.parent().map(Path::to_path_buf))
-    {
-        starts.push(dir);
-    }
+    let starts = crate::device::search_starts();
     for s in &starts {
         if let Some(path) = find_in_venv(s) {
             return Ok(Candidate {

@@ -68,16 +68,7 @@ pub fn locate(explicit: Option<&Path>) -> Result<PathBuf> {
             };
         }
     }
-    let mut starts = Vec::new();
-    if let Ok(cwd) = std::env::current_dir() {
-        starts.push(cwd);
-    }
-    if let Some(dir) = std::env::current_exe()
-        .ok()
-        .and_then(|e| e.parent().map(Path::to_path_buf))
-    {
-        starts.push(dir);
-    }
+    let starts = crate::device::search_starts();
     for s in &starts {
         if let Some(p) = find_in_venv(s) {
             return Ok(p);
