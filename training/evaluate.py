@@ -62,20 +62,24 @@ def psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None) -> float 
     return float(10 * np.log10(1.0 / max(mse, 1e-12)))
 
 
-def ssim(a: np.ndarray, b: np.ndarray, win: int = 7, mask: np.ndarray | None = None) -> float | None:
-    """Mean SSIM (box window ``win``) over the frame, or over ``mask`` (None when
-    the mask has fewer than 16 pixels)."""
+def ssim_map(a: np.ndarray, b: np.ndarray, r: int = 3) -> np.ndarray:
+    """Per-pixel SSIM with a box window of side ``2r + 1``."""
     from training.synth.degrade import box_blur
 
-    if mask is not None and mask.sum() < 16:
-        return None
-    r = win // 2
     c1, c2 = 0.01**2, 0.03**2
     mu_a, mu_b = box_blur(a, r), box_blur(b, r)
     saa = box_blur(a * a, r) - mu_a**2
     sbb = box_blur(b * b, r) - mu_b**2
     sab = box_blur(a * b, r) - mu_a * mu_b
-    s = ((2 * mu_a * mu_b + c1) * (2 * sab + c2)) / ((mu_a**2 + mu_b**2 + c1) * (saa + sbb + c2))
+    return ((2 * mu_a * mu_b + c1) * (2 * sab + c2)) / ((mu_a**2 + mu_b**2 + c1) * (saa + sbb + c2))
+
+
+def ssim(a: np.ndarray, b: np.ndarray, win: int = 7, mask: np.ndarray | None = None) -> float | None:
+    """Mean SSIM (box window ``win``) over the frame, or over ``mask`` (None when
+    the mask has fewer than 16 pixels)."""
+    if mask is not None and mask.sum() < 16:
+        return None
+    s = ssim_map(a, b, win // 2)
     return float(s[mask].mean()) if mask is not None else float(s.mean())
 
 

@@ -120,7 +120,7 @@ def cylinder(name, radius, height, loc, mat):
     return o
 
 
-def rock(name, radius, loc, seed, mat):
+def rock(name, radius, loc, mat):
     bpy.ops.mesh.primitive_ico_sphere_add(subdivisions=4, radius=radius, location=loc)
     o = bpy.context.active_object
     o.name = name
@@ -132,7 +132,6 @@ def rock(name, radius, loc, seed, mat):
     d.texture = tex
     d.strength = radius * 0.5
     d.texture_coords = "GLOBAL"
-    o.location.z += seed * 0.0  # placement is explicit; the seed only names the variant
     bpy.ops.object.shade_smooth()
     o.data.materials.append(mat)
     return o
@@ -189,17 +188,23 @@ def set_sun(obj, elev: float, azim: float, energy: float, color) -> None:
     obj.data.color = color
 
 
-def animate_camera(cam, poses) -> None:
+def add_camera(lens: float, frames: int, pose) -> bpy.types.Object:
+    """The scene's camera, keyed on every frame at ``pose(u)`` = (eye, aim), u from 0 to 1."""
+    bpy.ops.object.camera_add()
+    cam = bpy.context.active_object
+    cam.data.lens = lens
+    bpy.context.scene.camera = cam
     prev = None
-    for t, (eye, aim) in enumerate(poses):
+    for t in range(frames):
+        eye, aim = pose(t / max(frames - 1, 1))
         cam.location = eye
-        e = (Vector(aim) - Vector(eye)).to_track_quat("-Z", "Y").to_euler("XYZ", prev) if prev else None
-        if e is None:
-            e = (Vector(aim) - Vector(eye)).to_track_quat("-Z", "Y").to_euler("XYZ")
-        cam.rotation_euler = e
-        prev = e
+        quat = (Vector(aim) - Vector(eye)).to_track_quat("-Z", "Y")
+        # Compatible with the previous frame's angles, so the keys do not wrap.
+        prev = quat.to_euler("XYZ", prev) if prev is not None else quat.to_euler("XYZ")
+        cam.rotation_euler = prev
         cam.keyframe_insert("location", frame=t + 1)
         cam.keyframe_insert("rotation_euler", frame=t + 1)
+    return cam
 
 
 def lerp(a, b, u):
@@ -207,7 +212,6 @@ def lerp(a, b, u):
 
 
 def build_courtyard(frames: int) -> dict:
-    sc = bpy.context.scene
     ground = textured("grass", "grass.png", 0.35, 0.9, bump=0.3)
     bpy.ops.mesh.primitive_plane_add(size=80.0)
     bpy.context.active_object.data.materials.append(ground)
@@ -223,7 +227,7 @@ def build_courtyard(frames: int) -> dict:
         cylinder(f"pillar_{i}", 0.28, 3.2, (x, 2.6, 0), conc)
     rk = textured("rock", "rock.png", 1.2, 0.85, bump=0.6)
     for i, (x, y, r) in enumerate(((-2.4, 0.9, 0.45), (2.7, -2.8, 0.35), (4.6, 1.4, 0.6), (-4.8, -2.6, 0.5))):
-        rock(f"rock_{i}", r, (x, y, r * 0.25), i, rk)
+        rock(f"rock_{i}", r, (x, y, r * 0.25), rk)
     crate = textured("crates", "diamond.jpg", 1.0, 0.5)
     box("crate_0", (0.8, 0.8, 0.8), (-1.2, 2.9, 0.4), 12, crate, bevel=0.03)
     box("crate_1", (0.6, 0.6, 0.6), (-0.7, 3.1, 1.1), -8, crate, bevel=0.03)
@@ -236,17 +240,9 @@ def build_courtyard(frames: int) -> dict:
     light = {"sun_elev": 38.0, "sun_azim": 150.0, "sun_energy": 4.5, "sun_color": (1.0, 0.96, 0.9), "sky": 0.35}
     relit = {"sun_elev": 14.0, "sun_azim": 255.0, "sun_energy": 3.0, "sun_color": (1.0, 0.66, 0.38), "sky": 0.2}
     # Camera: a lateral dolly of 5 m with a rise and a push-in, aimed at the inserts.
-    bpy.ops.object.camera_add()
-    cam = bpy.context.active_object
-    cam.data.lens = 30
-    sc.camera = cam
-    poses = []
-    for t in range(frames):
-        u = t / max(frames - 1, 1)
-        eye = lerp((-2.4, -3.9, 1.2), (2.4, -3.1, 1.8), u)
-        aim = lerp((0.2, 0.4, 0.45), (1.0, 0.6, 0.4), u)
-        poses.append((eye, aim))
-    animate_camera(cam, poses)
+    cam = add_camera(
+        30, frames, lambda u: (lerp((-2.4, -3.9, 1.2), (2.4, -3.1, 1.8), u), lerp((0.2, 0.4, 0.45), (1.0, 0.6, 0.4), u))
+    )
     ctx_poses = [
         ((-3.2, -3.6, 1.5), (0.3, 0.5, 0.5)),
         ((0.5, -4.6, 1.0), (0.6, 0.5, 0.4)),
@@ -304,18 +300,14 @@ def build_hall(frames: int) -> dict:
     world = bpy.data.worlds.new("World")
     sc.world = world
     world.node_tree.nodes["Background"].inputs["Color"].default_value = (0.02, 0.025, 0.03, 1)
-    bpy.ops.object.camera_add()
-    cam = bpy.context.active_object
-    cam.data.lens = 24
-    sc.camera = cam
-    poses = []
-    for t in range(frames):
-        u = t / max(frames - 1, 1)
+
+    def walk(u: float):
         eye = lerp((-4.3, -3.3, 1.6), (-0.5, -2.2, 1.5), u)
         ang = math.radians(40 + 70 * u)
-        aim = (eye[0] + 3 * math.cos(ang), eye[1] + 3 * math.sin(ang), 1.1)
-        poses.append((eye, aim))
-    animate_camera(cam, poses)
+        return eye, (eye[0] + 3 * math.cos(ang), eye[1] + 3 * math.sin(ang), 1.1)
+
+    # Camera: a 4 m walk with a 70 degree pan.
+    cam = add_camera(24, frames, walk)
     ctx_poses = [
         ((-4.0, -3.0, 1.7), (-1.0, 0.5, 1.0)),
         ((-1.5, -3.2, 1.4), (0.5, 1.0, 1.0)),
