@@ -485,26 +485,26 @@ impl Session {
                 frame.sanitized
             ));
         }
-        if frame.sanitized_aovs > 0 {
-            report.warnings.push(format!(
-                "frame {}: {} AOV samples were NaN and were replaced",
-                fmt_index(input.frame_index),
-                frame.sanitized_aovs
-            ));
-        }
-        if frame.sanitized_normals > 0 {
-            report.warnings.push(format!(
-                "frame {}: {} normal samples were NaN or infinite and were replaced by 0",
-                fmt_index(input.frame_index),
-                frame.sanitized_normals
-            ));
-        }
-        if frame.sanitized_albedo > 0 {
-            report.warnings.push(format!(
-                "frame {}: {} albedo samples were NaN or infinite and were replaced by 0",
-                fmt_index(input.frame_index),
-                frame.sanitized_albedo
-            ));
+        for (count, what) in [
+            (
+                frame.sanitized_aovs,
+                "AOV samples were NaN and were replaced",
+            ),
+            (
+                frame.sanitized_normals,
+                "normal samples were NaN or infinite and were replaced by 0",
+            ),
+            (
+                frame.sanitized_albedo,
+                "albedo samples were NaN or infinite and were replaced by 0",
+            ),
+        ] {
+            if count > 0 {
+                report.warnings.push(format!(
+                    "frame {}: {count} {what}",
+                    fmt_index(input.frame_index)
+                ));
+            }
         }
         if frame.huge_motion > 0 {
             report.warnings.push(format!(
@@ -603,7 +603,11 @@ impl Session {
         if reset.is_none() && self.params.scene_cut_detection {
             let view =
                 HistoryView::new_recycled(&st.history, &frame, context, pool, &self.recycler);
+            // Not after a denoised frame: a cut found late runs the frame
+            // again, and with it the denoiser, which costs far more than
+            // reprojecting the lattice's rows up front.
             deferred = !view.is_empty()
+                && !decision.on
                 && self.backend.records_scene_probe(&self.params)
                 && frame.scene_samples.is_some();
             let cut = !view.is_empty()

@@ -510,7 +510,7 @@ impl PreparedFrame {
             rgba,
             denoise_aux: false,
         };
-        Self::prepare(input, depth_kind, Some(pool), Some(recycler), options)
+        Self::from_input_with(input, depth_kind, pool, recycler, options)
     }
 
     /// Like [`PreparedFrame::from_input_recycled`], reading what `options`
