@@ -6,7 +6,8 @@ usd-core venv. Usage:
     python blender_render.py STAGE OUT_DIR WIDTH HEIGHT SAMPLES FIRST LAST INSERT_NAMES
 
 Writes ``OUT_DIR/blender.####.exr`` (parts ViewLayer.Combined, .Depth, .Vector,
-.Normal, .Object Index) for frames FIRST..LAST. Objects named in the
+.Normal, .Object Index, and the Denoising Data passes .Denoising Albedo,
+.Denoising Normal, .Denoising Depth for the denoise tests) for frames FIRST..LAST. Objects named in the
 comma-separated INSERT_NAMES (prims the stage marks ``harmonizer:insert``) get
 pass index 1 (the insert mask). The stage is read only through Blender's USD
 importer; the caller resolves the stage with usd-core.
@@ -74,6 +75,7 @@ def main(argv: list[str]) -> int:
     vl.use_pass_vector = True
     vl.use_pass_normal = True
     vl.use_pass_object_index = True
+    vl.cycles.denoising_store_passes = True
     settings = scene.render.image_settings
     settings.media_type = "MULTI_LAYER_IMAGE"
     settings.file_format = "OPEN_EXR_MULTILAYER"

@@ -10,7 +10,9 @@
 # (bpy and usd-core both ship `pxr`: never in one venv); builds libharmonizer
 # (release) when missing. Fixtures are rendered once into build/usd_fixtures/.
 # Environment: HARMONIZER_LIB (library to use), HARMONIZER_ORT_LIB (ONNX
-# Runtime; default: the project's .venv, else installed into .venv-usd), HZ_USD_VENV, HZ_BPY_VENV,
+# Runtime; default: the project's .venv, else installed into .venv-usd),
+# HARMONIZER_OIDN_LIB (Open Image Denoise for the denoise stage; default: the
+# pyoidn wheel in the project's .venv, else installed into .venv-usd), HZ_USD_VENV, HZ_BPY_VENV,
 # HZ_USD_CACHE (fixture cache), PYTHON311.
 set -euo pipefail
 cd "$(dirname "$0")/../.."
@@ -55,6 +57,19 @@ if [[ -z "${HARMONIZER_ORT_LIB:-}" ]]; then
         ort=$(ls "$VENV"/lib/python3*/site-packages/onnxruntime/capi/libonnxruntime.so.* | sort | tail -n 1)
     fi
     export HARMONIZER_ORT_LIB=$ort
+fi
+
+# Open Image Denoise (denoise stage, on by default for noisy frames): every
+# test runs with the real library, whichever venvs this machine has.
+if [[ -z "${HARMONIZER_OIDN_LIB:-}" ]]; then
+    oidn=$(ls "$REPO"/.venv/lib/python3*/site-packages/pyoidn/oidn/lib/libOpenImageDenoise.so.2* \
+        "$VENV"/lib/python3*/site-packages/pyoidn/oidn/lib/libOpenImageDenoise.so.2* 2>/dev/null | sort | tail -n 1 || true)
+    if [[ -z "$oidn" ]]; then
+        echo "installing pyoidn into $VENV (Open Image Denoise for the denoise stage)"
+        "$VENV/bin/python" -m pip install --quiet "pyoidn==2.*"
+        oidn=$(ls "$VENV"/lib/python3*/site-packages/pyoidn/oidn/lib/libOpenImageDenoise.so.2* | sort | tail -n 1)
+    fi
+    export HARMONIZER_OIDN_LIB=$oidn
 fi
 
 exec nice -n 10 "$VENV/bin/python" -m pytest tests/usd -q -p no:cacheprovider "$@"

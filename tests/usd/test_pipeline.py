@@ -382,6 +382,9 @@ def test_multipart_blender_product(rendered: Path, tmp_path: Path) -> None:
             "ViewLayer.Normal",
             "ViewLayer.Vector",
             "ViewLayer.Object Index",
+            "ViewLayer.Denoising Normal",
+            "ViewLayer.Denoising Albedo",
+            "ViewLayer.Denoising Depth",
         ]
         for k in ("Software", "Camera", "Frame", "colorInteropID"):
             assert a.attributes()[k] == b.attributes()[k], k
@@ -482,9 +485,9 @@ def test_user_map_and_params(shot: Path, tmp_path: Path) -> None:
     r = run_cli(str(shot), "--backend", "bypass", "--param", "bogus=1")
     assert r.returncode == 1
     assert 'unknown parameter "bogus"' in r.stderr
-    r = run_cli(str(shot), "--backend", "bypass", "--map", "insert=albedo")
+    r = run_cli(str(shot), "--backend", "bypass", "--map", "insert=specular")
     assert r.returncode == 1
-    assert "--map insert: unknown role 'albedo'" in r.stderr
+    assert "--map insert: unknown role 'specular'" in r.stderr
 
 
 def test_progress_bar(capsys: pytest.CaptureFixture[str], rendered: Path) -> None:

@@ -230,8 +230,8 @@ def test_var_roles(tmp_path: Path) -> None:
     )
     with pytest.raises(VarError, match=r"both map to depth"):
         map_vars(prod, {"a": "depth"})
-    with pytest.raises(VarError, match=r"--map a: unknown role 'albedo'"):
-        map_vars(prod, {"a": "albedo"})
+    with pytest.raises(VarError, match=r"--map a: unknown role 'specular'"):
+        map_vars(prod, {"a": "specular"})
     with pytest.raises(
         VarError, match=r"no color RenderVar among orderedVars \[Ci \(sourceName 'Ci'\)"
     ):

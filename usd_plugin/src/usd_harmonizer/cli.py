@@ -3,7 +3,8 @@
 usd-harmonize STAGE [--settings PRIM] [--product NAME] [--frames 1001-1024]
               [--out-dir DIR] [--layer FILE | --in-place | --no-layer]
               [--backend auto|neural|classical|bypass] [--param NAME=VALUE]
-              [--map VAR=ROLE] [--motion-scale SX,SY] [--ocio CONFIG]
+              [--denoise auto|on|off] [--denoise-quality high|balanced|fast]
+              [--samples N] [--map VAR=ROLE] [--motion-scale SX,SY] [--ocio CONFIG]
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from .errors import UsdHarmonizerError
 from .frames import parse_frame_range
 from .process import Options
 from .run import run_stage
-from .settings import ProductInfo
+from .settings import ProductInfo, check_denoise_param
 
 
 def _value(text: str) -> Any:
@@ -99,6 +100,24 @@ def add_cmdline_args(parser: argparse.ArgumentParser) -> None:
         "--context-frames", type=int, help="previous enhanced frames used, 0..8"
     )
     parser.add_argument(
+        "--denoise",
+        choices=["auto", "on", "off"],
+        help="denoise with Open Image Denoise before enhancing (default: the stage's "
+        "harmonizer:denoise, else auto: on for 1-64 samples, else the first frame's noise decides)",
+    )
+    parser.add_argument(
+        "--denoise-quality",
+        choices=["high", "balanced", "fast"],
+        help="Open Image Denoise quality (default: the stage's harmonizer:denoiseQuality, else high)",
+    )
+    parser.add_argument(
+        "--samples",
+        type=int,
+        metavar="N",
+        help="samples per pixel the frames were rendered with (default: the stage's "
+        "harmonizer:samples, else 0 = unknown); 0 for frames the renderer already denoised",
+    )
+    parser.add_argument(
         "--param",
         action="append",
         default=[],
@@ -110,7 +129,8 @@ def add_cmdline_args(parser: argparse.ArgumentParser) -> None:
         action="append",
         default=[],
         metavar="VAR=ROLE",
-        help="map a RenderVar to color, depth, motion, normal, coverage, insert_mask or ignore",
+        help="map a RenderVar to color, depth, motion, normal, coverage, insert_mask, albedo, "
+        "denoise_normal or ignore",
     )
     parser.add_argument(
         "--motion-scale",
@@ -143,6 +163,13 @@ def _options(args: argparse.Namespace) -> Options:
         params["strength"] = args.strength
     if args.context_frames is not None:
         params["context_frames"] = args.context_frames
+    for name, value, flag in (
+        ("denoise", args.denoise, "--denoise"),
+        ("denoise_quality", args.denoise_quality, "--denoise-quality"),
+        ("samples", args.samples, "--samples"),
+    ):
+        if value is not None:
+            params[name] = check_denoise_param(name, value, flag)
     ms = None
     if args.motion_scale:
         try:
@@ -223,11 +250,15 @@ def main(argv: list[str] | None = None) -> int:
             ms = sum(r.total_ms for r in res) / len(res)
             wall = sum(r.timings.get("total", 0.0) for r in res) / len(res)
             warns = sum(len(r.warnings) for r in res)
+            denoised = sum(r.denoised for r in res)
+            decisions = [r.denoise_decision for r in res if r.denoise_decision]
             print(
                 f"{path}: {len(res)} frames {res[0].frame}-{res[-1].frame}, backend {res[-1].backend}, "
                 f"color space {res[-1].color_space}, inputs {'+'.join(res[-1].inputs)}, "
                 f"{ms:.1f} ms/frame in the library, {wall:.1f} ms/frame in all, "
-                f"resets: {resets}, warnings: {warns}\n  -> {res[0].output.parent}"
+                f"resets: {resets}, warnings: {warns}, denoised: {denoised}"
+                + (f" ({decisions[-1]})" if decisions else "")
+                + f"\n  -> {res[0].output.parent}"
             )
         if summary.layer:
             print(f"layer: {summary.layer}")

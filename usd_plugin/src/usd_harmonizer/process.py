@@ -3,8 +3,9 @@ camera), frames in increasing order, outputs written atomically.
 
 For each frame: read the product's file, find each var's channels by name,
 convert color to Linear Rec.709 (PyOpenColorIO), pass depth, motion
-(scaled into the library's convention), normals, coverage, the insert mask
-and the frame's camera matrices (so a product without motion vectors is
+(scaled into the library's convention), normals, coverage, the insert mask,
+the denoise stage's albedo (converted like the color) and normal, and the
+frame's camera matrices (so a product without motion vectors is
 reprojected from depth), enhance, convert back, and write a copy of the file
 with the color (and coverage) channels replaced and ``harmonizer:*``
 attributes added. A failed frame raises :class:`FrameError` naming the
@@ -37,7 +38,9 @@ class Options:
 
     #: Library backend: auto, neural, classical or bypass.
     backend: str = "auto"
-    #: Further session parameters by name (``strength``, ``context_frames``, ...).
+    #: Further session parameters by name (``strength``, ``context_frames``,
+    #: ``denoise``, ``denoise_quality``, ``samples``, ...); they win over the
+    #: stage's ``harmonizer:denoise*`` / ``harmonizer:samples`` attributes.
     params: dict[str, Any] = field(default_factory=dict)
     #: Output directory: each product's files go to ``out_dir/<product prim
     #: name>/``; default ``<product file dir>/harmonized``.
@@ -79,6 +82,13 @@ class FrameResult:
     #: new product's UsdColorSpaceAPI ``colorSpace:name``; None when the
     #: OCIO space has none.
     usd_color_space: str | None = None
+    #: Whether the denoise stage denoised the frame.
+    denoised: bool = False
+    #: The denoise stage's decision, on the frame that made it (the first
+    #: after a reset), else None.
+    denoise_decision: str | None = None
+    #: The measured noise level (``denoise auto`` without ``samples``), else None.
+    noise_level: float | None = None
 
 
 def make_device(options: Options) -> Any:
@@ -209,6 +219,8 @@ class ProductRunner:
         self.roles = map_vars(product, options.user_map)
         params: dict[str, Any] = dict(options.params)
         params["backend"] = options.backend
+        for k, v in product.params.items():
+            params.setdefault(k, v)
         depth_var = self.roles.get("depth")
         if depth_var is not None and depth_var.depth_kind:
             params.setdefault("depth_kind", depth_var.depth_kind)
@@ -319,6 +331,13 @@ class ProductRunner:
         if "normal" in b:
             kw["normal"] = img.stack(b["normal"].channels)
             inputs.append("normal")
+        if "albedo" in b:
+            # Reflectance in the product's color space: same primaries as the color.
+            kw["albedo"] = conv.to_linear(img.stack(b["albedo"].channels))
+            inputs.append("albedo")
+        if "denoise_normal" in b:
+            kw["denoise_normal"] = img.stack(b["denoise_normal"].channels)
+            inputs.append("denoise_normal")
         if coverage is not None:
             kw["coverage"] = coverage
             inputs.append("coverage")
@@ -374,6 +393,7 @@ class ProductRunner:
             "harmonizer:colorSpace": conv.source_name,
             "harmonizer:product": prod.path,
             "harmonizer:source": os.fspath(src),
+            "harmonizer:denoised": bool(report.get("denoised")),
         }
         t_w0 = time.perf_counter()
         write_exr_atomic(img, out_path, extra, where)
@@ -399,6 +419,9 @@ class ProductRunner:
                 "total": (t_w1 - t0) * 1e3,
             },
             usd_color_space=conv.usd_name,
+            denoised=bool(report.get("denoised")),
+            denoise_decision=report.get("denoise_decision"),
+            noise_level=report.get("noise_level"),
         )
         self.results.append(result)
         return result

@@ -6,7 +6,9 @@ walks the schema itself: the settings prim (the stage's
 ``orderedVars`` and ``camera`` (falling back to the settings' camera and
 resolution, as UsdRender specifies), the frame range (stage start/end time
 codes unless given) and the file of each frame (``productName`` evaluated per
-time code, frame tokens expanded).
+time code, frame tokens expanded), and the denoise stage's settings
+(``harmonizer:denoise``, ``harmonizer:denoiseQuality``, ``harmonizer:samples``
+on the product, else on the settings prim).
 """
 
 from __future__ import annotations
@@ -28,6 +30,23 @@ ATTR_MOTION_SCALE = "harmonizer:motionVectorScale"
 ATTR_DEPTH_KIND = "harmonizer:depthKind"
 #: RenderMan / Karma style name of the AOV in the file.
 ATTR_AOV_NAME = "driver:parameters:aov:name"
+#: The denoise stage's settings on a product or the RenderSettings prim
+#: (attribute -> session parameter). Renderers name their sample counts
+#: differently (and some count anti-aliasing samples per axis), so the
+#: count the frames were rendered with is read only from ``harmonizer:samples``.
+ATTR_DENOISE = "harmonizer:denoise"
+ATTR_DENOISE_QUALITY = "harmonizer:denoiseQuality"
+ATTR_SAMPLES = "harmonizer:samples"
+DENOISE_ATTRS: dict[str, str] = {
+    ATTR_DENOISE: "denoise",
+    ATTR_DENOISE_QUALITY: "denoise_quality",
+    ATTR_SAMPLES: "samples",
+}
+#: Values each denoise parameter accepts (``samples``: an integer >= 0).
+DENOISE_VALUES: dict[str, tuple[str, ...]] = {
+    "denoise": ("auto", "on", "off"),
+    "denoise_quality": ("high", "balanced", "fast"),
+}
 
 
 def _authored(attr: Usd.Attribute | None):
@@ -51,6 +70,42 @@ def _color_space_of(prim: Usd.Prim) -> tuple[str, str] | None:
         if v:
             return str(v), f"{prim.GetPath()}.{name}"
     return None
+
+
+def check_denoise_param(name: str, value: object, where: str) -> object:
+    """A denoise parameter's value, checked: ``denoise`` auto/on/off,
+    ``denoise_quality`` high/balanced/fast (case-insensitive), ``samples`` an
+    integer >= 0 (0: unknown, the first frame's noise decides). ``where``
+    names the attribute or option for the error."""
+    if name == "samples":
+        if (
+            isinstance(value, bool)
+            or not isinstance(value, (int, float))
+            or value != int(value)
+            or value < 0
+        ):
+            raise SettingsError(
+                f"{where}: {value!r} is not a sample count (an integer >= 0; 0: unknown)"
+            )
+        return int(value)
+    text = str(value).strip().lower()
+    if text not in DENOISE_VALUES[name]:
+        raise SettingsError(
+            f"{where}: {value!r} is not one of {', '.join(DENOISE_VALUES[name])}"
+        )
+    return text
+
+
+def _denoise_params(*prims: Usd.Prim) -> dict[str, object]:
+    """The denoise parameters authored on the first of ``prims`` that has each."""
+    out: dict[str, object] = {}
+    for attr, param in DENOISE_ATTRS.items():
+        for prim in prims:
+            v = _authored(prim.GetAttribute(attr))
+            if v is not None:
+                out[param] = check_denoise_param(param, v, f"{prim.GetPath()}.{attr}")
+                break
+    return out
 
 
 def _inherited_color_space(prim: Usd.Prim) -> tuple[str, str] | None:
@@ -141,6 +196,10 @@ class ProductInfo:
     inherited_color_space: tuple[str, str] | None
     base_dir: Path
     stage: Usd.Stage = field(repr=False)
+    #: Denoise session parameters from the product or the settings prim
+    #: (``denoise``, ``denoise_quality``, ``samples``); options given to the
+    #: hook or the CLI win.
+    params: dict[str, object] = field(default_factory=dict)
 
     def product_name(self, frame: int) -> str:
         """``productName`` at ``frame`` (time samples honoured), unexpanded."""
@@ -347,6 +406,7 @@ def resolve(
                 inherited_color_space=_inherited_color_space(pprim) or s_cs,
                 base_dir=base,
                 stage=stage,
+                params=_denoise_params(pprim, sprim),
             )
         )
     if products:

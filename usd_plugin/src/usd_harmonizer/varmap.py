@@ -1,5 +1,11 @@
 """Maps RenderVars to harmonizer inputs and finds their channels in a file.
 
+The denoise stage's guides are roles too: ``albedo`` (linear reflectance,
+Cycles' Denoising Albedo, Karma's and Arnold's albedo AOVs) and
+``denoise_normal`` (the normal the renderer's denoiser would use, in any
+space, such as Cycles' camera-space Denoising Normal; without it the denoiser
+reads the ``normal`` var).
+
 A var's role comes from (first match): the user mapping (``--map VAR=ROLE``),
 the var's ``harmonizer:role`` attribute, its ``sourceName``, its prim name.
 Channels come from the var's ``harmonizer:channels`` attribute, else from the
@@ -24,6 +30,8 @@ ROLES: dict[str, int] = {
     "normal": 3,
     "coverage": 1,
     "insert_mask": 1,
+    "albedo": 3,
+    "denoise_normal": 3,
 }
 
 _ALIASES: dict[str, set[str]] = {
@@ -55,6 +63,23 @@ _ALIASES: dict[str, set[str]] = {
         "insert_mask",
         "mask.insert",
         "mask_insert",
+    },
+    "albedo": {
+        "albedo",
+        "diffuse_albedo",
+        "diffusealbedo",
+        "denoise_albedo",
+        "denoisealbedo",
+        "denoising_albedo",
+        "denoising albedo",
+        "albedo_denoise",
+    },
+    "denoise_normal": {
+        "denoise_normal",
+        "denoisenormal",
+        "denoising_normal",
+        "denoising normal",
+        "normal_denoise",
     },
 }
 
@@ -184,12 +209,17 @@ def find_channels(role: str, var: VarInfo, names: list[str], where: str) -> Bind
         return Binding(role, var, var.channels[:need], alpha)
     comps = max(var.components, need)
     tried: list[str] = []
+    #: The first channel set found in part: (its channels, those present).
+    partial: tuple[list[str], list[str]] | None = None
     for base in _bases(var):
         for n in sorted({comps, need}, reverse=True):
             for suf in _SUFFIXES.get(n, []):
                 chans = [f"{base}.{s}" if s else base for s in suf]
                 tried.append(",".join(chans))
-                if all(c in have for c in chans[:need]):
+                present = [c for c in chans[:need] if c in have]
+                if present and len(present) < need and partial is None:
+                    partial = (chans[:need], present)
+                if len(present) == need:
                     alpha = None
                     if role == "color":
                         # The alpha beside the color, whatever the dataType says.
@@ -202,6 +232,14 @@ def find_channels(role: str, var: VarInfo, names: list[str], where: str) -> Bind
         if all(c in have for c in bare):
             alpha = "A" if role == "color" and "A" in have else None
             return Binding(role, var, list(bare), alpha)
+    if partial is not None:
+        chans, present = partial
+        missing = [c for c in chans if c not in present]
+        raise VarError(
+            f"{where}: RenderVar {var.path} ({role}): channel {missing[0]!r} is missing: {role} needs "
+            f"{need} channels ({', '.join(chans)}) and the file has only {', '.join(present)} of them "
+            f"(channels present: {sorted(have)}); write all {need}, or set harmonizer:channels on the var"
+        )
     raise VarError(
         f"{where}: RenderVar {var.path} ({role}, dataType {var.data_type}): no matching channels "
         f"(tried {'; '.join(tried[:8])}{' ...' if len(tried) > 8 else ''}; channels present: {sorted(have)}); "
