@@ -4,6 +4,7 @@ Modules:
 - ``props``: the scene settings (``scene.harmonizer``);
 - ``panel``: the Harmonizer panel in Properties > Render;
 - ``passes``: the passes and output format harmonizer needs;
+- ``denoise``: the denoise stage's ``samples`` and its Denoising Data passes;
 - ``handlers``: render_init / render_write / render_complete / render_cancel;
 - ``processor``, ``exrio``, ``colorspace``, ``sequence``: frames through the
   library (no ``bpy``);
@@ -20,6 +21,7 @@ if "bpy" in locals():  # reload (Reload Scripts / disable + enable)
 
     for _name in (
         "deps",
+        "denoise",
         "exrio",
         "colorspace",
         "sequence",
@@ -40,6 +42,7 @@ import bpy  # noqa: E402, F401  (the reload check above looks for it)
 
 from . import (  # noqa: E402
     colorspace,
+    denoise,
     deps,
     exrio,
     handlers,
@@ -69,6 +72,7 @@ def unregister() -> None:
 
 __all__ = [
     "colorspace",
+    "denoise",
     "deps",
     "exrio",
     "handlers",

@@ -9,12 +9,15 @@ The zip holds the add-on modules, ``blender_manifest.toml`` (with its
   built here from the files (no setuptools needed);
 - ``onnxruntime-1.31.*-cp311-...manylinux...whl``: fetched with
   ``pip download`` (ONNX Runtime for the neural backend; the add-on only loads
-  its shared library).
+  its shared library);
+- ``pyoidn-2.*-py3-none-manylinux2014_x86_64.whl``: fetched the same way
+  (Intel Open Image Denoise for the denoise stage; the add-on only locates its
+  shared library and hands its path to libharmonizer).
 
 Usage::
 
     python blender_addon/build.py [--lib target/release/libharmonizer.so] [--cargo]
-                                  [--out dist/] [--no-onnxruntime]
+                                  [--out dist/] [--no-onnxruntime] [--no-oidn]
 
 Blender installs the zip with Edit > Preferences > Get Extensions > Install
 from Disk, or ``blender --command extension install-file -r user_default <zip>``.
@@ -36,6 +39,8 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 REPO = os.path.dirname(HERE)
 BINDING = os.path.join(REPO, "ffi", "python", "harmonizer")
 ORT_SPEC = "onnxruntime==1.31.*"
+#: Open Image Denoise 2.x (the release libharmonizer's denoise stage is built for).
+OIDN_SPEC = "pyoidn==2.*"
 ADDON_FILES_EXCLUDE = {"build.py"}
 WHEEL_PLATFORM = "linux_x86_64"
 
@@ -94,17 +99,21 @@ def build_binding_wheel(lib: str, version: str, out_dir: str) -> str:
     return path
 
 
-def fetch_onnxruntime(cache: str) -> str:
-    """The onnxruntime cp311 manylinux wheel, from the cache or ``pip download``."""
+def fetch_wheel(spec: str, prefix: str, cache: str) -> str:
+    """The cp311 manylinux x86_64 wheel of ``spec`` (file names starting ``prefix``), from the cache or ``pip download``."""
     os.makedirs(cache, exist_ok=True)
-    have = sorted(f for f in os.listdir(cache) if f.startswith("onnxruntime-1.31.") and f.endswith(".whl"))
+
+    def cached() -> list[str]:
+        return sorted(f for f in os.listdir(cache) if f.startswith(prefix) and f.endswith(".whl"))
+
+    have = cached()
     if not have:
         cmd = [
             sys.executable,
             "-m",
             "pip",
             "download",
-            ORT_SPEC,
+            spec,
             "--no-deps",
             "--only-binary=:all:",
             "--python-version",
@@ -124,10 +133,20 @@ def fetch_onnxruntime(cache: str) -> str:
         ]
         print("+", " ".join(cmd), flush=True)
         subprocess.run(cmd, check=True)
-        have = sorted(f for f in os.listdir(cache) if f.startswith("onnxruntime-1.31.") and f.endswith(".whl"))
+        have = cached()
     if not have:
-        raise SystemExit(f"pip download {ORT_SPEC} produced no wheel in {cache}")
+        raise SystemExit(f"pip download {spec} produced no wheel in {cache}")
     return os.path.join(cache, have[-1])
+
+
+def fetch_onnxruntime(cache: str) -> str:
+    """The onnxruntime cp311 manylinux wheel, from the cache or ``pip download``."""
+    return fetch_wheel(ORT_SPEC, "onnxruntime-1.31.", cache)
+
+
+def fetch_pyoidn(cache: str) -> str:
+    """The pyoidn 2.x manylinux wheel (Open Image Denoise's library inside), from the cache or ``pip download``."""
+    return fetch_wheel(OIDN_SPEC, "pyoidn-2.", cache)
 
 
 def stage_addon(stage: str, wheels: list[str]) -> None:
@@ -208,6 +227,11 @@ def main(argv: list[str] | None = None) -> int:
         help="where downloaded wheels are kept between builds",
     )
     ap.add_argument("--no-onnxruntime", action="store_true", help="do not bundle onnxruntime (classical/bypass only)")
+    ap.add_argument(
+        "--no-oidn",
+        action="store_true",
+        help="do not bundle Open Image Denoise (pyoidn; the denoise stage then needs one installed)",
+    )
     ap.add_argument("--no-validate", action="store_true", help="skip Blender's manifest validation")
     args = ap.parse_args(argv)
 
@@ -230,6 +254,8 @@ def main(argv: list[str] | None = None) -> int:
     wheels = [build_binding_wheel(lib, version, wheel_dir)]
     if not args.no_onnxruntime:
         wheels.append(fetch_onnxruntime(args.cache))
+    if not args.no_oidn:
+        wheels.append(fetch_pyoidn(args.cache))
     stage = os.path.join(work, "stage")
     stage_addon(stage, wheels)
     os.makedirs(args.out, exist_ok=True)

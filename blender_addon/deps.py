@@ -8,6 +8,9 @@
   bundled in the extension (or from the environment during development).
 - The ONNX Runtime shared library, from the bundled ``onnxruntime`` wheel; it is
   located, never imported (its Python package needs dependencies Blender lacks).
+- The Open Image Denoise shared library (the denoise stage), from the bundled
+  ``pyoidn`` wheel, located the same way (``pyoidn`` needs ``cffi``, which
+  Blender lacks) and handed to the library through ``$HARMONIZER_OIDN_LIB``.
 """
 
 from __future__ import annotations
@@ -99,3 +102,46 @@ def onnxruntime_library() -> str | None:
             if hits:
                 return hits[0]
     return None
+
+
+#: The variable the library reads for the Open Image Denoise library's path.
+OIDN_ENV = "HARMONIZER_OIDN_LIB"
+
+
+def oidn_library() -> str | None:
+    """Path of ``libOpenImageDenoise`` from the bundled ``pyoidn`` wheel, or None.
+
+    ``$HARMONIZER_OIDN_LIB`` wins when set (the library reports it when it
+    names no file).
+    """
+    env = os.environ.get(OIDN_ENV)
+    if env:
+        return env
+    spec = importlib.util.find_spec("pyoidn")
+    if spec is None or not spec.submodule_search_locations:
+        return None
+    for root in spec.submodule_search_locations:
+        for pattern in ("libOpenImageDenoise.so.2*", "libOpenImageDenoise.2*.dylib", "OpenImageDenoise.dll"):
+            hits = sorted(glob.glob(os.path.join(root, "oidn", "lib", pattern)))
+            hits += sorted(glob.glob(os.path.join(root, "oidn", "bin", pattern)))
+            # Prefer the fully versioned file (libOpenImageDenoise.so.2.5.1).
+            hits.sort(key=len, reverse=True)
+            if hits:
+                return hits[0]
+    return None
+
+
+def use_oidn_library() -> str | None:
+    """Point the library at the bundled Open Image Denoise (``$HARMONIZER_OIDN_LIB``); returns the path.
+
+    The library loads Open Image Denoise on the first frame it denoises and
+    reads the variable then. Without a bundled copy (an extension built with
+    ``--no-oidn``) nothing is set: the library then looks for the ``pyoidn``
+    wheel in a ``.venv`` and for the system's library, and when it finds none,
+    ``denoise on`` fails each frame and ``auto`` goes on without denoising,
+    both with the library's message saying what to install.
+    """
+    path = oidn_library()
+    if path and not os.environ.get(OIDN_ENV):
+        os.environ[OIDN_ENV] = path
+    return path

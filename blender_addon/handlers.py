@@ -33,6 +33,14 @@ class RunLog:
     frames: list[dict] = field(default_factory=list)
     errors: list[str] = field(default_factory=list)
     finished: bool = False
+    #: The denoise stage's latest decision (``denoise auto: on (the host renders 4
+    #: samples per pixel, 1 to 64)``), or None.
+    denoise_decision: str | None = None
+
+    @property
+    def denoised(self) -> int:
+        """How many frames were denoised."""
+        return sum(1 for f in self.frames if f.get("denoised"))
 
 
 @dataclass
@@ -85,7 +93,7 @@ def on_render_init(scene, *_args):
     _close(scene.name)
     log = RunLog(scene.name)
     _LOGS[scene.name] = log
-    for level, text in passes.check(scene, apply=scene.harmonizer.manage_passes):
+    for level, text in passes.check(scene, apply=scene.harmonizer.manage_passes, at_render=True):
         reports.post(level, text)
     try:
         runner = runtime.Runner(scene)
@@ -94,6 +102,8 @@ def on_render_init(scene, *_args):
         log.errors.append(msg)
         reports.post("ERROR", msg)
         return
+    for level, text in runner.notes:
+        reports.post(level, text)
     # Whether this render is a still is only known when a file is written:
     # a still goes to passes.still_path(), which an animation never writes.
     still = passes.still_path(scene)
@@ -150,6 +160,10 @@ def on_render_write(scene, *_args):
         reports.post("ERROR", msg)
         return
     report = result.report
+
+    def frame_of(i: int) -> int:
+        return render.frames.get(i, scene.frame_start + i * step)
+
     entry = {
         "frame": frame,
         "raw": raw,
@@ -158,12 +172,26 @@ def on_render_write(scene, *_args):
         "reset": report.get("reset"),
         "backend": report.get("backend"),
         "history_used": report.get("history_used"),
+        "denoised": bool(report.get("denoised")),
+        "denoise_decision": runtime.renumber(report["denoise_decision"], frame_of)
+        if report.get("denoise_decision")
+        else None,
+        "noise_level": report.get("noise_level"),
+        "inputs": result.inputs,
         "ms": (time.perf_counter() - start) * 1000.0,
-        "warnings": runner.post_messages(frame, lambda i: render.frames.get(i, scene.frame_start + i * step)),
+        "warnings": runner.post_messages(frame, frame_of),
     }
     log.frames.append(entry)
+    decision = entry["denoise_decision"]
+    if decision:
+        # Decided on the first frame of the sequence (and after each reset);
+        # a decision that is also a warning (no library) was posted as one.
+        log.denoise_decision = decision
+        if not any(decision in w for w in entry["warnings"]):
+            reports.post("INFO", f"Harmonizer: frame {frame}: {decision}")
     reset = entry["reset"]
-    note = f", temporal state reset ({reset})" if reset else ""
+    note = ", denoised" if entry["denoised"] else ""
+    note += f", temporal state reset ({reset})" if reset else ""
     reports.post("INFO", f"Harmonizer: frame {frame} -> {out} ({entry['ms']:.0f} ms{note})")
 
 

@@ -34,7 +34,14 @@ class _Job:
         self.done = 0
         self.failed: list[str] = []
         self.resets: list[tuple[int, str]] = []
-        self.runner = runtime.Runner(scene, view_layer=view_layer)
+        self.denoised = 0
+        self.denoise_decision: str | None = None
+        # samples 0: the files do not say whether Cycles denoised them (their
+        # header's sample count is the same either way), so with denoise auto
+        # the first frame's measured noise decides.
+        self.runner = runtime.Runner(scene, view_layer=view_layer, samples=0)
+        for level, text in self.runner.notes:
+            reports.post(level, text)
         self.started = time.perf_counter()
 
     def step(self) -> bool:
@@ -54,6 +61,9 @@ class _Job:
             return True
         self.runner.post_messages(frame)  # frame_index is the frame number here
         self.done += 1
+        self.denoised += bool(result.report.get("denoised"))
+        if result.report.get("denoise_decision"):
+            self.denoise_decision = str(result.report["denoise_decision"])
         reset = result.report.get("reset")
         if reset:
             self.resets.append((frame, str(reset)))
@@ -66,7 +76,7 @@ class _Job:
         dt = time.perf_counter() - self.started
         return (
             f"Harmonizer: {self.done} of {len(self.frames)} frames enhanced into {self.output} "
-            f"in {dt:.1f} s ({len(self.failed)} failed)"
+            f"in {dt:.1f} s ({len(self.failed)} failed, {self.denoised} denoised)"
         )
 
 
@@ -114,6 +124,8 @@ class HARMONIZER_OT_enhance_sequence(bpy.types.Operator):
         self.report({"WARNING"} if job.failed else {"INFO"}, job.summary())
         for frame, reason in job.resets:
             print(f"Harmonizer: frame {frame}: temporal state reset ({reason})")
+        if job.denoise_decision:
+            print(f"Harmonizer: {job.denoise_decision}")
         return {"FINISHED"} if job.done else {"CANCELLED"}
 
     def execute(self, context):

@@ -4,18 +4,18 @@ from __future__ import annotations
 
 import bpy
 
-from . import handlers, passes, reports
+from . import denoise, handlers, passes, reports
 
 
 class HARMONIZER_OT_setup_passes(bpy.types.Operator):
-    """Enable the passes harmonizer reads and multilayer EXR output for this scene"""
+    """Enable the passes harmonizer reads (Denoising Data too when frames will be denoised) and multilayer EXR output"""
 
     bl_idname = "harmonizer.setup_passes"
     bl_label = "Set Up Passes"
     bl_options = {"REGISTER", "UNDO"}
 
     def execute(self, context):
-        msgs = passes.check(context.scene, apply=True)
+        msgs = passes.check(context.scene, apply=True, denoising_data=True)
         for level, text in msgs:
             self.report({level}, text)
         if not msgs:
@@ -46,6 +46,18 @@ class RENDER_PT_harmonizer(bpy.types.Panel):
         col.prop(s, "strength", slider=True)
         col.prop(s, "gap_policy")
         col.prop(s, "coverage")
+
+        col.separator()
+        col.prop(s, "denoise")
+        sub = col.column()
+        sub.active = s.enabled and s.denoise != "off"
+        sub.prop(s, "denoise_quality")
+        vl = passes.render_view_layer(scene, s.view_layer)
+        if vl is not None and denoise.guides_available(scene, vl):
+            # Blender's own setting of the view layer: ticking it is the user asking for the passes.
+            sub.prop(vl.cycles, "denoising_store_passes", text="Denoising Data")
+        if vl is not None and s.denoise == "auto":
+            sub.label(text=denoise.auto_summary(scene, vl), icon="INFO")
 
         col.separator()
         col.prop(s, "mask_source")
@@ -80,7 +92,12 @@ class RENDER_PT_harmonizer(bpy.types.Panel):
         if log is not None and (log.frames or log.errors):
             box = layout.box()
             ok = sum(1 for f in log.frames if f.get("output"))
-            box.label(text=f"Last render: {ok} frames enhanced, {len(log.errors)} errors", icon="INFO")
+            box.label(
+                text=f"Last render: {ok} frames enhanced, {log.denoised} denoised, {len(log.errors)} errors",
+                icon="INFO",
+            )
+            if log.denoise_decision:
+                box.label(text=log.denoise_decision)
             for text in log.errors[-3:]:
                 box.label(text=text.removeprefix("Harmonizer: "), icon="CANCEL")
         elif reports.RECENT:

@@ -6,6 +6,8 @@ import os
 
 import bpy
 
+from . import denoise
+
 
 def render_view_layer(scene: bpy.types.Scene, name: str = "") -> bpy.types.ViewLayer | None:
     """The view layer to enhance: ``name`` if given, else the first one that renders."""
@@ -29,11 +31,17 @@ def mask_names(scene: bpy.types.Scene) -> list[str]:
     return []
 
 
-def check(scene: bpy.types.Scene, *, apply: bool) -> list[tuple[str, str]]:
+def check(
+    scene: bpy.types.Scene, *, apply: bool, denoising_data: bool = False, at_render: bool = False
+) -> list[tuple[str, str]]:
     """Check (and with ``apply``, fix) what harmonizer needs.
 
     Returns (level, message) pairs: 'INFO' for what was changed, 'WARNING' for
-    what the user has to look at, 'ERROR' for what stops harmonizer.
+    what the user has to look at, 'ERROR' for what stops harmonizer. The
+    Denoising Data passes of a render that will be denoised are switched on
+    only with ``apply`` and ``denoising_data`` both (the user asked: the "Set
+    Up Passes" button); otherwise they are a warning, or a note at render
+    start (``at_render``; see ``denoise``).
     """
     s = scene.harmonizer
     out: list[tuple[str, str]] = []
@@ -91,6 +99,7 @@ def check(scene: bpy.types.Scene, *, apply: bool) -> list[tuple[str, str]]:
         out.append(("WARNING", "Harmonizer: insert mask source is Object but no object is set"))
     if s.mask_source == "COLLECTION" and s.mask_collection is None:
         out.append(("WARNING", "Harmonizer: insert mask source is Collection but no collection is set"))
+    out += denoise.check_guides(scene, vl, apply=apply and denoising_data, at_render=at_render)
     return out
 
 

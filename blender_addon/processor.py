@@ -1,8 +1,9 @@
 """One frame through harmonizer: Blender multilayer EXR in, enhanced EXR out.
 
 ``FrameProcessor`` reads every part of a raw multilayer EXR, gathers the passes
-of one view layer (Combined, Depth, Vector, Normal, Object Index, Cryptomatte),
-converts color from the file's scene-linear space to Linear Rec.709, runs the
+of one view layer (Combined, Depth, Vector, Normal, Object Index, Cryptomatte,
+and Denoising Albedo / Denoising Normal for the denoise stage), converts color
+(and the albedo) from the file's scene-linear space to Linear Rec.709, runs the
 harmonizer session, converts back and writes a copy of the file with the view
 layer's Combined pass replaced, every other part and channel kept.
 
@@ -151,6 +152,39 @@ def insert_mask(exr: exrio.MultiPartExr, opts: Options, frame: int) -> np.ndarra
     raise FrameError(f"insert mask source {opts.mask_source!r} is not one of NONE, OBJECT_INDEX, CRYPTOMATTE")
 
 
+#: Cycles' Denoising Data passes: (pass, channel suffixes, keyword of ``Session.process``).
+DENOISE_PASSES = (
+    ("Denoising Albedo", "RGB", "albedo"),
+    ("Denoising Normal", "XYZ", "denoise_normal"),
+)
+
+
+def denoise_guides(exr: exrio.MultiPartExr, layer: str, conv, path: str, frame: int) -> dict[str, np.ndarray]:
+    """The denoiser's guides from the Denoising Data passes, as ``Session.process`` keywords.
+
+    ``albedo`` is reflectance in the file's color space, converted to Linear
+    Rec.709 like the color; ``denoise_normal`` is Cycles' camera-space normal,
+    passed as it is (it never replaces the world-space Normal pass). A pass
+    with only some of its channels is an error naming the file and channel.
+    """
+    out: dict[str, np.ndarray] = {}
+    for name, comps, key in DENOISE_PASSES:
+        names = [f"{layer}.{name}.{c}" for c in comps]
+        present = [n for n in names if exr.has(n)]
+        if not present:
+            continue
+        if len(present) != len(names):
+            missing = ", ".join(n for n in names if n not in present)
+            raise FrameError(
+                f"{path}: frame {frame}: the {name} pass lacks channel {missing} (has {', '.join(present)})"
+            )
+        values = np.array(exr.channels(names), dtype=np.float32, copy=True)
+        if key == "albedo":
+            conv.to_library(values)
+        out[key] = values
+    return out
+
+
 def detect_view_layer(exr: exrio.MultiPartExr) -> str | None:
     """The first view layer with a Combined pass in the file (the Composite part excluded)."""
     for name in exr.channel_names():
@@ -235,6 +269,8 @@ class FrameResult:
     raw_path: str
     output_path: str
     report: dict
+    #: The inputs passed to the library besides color ("depth", "albedo", ...).
+    inputs: list = field(default_factory=list)
 
 
 class FrameProcessor:
@@ -321,6 +357,7 @@ class FrameProcessor:
             kwargs["motion_vector_scale"] = (1.0, -1.0)
         if all(exr.has(f"{layer}.Normal.{c}") for c in "XYZ"):
             kwargs["normal"] = exr.channels([f"{layer}.Normal.{c}" for c in "XYZ"])
+        kwargs.update(denoise_guides(exr, layer, conv, raw_path, frame))
         mask = insert_mask(exr, opts, frame)
         if mask is not None:
             kwargs["insert_mask"] = mask
@@ -338,6 +375,8 @@ class FrameProcessor:
         out = np.array(out, dtype=np.float32, copy=True)
         conv.from_library(out)
         report = dict(self.session.last_report or {})
+        inputs = [k for k in kwargs if k not in ("progress", "motion_vector_scale", "world_to_ndc")]
+        inputs = ["camera" if k == "world_to_camera" else k for k in inputs]
 
         exr.set_channels(names, out[:, :, : len(names)])
         if opts.replace_composite:
@@ -351,9 +390,10 @@ class FrameProcessor:
             "harmonizer/history_used": str(report.get("history_used", "")),
             "harmonizer/source": os.path.basename(raw_path),
             "harmonizer/colorspace": space,
+            "harmonizer/denoised": "1" if report.get("denoised") else "0",
         }
         try:
             exrio.write(self.oiio, exr, output_path, extra_attributes=attrs)
         except exrio.ExrError as exc:
             raise FrameError(f"frame {frame}: {exc}") from exc
-        return FrameResult(frame, raw_path, output_path, report)
+        return FrameResult(frame, raw_path, output_path, report, inputs)

@@ -33,6 +33,23 @@ CRYPTO_LAYERS = [
     ("CryptoAsset", "Asset", "Cryptomatte Asset pass"),
 ]
 
+DENOISE_MODES = [
+    (
+        "auto",
+        "Auto",
+        "Denoise noisy renders: Cycles renders of at most 64 samples without Cycles' own denoiser; "
+        "otherwise the first frame's measured noise decides (a frame Cycles denoised is not denoised again)",
+    ),
+    ("on", "On", "Denoise every frame with Open Image Denoise before it is enhanced"),
+    ("off", "Off", "Never denoise"),
+]
+
+DENOISE_QUALITIES = [
+    ("high", "High", "Open Image Denoise's best quality (slowest)"),
+    ("balanced", "Balanced", "Faster, with slightly less detail"),
+    ("fast", "Fast", "Fastest, for previews"),
+]
+
 COVERAGE = [
     ("ALPHA", "Alpha", "The Combined alpha is coverage: transparent pixels are holes to fill"),
     ("FULL", "Full", "Every pixel is rendered data (transparent film background is kept as is)"),
@@ -63,6 +80,14 @@ class HarmonizerSceneSettings(bpy.types.PropertyGroup):
         max=1.0,
     )
     coverage: EnumProperty(name="Coverage", items=COVERAGE, default="ALPHA")
+    denoise: EnumProperty(
+        name="Denoise",
+        description="Denoise frames with Open Image Denoise before they are enhanced, during the render "
+        "as each frame is written (the history of previous frames keeps the result stable)",
+        items=DENOISE_MODES,
+        default="auto",
+    )
+    denoise_quality: EnumProperty(name="Quality", items=DENOISE_QUALITIES, default="high")
     mask_source: EnumProperty(name="Insert Mask", items=MASK_SOURCES, default="NONE")
     mask_object: PointerProperty(name="Object", type=bpy.types.Object)
     mask_collection: PointerProperty(name="Collection", type=bpy.types.Collection)

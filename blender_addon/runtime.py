@@ -7,17 +7,31 @@ from collections.abc import Callable
 
 import bpy
 
-from . import deps, passes, processor, reports
+from . import denoise, deps, passes, processor, reports
 
 
 #: A frame number in a library message ("frame 12", "frame -3").
 _FRAME_REF = re.compile(r"\bframe (-?\d+)\b")
 
 
+def renumber(text: str, frame_of: Callable[[int], int] | None) -> str:
+    """``text`` with every "frame N" of the library (its ``frame_index``) as Blender's frame."""
+    if frame_of is None:
+        return text
+    return _FRAME_REF.sub(lambda m: f"frame {frame_of(int(m.group(1)))}", text)
+
+
 class Runner:
     """A device, a session and a frame processor for one sequence; close() frees them."""
 
-    def __init__(self, scene: bpy.types.Scene, *, view_layer: str | None = None):
+    def __init__(self, scene: bpy.types.Scene, *, view_layer: str | None = None, samples: int | None = None):
+        """A session for ``scene``'s settings.
+
+        ``view_layer``: the layer in the files (default: the panel's, else the
+        first that renders). ``samples``: the denoise stage's ``samples``
+        parameter (default: from the scene's render settings, see
+        ``denoise.session_samples``; the sequence operator passes 0).
+        """
         s = scene.harmonizer
         hz = deps.harmonizer()
         oiio = deps.oiio()
@@ -27,6 +41,24 @@ class Runner:
             if vl is None:
                 raise processor.FrameError(f"view layer {s.view_layer!r} not found in scene {scene.name!r}")
             view_layer = vl.name
+        #: Notes for the user at the start (posted by the caller).
+        self.notes: list[tuple[str, str]] = []
+        if samples is None:
+            vl = scene.view_layers.get(view_layer)
+            samples, why = denoise.session_samples(scene, vl) if vl is not None else (0, "")
+            if samples == 0 and s.denoise == "auto" and why:
+                # The library's decision on the first frame names the noise it measured.
+                self.notes.append(("INFO", f"Harmonizer: denoise auto: the first frame's noise decides ({why})"))
+        #: The denoise stage's ``samples`` (0: unknown).
+        self.samples = int(samples)
+        if s.denoise != "off" and deps.use_oidn_library() is None:
+            self.notes.append(
+                (
+                    "WARNING" if s.denoise == "on" else "INFO",
+                    "Harmonizer: this extension build bundles no Open Image Denoise (pyoidn wheel); "
+                    "the library looks for it elsewhere and says what to install if it finds none",
+                )
+            )
         mask_source = s.mask_source
         names = passes.mask_names(scene)
         crypto_layer = s.mask_crypto_layer
@@ -53,6 +85,9 @@ class Runner:
                 strength=s.strength,
                 gap_policy=s.gap_policy,
                 depth_kind="planar",
+                denoise=s.denoise,
+                denoise_quality=s.denoise_quality,
+                samples=self.samples,
                 on_message=self._on_message,
             )
         except BaseException:
@@ -86,8 +121,7 @@ class Runner:
         for level, text in messages:
             if level not in ("warning", "warn", "error"):
                 continue
-            if frame_of is not None:
-                text = _FRAME_REF.sub(lambda m: f"frame {frame_of(int(m.group(1)))}", text)
+            text = renumber(text, frame_of)
             if not text.startswith(f"frame {frame}:"):
                 text = f"frame {frame}: {text}"
             text = f"Harmonizer: {text}"
