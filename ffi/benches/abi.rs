@@ -165,6 +165,8 @@ impl Abi {
             frame_index: self.index,
             flags: HZ_FRAME_HAS_INDEX,
             motion_vector_scale: [1.0, 1.0],
+            albedo: null(),
+            denoise_normal: null(),
         };
         // SAFETY: every buffer outlives the call and matches its description.
         assert_eq!(

@@ -11,7 +11,10 @@
  * - const pointers are read only; outputs come last.
  * - Per-call structs (hz_image, hz_frame, hz_report, hz_device_options) start
  *   with struct_size: zero-initialize them and set struct_size = sizeof(T).
- *   Zero or NULL fields mean "absent" or "default".
+ *   Zero or NULL fields mean "absent" or "default". Structs grow only by
+ *   fields appended at their end; the sizeof an older header gave hz_frame
+ *   or hz_report stays accepted (the fields it lacks read as absent, and
+ *   nothing is written past it).
  * - Parameters are set by name (hz_session_set_int/float/bool/string) and
  *   applied by hz_session_commit; adding a parameter never changes the ABI.
  * - Strings out: functions taking (char *buffer, size_t buffer_size,
@@ -381,6 +384,10 @@ typedef struct hz_image {
  * One rendered frame. Zero-initialize, set `struct_size = sizeof(hz_frame)`
  * and `color`; every other pointer may be NULL (input absent).
  *
+ * The struct grows only at its end: a host built against an older header
+ * passes that header's `sizeof(hz_frame)` (without `albedo` and
+ * `denoise_normal`), and the fields it lacks read as NULL.
+ *
  * Conventions: color is scene-linear Linear Rec.709, premultiplied by
  * coverage. Depth is planar (distance along the view axis; set the session
  * parameter `depth_kind` to `"euclidean"` for ray length), empty pixels very
@@ -446,11 +453,33 @@ typedef struct hz_frame {
      * zero-initialized struct) means `{1, 1}`.
      */
     float motion_vector_scale[2];
+    /**
+     * Albedo, 3 channels (a 4th is ignored), linear RGB reflectance in
+     * [0, 1]: Cycles' Denoising Albedo pass or any renderer's albedo AOV
+     * (0 where nothing was hit). Optional; read by the denoise stage only
+     * (session parameter `denoise`), which denoises the color with it and
+     * the normals, both prefiltered. Validated like the other inputs
+     * (size, channel count); NaN and infinite samples become 0 (counted
+     * and reported as a warning), other values are clamped to [0, 1].
+     * Appended: NULL for a host that passes an older `struct_size`.
+     */
+    const struct hz_image *albedo;
+    /**
+     * The denoiser's normals, 3 channels, any space (Cycles' Denoising
+     * Normal pass, in camera space). Optional; read by the denoise stage
+     * only, and only with `albedo`; when absent the denoiser uses
+     * `normal`. Validated like `normal`. Appended: NULL for a host that
+     * passes an older `struct_size`.
+     */
+    const struct hz_image *denoise_normal;
 } hz_frame;
 
 /**
  * What happened to the last successfully processed frame
- * (`hz_session_get_report`). Set `struct_size = sizeof(hz_report)`.
+ * (`hz_session_get_report`). Set `struct_size = sizeof(hz_report)`. The
+ * struct grows only at its end: a host built against an older header
+ * passes that header's `sizeof(hz_report)` and gets the fields it knows
+ * (nothing is written past them).
  */
 typedef struct hz_report {
     /**
@@ -486,6 +515,25 @@ typedef struct hz_report {
      * Wall time of the call in milliseconds.
      */
     double total_ms;
+    /**
+     * Whether the denoise stage ran on this frame (session parameter
+     * `denoise`). Appended, like the fields after it: not written for a
+     * host that passes an older `struct_size`.
+     */
+    bool denoised;
+    /**
+     * Whether `noise_level` is set: on the frame where `denoise auto`
+     * decided from the frame's noise estimate (`samples` 0).
+     */
+    bool has_noise_level;
+    /**
+     * The noise estimate, in stops of white noise in log2 luminance
+     * (`denoise auto` turns the stage on above 0.2; clean renders measure
+     * about 0.04-0.09, renders of a few samples per pixel 0.4 and more);
+     * 0 without `has_noise_level`. What was decided and why:
+     * `hz_session_get_report_denoise_decision`.
+     */
+    float noise_level;
 } hz_report;
 
 #ifdef __cplusplus
@@ -827,9 +875,26 @@ hz_status hz_session_get_report_warning(const struct hz_session *session,
                                         size_t *out_length);
 
 /**
+ * What the denoise stage decided for the sequence and why, on the frame
+ * where it decided (the first after a reset other than a scene cut), for
+ * example `denoise on` or `denoise auto: on (noise level 0.930 on frame 1,
+ * threshold 0.20)`; empty on the other frames.
+ *
+ * # Safety
+ * As `hz_session_get_backend_name`.
+ */
+hz_status hz_session_get_report_denoise_decision(const struct hz_session *session,
+                                                 char *buffer,
+                                                 size_t buffer_size,
+                                                 size_t *out_length);
+
+/**
  * The last frame's report as JSON: `{"frame_index", "reset", "backend",
- * "history_used", "sanitized", "out_of_gamut", "warnings": [..], "stages": {name: ms},
- * "total_ms"}` (`reset` is null or a name such as `"frame_gap"`).
+ * "history_used", "sanitized", "out_of_gamut", "denoised",
+ * "denoise_decision", "noise_level", "warnings": [..], "stages": {name: ms},
+ * "total_ms"}` (`reset` is null or a name such as `"frame_gap"`;
+ * `denoise_decision` and `noise_level` are null except on the frame where
+ * the denoise stage decided, see `hz_report`).
  *
  * # Safety
  * As `hz_session_get_backend_name`.

@@ -9,7 +9,9 @@
 //! - `const` pointers are read only; outputs come last;
 //! - per-call structs (`hz_image`, `hz_frame`, `hz_report`,
 //!   `hz_device_options`) start with `struct_size`, which the caller sets to
-//!   `sizeof` of the struct;
+//!   `sizeof` of the struct; a struct grows only by appended fields, and
+//!   the size an older header gave it stays accepted (`hz_frame`,
+//!   `hz_report`): the fields it lacks read as zero and are not written;
 //! - parameters are set by name, so adding one never changes the ABI;
 //! - calls on different sessions may run concurrently; calls on one session
 //!   are serialized by a lock inside the handle.
@@ -175,13 +177,75 @@ macro_rules! check_null {
 
 /// Checks a caller's `struct_size` against this library's `sizeof`.
 pub(crate) fn check_struct_size(what: &str, got: usize, want: usize) -> FfiResult {
-    if got != want {
-        return Err(Error::invalid(format!(
-            "{what}.struct_size is {got}, expected {want} (set it to sizeof({what}); \
-             a mismatch means the header and the library differ)"
-        )));
+    check_struct_sizes(what, got, &[want])
+}
+
+/// Checks a caller's `struct_size` for a struct that grew by appending
+/// fields: `sizes` are the `sizeof` each header version gave it, oldest
+/// first, this library's last.
+pub(crate) fn check_struct_sizes(what: &str, got: usize, sizes: &[usize]) -> FfiResult {
+    if sizes.contains(&got) {
+        return Ok(());
     }
-    Ok(())
+    let (want, older) = sizes.split_last().expect("at least this library's size");
+    let older = match older {
+        [] => String::new(),
+        _ => format!(
+            "; an older header's {} is also accepted",
+            older
+                .iter()
+                .map(|s| s.to_string())
+                .collect::<Vec<_>>()
+                .join(", ")
+        ),
+    };
+    Err(Error::invalid(format!(
+        "{what}.struct_size is {got}, expected {want} (set it to sizeof({what}){older}; \
+         another value means the header and the library differ)"
+    )))
+}
+
+/// The `sizeof` an older header gave `T` when its fields ended where the
+/// field at offset `first_new` (`offset_of!`) now starts: that offset
+/// rounded up to `T`'s alignment. Holds because the appended fields are
+/// no more aligned than the older ones.
+pub(crate) const fn older_size<T>(first_new: usize) -> usize {
+    let align = std::mem::align_of::<T>();
+    first_new.div_ceil(align) * align
+}
+
+/// Reads the first `size` bytes of a struct a host passed (a size
+/// [`check_struct_sizes`] accepted); the fields after them, which the
+/// host's header did not have, are zero (NULL, 0, false: absent or default).
+///
+/// # Safety
+/// `p` is readable for `size` bytes, `size <= size_of::<T>()`, and the
+/// all-zero bit pattern is a valid `T`.
+pub(crate) unsafe fn read_prefix<T: Copy>(p: *const T, size: usize) -> T {
+    debug_assert!(size <= std::mem::size_of::<T>());
+    let mut v = std::mem::MaybeUninit::<T>::zeroed();
+    // SAFETY: `p` is readable for `size` bytes and `v` is writable for
+    // `size_of::<T>() >= size`; bytes need no alignment; the bytes not
+    // copied are zero, valid per the contract.
+    unsafe {
+        std::ptr::copy_nonoverlapping(p.cast::<u8>(), v.as_mut_ptr().cast::<u8>(), size);
+        v.assume_init()
+    }
+}
+
+/// Writes the first `size` bytes of `value` to a struct the host passed
+/// (a size [`check_struct_sizes`] accepted): an older host gets the fields
+/// its header has and nothing is written past them.
+///
+/// # Safety
+/// `out` is writable for `size` bytes and `size <= size_of::<T>()`.
+pub(crate) unsafe fn write_prefix<T: Copy>(out: *mut T, value: &T, size: usize) {
+    debug_assert!(size <= std::mem::size_of::<T>());
+    // SAFETY: readable (`value`) and writable (`out`) for `size` bytes, no
+    // overlap (`value` is the library's own); bytes need no alignment.
+    unsafe {
+        std::ptr::copy_nonoverlapping((value as *const T).cast::<u8>(), out.cast::<u8>(), size)
+    };
 }
 
 /// Reads a NUL-terminated UTF-8 string argument.

@@ -14,7 +14,10 @@ use harmonizer_core::{
 use crate::callbacks::{self, hz_message_fn, hz_message_level, hz_progress_fn};
 use crate::device::{device_ref, hz_device};
 use crate::image::{hz_image, Described};
-use crate::{check_null, check_struct_size, ffi_guard, hz_status, read_str, write_str};
+use crate::{
+    check_null, check_struct_sizes, ffi_guard, hz_status, read_prefix, read_str, write_prefix,
+    write_str,
+};
 
 /// Drop the temporal state before this frame (`hz_frame.flags`).
 pub const HZ_FRAME_RESET: u32 = 1;
@@ -25,6 +28,10 @@ const KNOWN_FLAGS: u32 = HZ_FRAME_RESET | HZ_FRAME_HAS_INDEX;
 
 /// One rendered frame. Zero-initialize, set `struct_size = sizeof(hz_frame)`
 /// and `color`; every other pointer may be NULL (input absent).
+///
+/// The struct grows only at its end: a host built against an older header
+/// passes that header's `sizeof(hz_frame)` (without `albedo` and
+/// `denoise_normal`), and the fields it lacks read as NULL.
 ///
 /// Conventions: color is scene-linear Linear Rec.709, premultiplied by
 /// coverage. Depth is planar (distance along the view axis; set the session
@@ -68,7 +75,27 @@ pub struct hz_frame {
     /// Multiplies the motion image into the convention above; `{0, 0}` (a
     /// zero-initialized struct) means `{1, 1}`.
     pub motion_vector_scale: [f32; 2],
+    /// Albedo, 3 channels (a 4th is ignored), linear RGB reflectance in
+    /// [0, 1]: Cycles' Denoising Albedo pass or any renderer's albedo AOV
+    /// (0 where nothing was hit). Optional; read by the denoise stage only
+    /// (session parameter `denoise`), which denoises the color with it and
+    /// the normals, both prefiltered. Validated like the other inputs
+    /// (size, channel count); NaN and infinite samples become 0 (counted
+    /// and reported as a warning), other values are clamped to [0, 1].
+    /// Appended: NULL for a host that passes an older `struct_size`.
+    pub albedo: *const hz_image,
+    /// The denoiser's normals, 3 channels, any space (Cycles' Denoising
+    /// Normal pass, in camera space). Optional; read by the denoise stage
+    /// only, and only with `albedo`; when absent the denoiser uses
+    /// `normal`. Validated like `normal`. Appended: NULL for a host that
+    /// passes an older `struct_size`.
+    pub denoise_normal: *const hz_image,
 }
+
+/// `sizeof(hz_frame)` in the headers before `albedo` and `denoise_normal`.
+const FRAME_SIZE_V1: usize = crate::older_size::<hz_frame>(std::mem::offset_of!(hz_frame, albedo));
+/// The sizes of `hz_frame` a host may pass, oldest first.
+const FRAME_SIZES: [usize; 2] = [FRAME_SIZE_V1, std::mem::size_of::<hz_frame>()];
 
 /// Type of a named parameter.
 #[repr(u32)]
@@ -122,7 +149,10 @@ impl hz_reset_reason {
 }
 
 /// What happened to the last successfully processed frame
-/// (`hz_session_get_report`). Set `struct_size = sizeof(hz_report)`.
+/// (`hz_session_get_report`). Set `struct_size = sizeof(hz_report)`. The
+/// struct grows only at its end: a host built against an older header
+/// passes that header's `sizeof(hz_report)` and gets the fields it knows
+/// (nothing is written past them).
 #[repr(C)]
 #[derive(Debug, Clone, Copy)]
 pub struct hz_report {
@@ -143,7 +173,27 @@ pub struct hz_report {
     pub warning_count: usize,
     /// Wall time of the call in milliseconds.
     pub total_ms: f64,
+    /// Whether the denoise stage ran on this frame (session parameter
+    /// `denoise`). Appended, like the fields after it: not written for a
+    /// host that passes an older `struct_size`.
+    pub denoised: bool,
+    /// Whether `noise_level` is set: on the frame where `denoise auto`
+    /// decided from the frame's noise estimate (`samples` 0).
+    pub has_noise_level: bool,
+    /// The noise estimate, in stops of white noise in log2 luminance
+    /// (`denoise auto` turns the stage on above 0.2; clean renders measure
+    /// about 0.04-0.09, renders of a few samples per pixel 0.4 and more);
+    /// 0 without `has_noise_level`. What was decided and why:
+    /// `hz_session_get_report_denoise_decision`.
+    pub noise_level: f32,
 }
+
+/// `sizeof(hz_report)` in the headers before `denoised`, `has_noise_level`
+/// and `noise_level`.
+const REPORT_SIZE_V1: usize =
+    crate::older_size::<hz_report>(std::mem::offset_of!(hz_report, denoised));
+/// The sizes of `hz_report` a host may pass, oldest first.
+const REPORT_SIZES: [usize; 2] = [REPORT_SIZE_V1, std::mem::size_of::<hz_report>()];
 
 /// Opaque session handle.
 pub struct hz_session {
@@ -608,6 +658,8 @@ struct FrameDesc {
     depth: Option<Described>,
     motion: Option<Described>,
     normal: Option<Described>,
+    albedo: Option<Described>,
+    denoise_normal: Option<Described>,
     coverage: Option<Described>,
     insert_mask: Option<Described>,
     camera: Option<Camera>,
@@ -623,9 +675,10 @@ impl FrameDesc {
         check_null!(frame);
         // SAFETY: non-NULL; only the first field is read before the size check.
         let size = unsafe { std::ptr::addr_of!((*frame).struct_size).read_unaligned() };
-        check_struct_size("hz_frame", size, std::mem::size_of::<hz_frame>())?;
-        // SAFETY: the struct has this library's size.
-        let f = unsafe { frame.read_unaligned() };
+        check_struct_sizes("hz_frame", size, &FRAME_SIZES)?;
+        // SAFETY: readable for the `size` the host set, one of this
+        // library's sizes; the fields past it are pointers (NULL when zero).
+        let f = unsafe { read_prefix(frame, size) };
         if f.flags & !KNOWN_FLAGS != 0 {
             return Err(Error::invalid(format!(
                 "frame.flags {:#x} has unknown bits {:#x}",
@@ -671,6 +724,8 @@ impl FrameDesc {
             depth: opt("depth", f.depth)?,
             motion: opt("motion", f.motion)?,
             normal: opt("normal", f.normal)?,
+            albedo: opt("albedo", f.albedo)?,
+            denoise_normal: opt("denoise_normal", f.denoise_normal)?,
             coverage: opt("coverage", f.coverage)?,
             insert_mask: opt("insert_mask", f.insert_mask)?,
             camera,
@@ -689,9 +744,8 @@ impl FrameDesc {
             depth: self.depth.is_some(),
             motion: self.motion.is_some(),
             normal: self.normal.is_some(),
-            // The C ABI has no albedo yet (`hz_frame` gains it later).
-            albedo: false,
-            denoise_normal: false,
+            albedo: self.albedo.is_some(),
+            denoise_normal: self.denoise_normal.is_some(),
             coverage: self.coverage.is_some(),
             insert_mask: self.insert_mask.is_some(),
         }
@@ -711,6 +765,8 @@ impl FrameDesc {
         input.depth = opt("depth", &self.depth)?;
         input.motion = opt("motion", &self.motion)?;
         input.normal = opt("normal", &self.normal)?;
+        input.albedo = opt("albedo", &self.albedo)?;
+        input.denoise_normal = opt("denoise_normal", &self.denoise_normal)?;
         input.coverage = opt("coverage", &self.coverage)?;
         input.insert_mask = opt("insert_mask", &self.insert_mask)?;
         input.camera = self.camera;
@@ -982,7 +1038,7 @@ pub unsafe extern "C" fn hz_session_get_report(
         check_null!(out_report);
         // SAFETY: non-NULL; the caller set `struct_size`.
         let size = unsafe { std::ptr::addr_of!((*out_report).struct_size).read_unaligned() };
-        check_struct_size("hz_report", size, std::mem::size_of::<hz_report>())?;
+        check_struct_sizes("hz_report", size, &REPORT_SIZES)?;
         // SAFETY: forwarded contract.
         let s = unsafe { lock(session) }?;
         let r = last_report(&s)?;
@@ -995,9 +1051,13 @@ pub unsafe extern "C" fn hz_session_get_report(
             sanitized: r.sanitized,
             warning_count: r.warnings.len(),
             total_ms: r.total_ms,
+            denoised: r.denoised,
+            has_noise_level: r.noise_level.is_some(),
+            noise_level: r.noise_level.unwrap_or(0.0),
         };
-        // SAFETY: writable for `sizeof(hz_report)` (checked above).
-        unsafe { out_report.write_unaligned(out) };
+        // SAFETY: writable for the `size` the host set (checked above: one
+        // of this library's sizes of `hz_report`, at most its `sizeof`).
+        unsafe { write_prefix(out_report, &out, size) };
         Ok(())
     })
 }
@@ -1030,9 +1090,36 @@ pub unsafe extern "C" fn hz_session_get_report_warning(
     })
 }
 
+/// What the denoise stage decided for the sequence and why, on the frame
+/// where it decided (the first after a reset other than a scene cut), for
+/// example `denoise on` or `denoise auto: on (noise level 0.930 on frame 1,
+/// threshold 0.20)`; empty on the other frames.
+///
+/// # Safety
+/// As `hz_session_get_backend_name`.
+#[no_mangle]
+pub unsafe extern "C" fn hz_session_get_report_denoise_decision(
+    session: *const hz_session,
+    buffer: *mut c_char,
+    buffer_size: usize,
+    out_length: *mut usize,
+) -> hz_status {
+    ffi_guard!("hz_session_get_report_denoise_decision", {
+        // SAFETY: forwarded contract.
+        unsafe {
+            query_str(session, buffer, buffer_size, out_length, |s| {
+                Ok(last_report(s)?.denoise_decision.clone().unwrap_or_default())
+            })
+        }
+    })
+}
+
 /// The last frame's report as JSON: `{"frame_index", "reset", "backend",
-/// "history_used", "sanitized", "out_of_gamut", "warnings": [..], "stages": {name: ms},
-/// "total_ms"}` (`reset` is null or a name such as `"frame_gap"`).
+/// "history_used", "sanitized", "out_of_gamut", "denoised",
+/// "denoise_decision", "noise_level", "warnings": [..], "stages": {name: ms},
+/// "total_ms"}` (`reset` is null or a name such as `"frame_gap"`;
+/// `denoise_decision` and `noise_level` are null except on the frame where
+/// the denoise stage decided, see `hz_report`).
 ///
 /// # Safety
 /// As `hz_session_get_backend_name`.
@@ -1068,6 +1155,9 @@ pub fn report_json(r: &FrameReport) -> String {
         "history_used": r.history_used,
         "sanitized": r.sanitized,
         "out_of_gamut": r.out_of_gamut,
+        "denoised": r.denoised,
+        "denoise_decision": r.denoise_decision,
+        "noise_level": r.noise_level,
         "warnings": r.warnings,
         "stages": stages,
         "total_ms": r.total_ms,

@@ -1,4 +1,6 @@
-//! Frame descriptions (sizes, strides, offsets, formats, which AOVs) through
+//! Frame descriptions (sizes, strides, offsets, formats, which AOVs, the
+//! denoiser's albedo and normals included; `hz_frame` of this header's size
+//! or the older one without them) through
 //! the C ABI's validation and a classical session, on buffers exactly as
 //! large as the description says. AddressSanitizer flags any read or write
 //! outside them.
@@ -147,7 +149,7 @@ fuzz_target!(|data: &[u8]| {
         return;
     };
     let mut aovs = Vec::new();
-    for bit in 0..6 {
+    for bit in 0..8 {
         if present & (1 << bit) != 0 {
             match describe(&mut b, fill.wrapping_add(bit)) {
                 Some(buf) => aovs.push((bit, buf)),
@@ -175,7 +177,13 @@ fuzz_target!(|data: &[u8]| {
         .collect();
     let cameras = b.u8();
     let frame = hz_frame {
-        struct_size: std::mem::size_of::<hz_frame>(),
+        // Also the size of the headers before `albedo`, which must not be read then.
+        struct_size: if cameras & 8 != 0 {
+            std::mem::offset_of!(hz_frame, albedo)
+                .next_multiple_of(std::mem::align_of::<hz_frame>())
+        } else {
+            std::mem::size_of::<hz_frame>()
+        },
         color: &color.image,
         depth: pick(0),
         motion: pick(1),
@@ -195,6 +203,8 @@ fuzz_target!(|data: &[u8]| {
         frame_index: b.u64() as i64 % 4,
         flags: u32::from(b.u8() % 4),
         motion_vector_scale: [1.0, if cameras & 4 != 0 { -1.0 } else { 1.0 }],
+        albedo: pick(6),
+        denoise_normal: pick(7),
     };
     // The output: the sixth description when given, else the color's.
     let output: *const hz_image = if present & (1 << 5) != 0 {

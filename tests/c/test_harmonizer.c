@@ -10,7 +10,11 @@
  * unchanged); two sessions on two threads; frames too large for memory
  * (refused, state unchanged); frame numbers that would wrap; tile settings
  * refused at commit and bad models refused by hz_device_new; normals
- * validated and their NaN/Inf warned.
+ * validated and their NaN/Inf warned; hz_frame and hz_report of an older
+ * header's size; albedo and denoise_normal validated; a noisy frame with
+ * its albedo denoised by Open Image Denoise (the real library: the pyoidn
+ * wheel in the repository's .venv or HARMONIZER_OIDN_LIB; missing, the
+ * test fails) and the report's denoise fields.
  */
 #include "harmonizer.h"
 
@@ -866,6 +870,237 @@ static void test_normals(hz_device *device) {
     CHECK_OK(hz_session_free(b));
 }
 
+/* ---- issue 20: albedo and denoise_normal in hz_frame, the denoise report ---- */
+
+/* hz_frame and hz_report as the headers before the denoise fields declared
+ * them: what a host built against them passes. */
+typedef struct hz_frame_0_1_0 {
+    size_t struct_size;
+    const hz_image *color, *depth, *motion, *normal, *coverage, *insert_mask;
+    const float *world_to_camera, *world_to_ndc;
+    int64_t frame_index;
+    uint32_t flags;
+    float motion_vector_scale[2];
+} hz_frame_0_1_0;
+
+typedef struct hz_report_0_1_0 {
+    size_t struct_size;
+    int64_t frame_index;
+    bool has_frame_index;
+    hz_reset_reason reset_reason;
+    size_t history_used, sanitized, warning_count;
+    double total_ms;
+} hz_report_0_1_0;
+
+static void test_older_struct_sizes(hz_device *device) {
+    size_t w = 16, h = 8, i;
+    hz_session *s = new_session(device, "bypass");
+    frame_data f = make_frame(w, h, 0);
+    frame_desc d;
+    float *one = alloc_floats(w * h), *out = alloc_floats(w * h * 4);
+    hz_image o = image(out, w, h, 4, 0), bad_albedo = image(one, w, h, 1, 0);
+    hz_frame_0_1_0 *old = (hz_frame_0_1_0 *)malloc(sizeof *old);
+    hz_report report;
+    hz_report_0_1_0 old_report;
+    const unsigned char *bytes = (const unsigned char *)&report;
+    int untouched = 1, same = 1;
+    char decision[64];
+    size_t len = 99;
+    CHECK(sizeof(hz_frame_0_1_0) < sizeof(hz_frame) && sizeof(hz_report_0_1_0) < sizeof(hz_report),
+          "the structs grew: %zu -> %zu, %zu -> %zu", sizeof(hz_frame_0_1_0), sizeof(hz_frame),
+          sizeof(hz_report_0_1_0), sizeof(hz_report));
+    describe(&d, &f, 3, 1);
+    /* The appended fields hold an albedo that would be refused. */
+    d.frame.albedo = &bad_albedo;
+    d.frame.denoise_normal = &bad_albedo;
+    CHECK(hz_session_process(s, &d.frame, &o) == HZ_ERROR_INVALID_ARGUMENT, "1-channel albedo");
+    CHECK(strstr(hz_last_error_message(), "albedo: needs 3 channel(s), got 1") != NULL, "%s", hz_last_error_message());
+    /* With the old size they are not read. */
+    d.frame.struct_size = sizeof(hz_frame_0_1_0);
+    CHECK_OK(hz_session_process(s, &d.frame, &o));
+    d.frame.struct_size = sizeof(hz_frame_0_1_0) + 8;
+    CHECK(hz_session_process(s, &d.frame, &o) == HZ_ERROR_INVALID_ARGUMENT, "a size between the two");
+    CHECK(strstr(hz_last_error_message(), "hz_frame.struct_size") != NULL, "%s", hz_last_error_message());
+    /* A struct that is only as large as the old header's (on the heap). */
+    if (old) {
+        memset(old, 0, sizeof *old);
+        old->struct_size = sizeof *old;
+        old->color = &d.color;
+        old->depth = &d.depth;
+        old->motion = &d.motion;
+        old->coverage = &d.coverage;
+        old->motion_vector_scale[0] = old->motion_vector_scale[1] = 1.0f;
+        old->frame_index = 4;
+        old->flags = HZ_FRAME_HAS_INDEX;
+        CHECK_OK(hz_session_process(s, (const hz_frame *)(const void *)old, &o));
+        for (i = 0; i < w * h * 4; i++) same &= out[i] == f.rgba[i];
+        CHECK(same, "bypass returns the old-size frame's color");
+        free(old);
+    }
+    /* The old hz_report: nothing is written past it. */
+    memset(&report, 0xAB, sizeof report);
+    report.struct_size = sizeof(hz_report_0_1_0);
+    CHECK_OK(hz_session_get_report(s, &report));
+    for (i = sizeof(hz_report_0_1_0); i < sizeof(hz_report); i++) untouched &= bytes[i] == 0xAB;
+    CHECK(untouched, "nothing written past the old hz_report");
+    memcpy(&old_report, &report, sizeof old_report);
+    CHECK(old_report.struct_size == sizeof old_report && old_report.has_frame_index && old_report.frame_index == 4 &&
+              old_report.reset_reason == HZ_RESET_NONE,
+          "old report: index %lld, reset %u", (long long)old_report.frame_index, (unsigned)old_report.reset_reason);
+    report.struct_size = sizeof(hz_report_0_1_0) + 1;
+    CHECK(hz_session_get_report(s, &report) == HZ_ERROR_INVALID_ARGUMENT, "hz_report.struct_size between the two");
+    report = report_of(s);
+    CHECK(!report.denoised && !report.has_noise_level && report.noise_level == 0.0f, "no denoise on bypass");
+    CHECK_OK(hz_session_get_report_denoise_decision(s, decision, sizeof decision, &len));
+    CHECK(len == 0 && decision[0] == 0, "no decision on the second frame: %s", decision);
+    free(one);
+    free(out);
+    free_frame(&f);
+    CHECK_OK(hz_session_free(s));
+}
+
+/* albedo and denoise_normal are validated like the other images; the errors
+ * name the field. */
+static void test_albedo_validated(hz_device *device) {
+    size_t w = 16, h = 8;
+    int field;
+    hz_session *s = new_session(device, "bypass");
+    frame_data f = make_frame(w, h, 0);
+    frame_desc d;
+    float *aux = alloc_floats(w * h * 3), *out = alloc_floats(w * h * 4);
+    hz_image o = image(out, w, h, 4, 0), good = image(aux, w, h, 3, 0), bad;
+    for (field = 0; field < 2; field++) {
+        const char *name = field == 0 ? "albedo" : "denoise_normal";
+        char text[128];
+        describe(&d, &f, 0, 1);
+        if (field == 0)
+            d.frame.albedo = &bad;
+        else
+            d.frame.denoise_normal = &bad;
+        bad = good;
+        bad.channels = 2;
+        sprintf(text, "%s: needs 3 channel(s), got 2", name);
+        CHECK(hz_session_process(s, &d.frame, &o) == HZ_ERROR_INVALID_ARGUMENT, "2-channel %s", name);
+        CHECK(strstr(hz_last_error_message(), text) != NULL, "%s", hz_last_error_message());
+        bad = good;
+        bad.height = h / 2;
+        sprintf(text, "%s: size 16x4 differs from color 16x8", name);
+        CHECK(hz_session_process(s, &d.frame, &o) == HZ_ERROR_INVALID_ARGUMENT, "%s of another size", name);
+        CHECK(strstr(hz_last_error_message(), text) != NULL, "%s", hz_last_error_message());
+        bad = good;
+        bad.struct_size = 0;
+        sprintf(text, "%s: hz_image.struct_size is 0", name);
+        CHECK(hz_session_process(s, &d.frame, &o) == HZ_ERROR_INVALID_ARGUMENT, "%s struct_size", name);
+        CHECK(strstr(hz_last_error_message(), text) != NULL, "%s", hz_last_error_message());
+        bad = good;
+        CHECK_OK(hz_session_process(s, &d.frame, &o));
+    }
+    free(aux);
+    free(out);
+    free_frame(&f);
+    CHECK_OK(hz_session_free(s));
+}
+
+/* splitmix64: uniform in (0, 1]. */
+static float uniform(uint64_t *state) {
+    uint64_t z = (*state += 0x9E3779B97F4A7C15ull);
+    z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9ull;
+    z = (z ^ (z >> 27)) * 0x94D049BB133111EBull;
+    z ^= z >> 31;
+    return ((float)(z >> 40) + 1.0f) / 16777216.0f;
+}
+
+/* A noisy render: each pixel of a lit two-albedo checker times the mean of 4
+ * exponential samples (Monte Carlo noise of 4 samples per pixel, deviation
+ * half the signal); clean and noisy RGB and the albedo, packed. */
+static void noisy_frame(size_t w, size_t h, float *clean, float *noisy, float *albedo) {
+    uint64_t rng = 7;
+    size_t x, y, k;
+    for (y = 0; y < h; y++) {
+        for (x = 0; x < w; x++) {
+            size_t i = (y * w + x) * 3;
+            float tile = (float)((x / 12 + y / 12) % 2);
+            float a[3], light = 0.4f + 1.2f * (float)x / (float)w, n = 0.0f;
+            a[0] = 0.2f + 0.6f * tile;
+            a[1] = 0.5f;
+            a[2] = 0.8f - 0.5f * tile;
+            for (k = 0; k < 4; k++) n -= logf(uniform(&rng));
+            n /= 4.0f;
+            for (k = 0; k < 3; k++) {
+                albedo[i + k] = a[k];
+                clean[i + k] = a[k] * light;
+                noisy[i + k] = a[k] * light * n;
+            }
+        }
+    }
+}
+
+static double mse_rgb(const float *clean, const float *x, size_t n, size_t x_channels) {
+    double sum = 0.0;
+    size_t i, k;
+    for (i = 0; i < n; i++)
+        for (k = 0; k < 3; k++) {
+            double e = (double)clean[i * 3 + k] - (double)x[i * x_channels + k];
+            sum += e * e;
+        }
+    return sum / (double)(3 * n);
+}
+
+/* denoise on with an albedo: the noisy frame comes out denoised (MSE against
+ * the clean frame at least 10 times lower) and the report says so; denoise
+ * auto measures the noise and turns itself on. */
+static void test_denoise(hz_device *device) {
+    size_t w = 96, h = 64, n = w * h;
+    float *clean = alloc_floats(n * 3), *noisy = alloc_floats(n * 3), *albedo = alloc_floats(n * 3);
+    float *out = alloc_floats(n * 4);
+    hz_image c = image(noisy, w, h, 3, 0), a = image(albedo, w, h, 3, 0), o = image(out, w, h, 4, 0);
+    hz_frame fr;
+    hz_session *s = new_session(device, "bypass"), *autos = new_session(device, "classical");
+    hz_status st;
+    char decision[256], json[4096];
+    noisy_frame(w, h, clean, noisy, albedo);
+    memset(&fr, 0, sizeof fr);
+    fr.struct_size = sizeof fr;
+    fr.color = &c;
+    fr.albedo = &a;
+    fr.frame_index = 1;
+    fr.flags = HZ_FRAME_HAS_INDEX;
+    CHECK_OK(hz_session_set_string(s, "denoise", "on"));
+    CHECK_OK(hz_session_commit(s));
+    st = hz_session_process(s, &fr, &o);
+    CHECK(st == HZ_OK,
+          "denoise on needs Open Image Denoise: run scripts/setup-venv.sh (it installs pyoidn into .venv) "
+          "or set HARMONIZER_OIDN_LIB");
+    if (st == HZ_OK) {
+        double before = mse_rgb(clean, noisy, n, 3), after = mse_rgb(clean, out, n, 4);
+        hz_report r = report_of(s);
+        printf("denoise on, albedo: MSE %.5f noisy, %.5f denoised\n", before, after);
+        CHECK(after < 0.1 * before, "denoising cuts the error at least tenfold: MSE %g -> %g", before, after);
+        CHECK(r.denoised && !r.has_noise_level, "report: denoised %d, has_noise_level %d", r.denoised,
+              r.has_noise_level);
+        CHECK_OK(hz_session_get_report_denoise_decision(s, decision, sizeof decision, NULL));
+        CHECK(strcmp(decision, "denoise on") == 0, "decision: %s", decision);
+        CHECK_OK(hz_session_get_report_json(s, json, sizeof json, NULL));
+        CHECK(strstr(json, "\"denoised\":true") != NULL && strstr(json, "\"denoise_decision\":\"denoise on\"") != NULL &&
+                  strstr(json, "\"noise_level\":null") != NULL,
+              "json: %s", json);
+
+        CHECK_OK(hz_session_process(autos, &fr, &o));
+        r = report_of(autos);
+        CHECK_OK(hz_session_get_report_denoise_decision(autos, decision, sizeof decision, NULL));
+        printf("denoise auto: %s\n", decision);
+        CHECK(r.denoised && r.has_noise_level && r.noise_level > 0.2f, "auto: denoised %d, noise level %g",
+              r.denoised, (double)r.noise_level);
+        CHECK(strncmp(decision, "denoise auto: on (noise level", 29) == 0, "decision: %s", decision);
+    }
+    free(clean);
+    free(noisy);
+    free(albedo);
+    free(out);
+    CHECK_OK(hz_session_free(s));
+    CHECK_OK(hz_session_free(autos));
+}
+
 int main(void) {
     hz_device *device = NULL;
     hz_device_options opts;
@@ -893,6 +1128,9 @@ int main(void) {
     test_index_wrap(device);
     test_settings_and_models(device);
     test_normals(device);
+    test_older_struct_sizes(device);
+    test_albedo_validated(device);
+    test_denoise(device);
     CHECK_OK(hz_device_free(device));
     printf("%s: %d checks, %d failures\n", failures ? "FAILED" : "ok", checks, failures);
     return failures ? 1 : 0;

@@ -117,6 +117,80 @@ impl Api {
         // SAFETY: valid structs whose buffers outlive the call.
         unsafe { f(s, frame, out) }
     }
+    /// Stages and commits string parameters.
+    fn configure(&self, s: *mut hz_session, params: &[(&CStr, &CStr)]) {
+        let set = sym!(
+            self,
+            "hz_session_set_string",
+            unsafe extern "C" fn(*mut hz_session, *const c_char, *const c_char) -> hz_status
+        );
+        let commit = sym!(
+            self,
+            "hz_session_commit",
+            unsafe extern "C" fn(*mut hz_session) -> hz_status
+        );
+        // SAFETY: a live session, NUL-terminated strings.
+        unsafe {
+            for (name, value) in params {
+                assert_eq!(
+                    set(s, name.as_ptr(), value.as_ptr()),
+                    HZ_OK,
+                    "{}",
+                    self.last_error()
+                );
+            }
+            assert_eq!(commit(s), HZ_OK, "{}", self.last_error());
+        }
+    }
+    /// The last frame's report, asked with `struct_size = size`, into a
+    /// buffer of `hz_report`'s size filled with 0xAB first.
+    fn report_bytes(&self, s: *mut hz_session, size: usize) -> (hz_status, Vec<u8>) {
+        let get = sym!(
+            self,
+            "hz_session_get_report",
+            unsafe extern "C" fn(*const hz_session, *mut hz_report) -> hz_status
+        );
+        let mut buf = vec![0xABu8; std::mem::size_of::<hz_report>()];
+        buf[..std::mem::size_of::<usize>()].copy_from_slice(&size.to_ne_bytes());
+        // SAFETY: the buffer has hz_report's size; unaligned writes are
+        // what the library does.
+        let st = unsafe { get(s, buf.as_mut_ptr().cast()) };
+        (st, buf)
+    }
+    fn report(&self, s: *mut hz_session) -> hz_report {
+        let (st, buf) = self.report_bytes(s, std::mem::size_of::<hz_report>());
+        assert_eq!(st, HZ_OK, "{}", self.last_error());
+        // SAFETY: the library wrote a whole hz_report.
+        unsafe { buf.as_ptr().cast::<hz_report>().read_unaligned() }
+    }
+    fn string(&self, s: *mut hz_session, name: &str) -> String {
+        type StrFn =
+            unsafe extern "C" fn(*const hz_session, *mut c_char, usize, *mut usize) -> hz_status;
+        // SAFETY: every string query has this signature in harmonizer.h.
+        let f: Symbol<'_, StrFn> =
+            unsafe { self.lib.get(format!("{name}\0").as_bytes()) }.expect(name);
+        let mut len = 0usize;
+        // SAFETY: NULL buffer asks for the length.
+        assert_eq!(
+            unsafe { f(s, null_mut(), 0, &mut len) },
+            HZ_OK,
+            "{}",
+            self.last_error()
+        );
+        let mut buf = vec![0 as c_char; len + 1];
+        // SAFETY: a buffer of len + 1 bytes.
+        assert_eq!(
+            unsafe { f(s, buf.as_mut_ptr(), buf.len(), &mut len) },
+            HZ_OK,
+            "{}",
+            self.last_error()
+        );
+        // SAFETY: NUL-terminated by the library.
+        unsafe { CStr::from_ptr(buf.as_ptr()) }
+            .to_str()
+            .unwrap()
+            .to_string()
+    }
     fn set_progress(&self, s: *mut hz_session, cb: Progress, user: *mut c_void) {
         let f = sym!(
             self,
@@ -186,6 +260,8 @@ fn frame(color: &hz_image, coverage: Option<&hz_image>, index: i64) -> hz_frame 
         frame_index: index,
         flags: HZ_FRAME_HAS_INDEX,
         motion_vector_scale: [1.0, 1.0],
+        albedo: null(),
+        denoise_normal: null(),
     }
 }
 
@@ -593,5 +669,314 @@ fn bad_input_is_refused_with_a_message() {
         HZ_ERROR_INVALID_OPERATION,
         "hz_session_commit",
     );
+    api.free(s, d);
+}
+
+/// `hz_frame` as the headers before `albedo` and `denoise_normal` declared
+/// it: what a host built against them passes.
+#[repr(C)]
+#[allow(non_camel_case_types, dead_code)]
+struct hz_frame_0_1_0 {
+    struct_size: usize,
+    color: *const hz_image,
+    depth: *const hz_image,
+    motion: *const hz_image,
+    normal: *const hz_image,
+    coverage: *const hz_image,
+    insert_mask: *const hz_image,
+    world_to_camera: *const f32,
+    world_to_ndc: *const f32,
+    frame_index: i64,
+    flags: u32,
+    motion_vector_scale: [f32; 2],
+}
+
+/// `hz_report` as the headers before `denoised`, `has_noise_level` and
+/// `noise_level` declared it.
+#[repr(C)]
+#[allow(non_camel_case_types, dead_code)]
+struct hz_report_0_1_0 {
+    struct_size: usize,
+    frame_index: i64,
+    has_frame_index: bool,
+    reset_reason: hz_reset_reason,
+    history_used: usize,
+    sanitized: usize,
+    warning_count: usize,
+    total_ms: f64,
+}
+
+fn expect_error(api: &Api, st: hz_status, text: &str) {
+    assert_eq!(st, HZ_ERROR_INVALID_ARGUMENT, "{}", api.last_error());
+    assert!(
+        api.last_error().contains(text),
+        "{:?} lacks {text:?}",
+        api.last_error()
+    );
+}
+
+/// A host built against an older header passes the smaller `hz_frame`
+/// and `hz_report`: the frame's appended fields read as NULL (here they
+/// hold an albedo that would be refused, so reading it would fail the
+/// call) and nothing of the report is written past the old size.
+#[test]
+fn older_struct_sizes_still_work() {
+    let old_frame = std::mem::size_of::<hz_frame_0_1_0>();
+    let old_report = std::mem::size_of::<hz_report_0_1_0>();
+    assert!(old_frame < std::mem::size_of::<hz_frame>());
+    assert!(old_report < std::mem::size_of::<hz_report>());
+    let api = Api::load();
+    let d = api.device(1);
+    let s = api.session(d, c"bypass");
+    let (w, h) = (16, 8);
+    let (mut rgba, _) = synth(w, h, 0);
+    let mut one = vec![0.5f32; w * h];
+    let mut out = vec![0.0f32; w * h * 4];
+    let c = image(&mut rgba, w, h, 4, 0);
+    let bad_albedo = image(&mut one, w, h, 1, 0);
+    let o = image(&mut out, w, h, 4, 0);
+    let mut f = frame(&c, None, 3);
+    f.albedo = &bad_albedo;
+    f.denoise_normal = &bad_albedo;
+    // This library's size reads the albedo and refuses it.
+    expect_error(
+        &api,
+        api.process(s, &f, &o),
+        "albedo: needs 3 channel(s), got 1",
+    );
+    f.struct_size = old_frame;
+    assert_eq!(api.process(s, &f, &o), HZ_OK, "{}", api.last_error());
+    for (i, (a, b)) in out
+        .iter()
+        .zip(&rgba)
+        .enumerate()
+        .filter(|(i, _)| i % 4 != 3)
+    {
+        assert_eq!(a.to_bits(), b.to_bits(), "bypass output sample {i}");
+    }
+    // Sizes between the two are refused, naming both.
+    f.struct_size = old_frame + 8;
+    expect_error(&api, api.process(s, &f, &o), "hz_frame.struct_size");
+    assert!(
+        api.last_error().contains(&old_frame.to_string())
+            && api
+                .last_error()
+                .contains(&std::mem::size_of::<hz_frame>().to_string()),
+        "{}",
+        api.last_error()
+    );
+
+    let (st, bytes) = api.report_bytes(s, old_report);
+    assert_eq!(st, HZ_OK, "{}", api.last_error());
+    assert!(
+        bytes[old_report..].iter().all(|b| *b == 0xAB),
+        "written past the old hz_report: {:?}",
+        &bytes[old_report..]
+    );
+    // SAFETY: the first old_report bytes hold an old hz_report.
+    let r = unsafe { bytes.as_ptr().cast::<hz_report_0_1_0>().read_unaligned() };
+    assert_eq!(
+        (r.struct_size, r.frame_index, r.has_frame_index),
+        (old_report, 3, true)
+    );
+    assert_eq!(r.reset_reason, hz_reset_reason::HZ_RESET_FIRST_FRAME);
+    let (st, _) = api.report_bytes(s, old_report + 1);
+    expect_error(&api, st, "hz_report.struct_size");
+    let r = api.report(s);
+    assert!(!r.denoised && !r.has_noise_level && r.noise_level == 0.0);
+    // The sequence's first frame: the bypass backend decided no denoising.
+    let decision = api.string(s, "hz_session_get_report_denoise_decision");
+    assert!(
+        decision.starts_with("denoise auto: off (backend bypass"),
+        "{decision}"
+    );
+    api.free(s, d);
+}
+
+/// `albedo` and `denoise_normal` are validated like the other images, and
+/// the errors name the field.
+#[test]
+fn albedo_and_denoise_normal_are_validated() {
+    let api = Api::load();
+    let d = api.device(1);
+    let s = api.session(d, c"bypass");
+    let (w, h) = (16, 8);
+    let (mut rgba, _) = synth(w, h, 0);
+    let mut aux = vec![0.5f32; w * h * 3];
+    let mut out = vec![0.0f32; w * h * 4];
+    let c = image(&mut rgba, w, h, 4, 0);
+    let o = image(&mut out, w, h, 4, 0);
+    let good = image(&mut aux, w, h, 3, 0);
+    let mut two = good;
+    two.channels = 2;
+    let mut small = good;
+    small.width = w / 2;
+    let mut no_data = good;
+    no_data.data = null_mut();
+    for field in ["albedo", "denoise_normal"] {
+        let with = |img: &hz_image| {
+            let mut f = frame(&c, None, 0);
+            match field {
+                "albedo" => f.albedo = img,
+                _ => f.denoise_normal = img,
+            }
+            f
+        };
+        expect_error(
+            &api,
+            api.process(s, &with(&two), &o),
+            &format!("{field}: needs 3 channel(s), got 2"),
+        );
+        expect_error(
+            &api,
+            api.process(s, &with(&small), &o),
+            &format!("{field}: size 8x8 differs from color 16x8"),
+        );
+        expect_error(
+            &api,
+            api.process(s, &with(&no_data), &o),
+            &format!("{field}: data is NULL"),
+        );
+        assert_eq!(
+            api.process(s, &with(&good), &o),
+            HZ_OK,
+            "{}",
+            api.last_error()
+        );
+    }
+    api.free(s, d);
+}
+
+/// splitmix64, for the noisy frame.
+struct Rng(u64);
+
+impl Rng {
+    fn uniform(&mut self) -> f32 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^= z >> 31;
+        ((z >> 40) as f32 + 1.0) / (1u64 << 24) as f32
+    }
+}
+
+/// A noisy render and what it should be: the clean RGB, the noisy RGB
+/// (each pixel times the mean of 4 exponential samples: the Monte Carlo
+/// noise of 4 samples per pixel, deviation 0.5 of the signal) and the
+/// albedo (RGB in [0, 1]), all packed.
+fn noisy_frame(w: usize, h: usize) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+    let mut rng = Rng(7);
+    let (mut clean, mut noisy, mut albedo) = (
+        vec![0.0; w * h * 3],
+        vec![0.0; w * h * 3],
+        vec![0.0; w * h * 3],
+    );
+    for y in 0..h {
+        for x in 0..w {
+            let i = (y * w + x) * 3;
+            let tile = ((x / 12 + y / 12) % 2) as f32;
+            let a = [0.2 + 0.6 * tile, 0.5, 0.8 - 0.5 * tile];
+            let light = 0.4 + 1.2 * x as f32 / w as f32;
+            let n = (0..4).map(|_| -rng.uniform().ln()).sum::<f32>() / 4.0;
+            for k in 0..3 {
+                albedo[i + k] = a[k];
+                clean[i + k] = a[k] * light;
+                noisy[i + k] = a[k] * light * n;
+            }
+        }
+    }
+    (clean, noisy, albedo)
+}
+
+fn mse(a: &[f32], rgba: &[f32]) -> f64 {
+    let n = a.len() / 3;
+    (0..n)
+        .flat_map(|i| (0..3).map(move |k| (i, k)))
+        .map(|(i, k)| (a[i * 3 + k] as f64 - rgba[i * 4 + k] as f64).powi(2))
+        .sum::<f64>()
+        / (3 * n) as f64
+}
+
+/// With `denoise on` and an albedo, Open Image Denoise (the real library:
+/// the `pyoidn` wheel in the repository's `.venv`, or
+/// `HARMONIZER_OIDN_LIB`; missing, the test fails) denoises a noisy frame
+/// through the C ABI, and the report says so; `denoise auto` measures the
+/// noise (`noise_level`) and turns itself on.
+#[test]
+fn denoise_on_with_albedo() {
+    let api = Api::load();
+    let d = api.device(2);
+    let (w, h) = (96, 64);
+    let (clean, mut noisy, mut albedo) = noisy_frame(w, h);
+    let c = image(&mut noisy, w, h, 3, 0);
+    let a = image(&mut albedo, w, h, 3, 0);
+    let mut out = vec![0.0f32; w * h * 4];
+    let o = image(&mut out, w, h, 4, 0);
+    let mut f = frame(&c, None, 1);
+    f.albedo = &a;
+    // Bypass with denoise on: the output is the denoised frame alone.
+    let s = api.session(d, c"bypass");
+    api.configure(s, &[(c"denoise", c"on")]);
+    let st = api.process(s, &f, &o);
+    assert_eq!(
+        st,
+        HZ_OK,
+        "denoise on needs Open Image Denoise: run scripts/setup-venv.sh in the repository root \
+         (it installs pyoidn into .venv) or set HARMONIZER_OIDN_LIB: {}",
+        api.last_error()
+    );
+    let noisy_rgba: Vec<f32> = noisy
+        .chunks(3)
+        .flat_map(|p| [p[0], p[1], p[2], 1.0])
+        .collect();
+    let (before, after) = (mse(&clean, &noisy_rgba), mse(&clean, &out));
+    println!("denoise on, albedo: MSE {before:.5} noisy, {after:.5} denoised");
+    assert!(
+        after < 0.1 * before,
+        "denoising should cut the error at least tenfold: MSE {before} -> {after}"
+    );
+    let r = api.report(s);
+    assert!(r.denoised, "the report says denoised");
+    assert!(!r.has_noise_level, "denoise on measures no noise");
+    assert_eq!(
+        api.string(s, "hz_session_get_report_denoise_decision"),
+        "denoise on"
+    );
+    let json: serde_json::Value =
+        serde_json::from_str(&api.string(s, "hz_session_get_report_json")).unwrap();
+    assert_eq!(json["denoised"], true);
+    assert_eq!(json["denoise_decision"], "denoise on");
+    assert!(json["noise_level"].is_null());
+    // The next frame keeps the decision and reports none.
+    f.frame_index = 2;
+    assert_eq!(api.process(s, &f, &o), HZ_OK, "{}", api.last_error());
+    let r = api.report(s);
+    assert!(r.denoised);
+    assert_eq!(api.string(s, "hz_session_get_report_denoise_decision"), "");
+
+    // auto (samples 0) on the classical backend measures the noise.
+    let auto = api.session(d, c"classical");
+    f.frame_index = 1;
+    assert_eq!(api.process(auto, &f, &o), HZ_OK, "{}", api.last_error());
+    let r = api.report(auto);
+    let decision = api.string(auto, "hz_session_get_report_denoise_decision");
+    println!("denoise auto: {decision}");
+    assert!(r.denoised && r.has_noise_level, "{decision}");
+    assert!(r.noise_level > 0.2, "noise level {}", r.noise_level);
+    assert!(
+        decision.starts_with("denoise auto: on (noise level"),
+        "{decision}"
+    );
+    let json: serde_json::Value =
+        serde_json::from_str(&api.string(auto, "hz_session_get_report_json")).unwrap();
+    assert_eq!(json["noise_level"].as_f64().unwrap() as f32, r.noise_level);
+    let fs = sym!(
+        api,
+        "hz_session_free",
+        unsafe extern "C" fn(*mut hz_session) -> hz_status
+    );
+    // SAFETY: a live handle.
+    assert_eq!(unsafe { fs(auto) }, HZ_OK);
     api.free(s, d);
 }
