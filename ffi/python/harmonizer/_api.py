@@ -283,6 +283,8 @@ class Session:
         depth: np.ndarray | None = None,
         motion: np.ndarray | None = None,
         normal: np.ndarray | None = None,
+        albedo: np.ndarray | None = None,
+        denoise_normal: np.ndarray | None = None,
         coverage: np.ndarray | None = None,
         insert_mask: np.ndarray | None = None,
         world_to_camera: Any = None,
@@ -300,8 +302,14 @@ class Session:
         strides: float32/float16 arrays with positive strides are read in place.
         ``depth``/``coverage``/``insert_mask``: (H, W) or (H, W, 1); ``motion``:
         (H, W, 2) pixels, current to previous frame, x right, y down (after
-        ``motion_vector_scale``); ``normal``: (H, W, 3). ``world_to_camera`` /
-        ``world_to_ndc``: 4x4 OpenEXR row-vector matrices.
+        ``motion_vector_scale``); ``normal``: (H, W, 3). ``albedo``: (H, W, 3)
+        linear RGB reflectance in [0, 1] (Cycles' Denoising Albedo or any
+        renderer's albedo AOV) and ``denoise_normal``: (H, W, 3) the
+        denoiser's normals, any space (Cycles' Denoising Normal; when absent
+        the denoiser uses ``normal``), read only by the denoise stage
+        (parameter ``denoise``) and validated as ``normal`` is.
+        ``world_to_camera`` / ``world_to_ndc``: 4x4 OpenEXR row-vector
+        matrices.
         ``out``: float32/float16 (H, W, 3|4) to write into (may be ``color``
         itself: in place); when ``None`` a new (H, W, 4) RGBA float32 array is
         returned. ``progress(p) -> bool``: returning False cancels
@@ -319,6 +327,8 @@ class Session:
             ("depth", depth),
             ("motion", motion),
             ("normal", normal),
+            ("albedo", albedo),
+            ("denoise_normal", denoise_normal),
             ("coverage", coverage),
             ("insert_mask", insert_mask),
         ):
@@ -395,7 +405,11 @@ class Session:
     def last_report(self) -> dict[str, Any] | None:
         """The last successful frame's report, or None before the first frame:
         ``{"frame_index", "reset", "backend", "history_used", "sanitized",
-        "warnings", "stages", "total_ms"}``."""
+        "out_of_gamut", "denoised", "denoise_decision", "noise_level",
+        "warnings", "stages", "total_ms"}``. ``denoised``: whether the denoise
+        stage ran on the frame; ``denoise_decision`` (what ``denoise`` decided
+        for the sequence and why) and ``noise_level`` (the noise estimate
+        ``denoise auto`` measured) are None except on the deciding frame."""
         with self._lock:
             if self._report is None:
                 n = c_size_t(0)

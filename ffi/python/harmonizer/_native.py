@@ -74,6 +74,10 @@ class hz_frame(Structure):  # noqa: N801
         ("frame_index", c_int64),
         ("flags", c_uint32),
         ("motion_vector_scale", c_float * 2),
+        # Appended after the fields above (a library that predates them
+        # refuses this struct_size).
+        ("albedo", POINTER(hz_image)),
+        ("denoise_normal", POINTER(hz_image)),
     ]
 
 
