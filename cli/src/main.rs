@@ -620,7 +620,7 @@ fn denoising(params: &Params) -> bool {
     match params.denoise {
         DenoiseMode::On => true,
         DenoiseMode::Auto => (1..=64).contains(&params.samples),
-        DenoiseMode::Off => false,
+        DenoiseMode::Off | DenoiseMode::Temporal => false,
     }
 }
 
@@ -649,6 +649,7 @@ fn oidn_alone(
         hdr: true,
         quality: params.denoise_quality,
         clean_aux: false,
+        prefilter: params.denoise_prefilter,
     };
     let t = std::time::Instant::now();
     d.denoise(&input, options, &mut out)?;
@@ -817,9 +818,10 @@ fn cmd_bench(
                             .collect()
                     })
                     .unwrap_or_default();
+                let total = run["ms_per_frame"].as_f64().unwrap_or(f64::NAN);
                 let alone = run["oidn_alone_ms"]
                     .as_f64()
-                    .map(|ms| format!("  OIDN alone {ms:.1} ms"))
+                    .map(|ms| format!("  OIDN alone {ms:.1} ms ({:.2}x)", total / ms))
                     .unwrap_or_default();
                 println!(
                     "{:<10} {:>5}x{:<5} K={} threads={}  {:8.2} ms/frame  copy floor {:6.2} ms  ({:.1}x){alone}  stages: {}",

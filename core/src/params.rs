@@ -70,18 +70,24 @@ pub enum DenoiseMode {
     On,
     /// Never.
     Off,
+    /// The renderer denoised each frame already (Cycles' own denoiser,
+    /// OptiX, a compositor's OIDN): no second spatial pass, only the
+    /// temporal accumulation that removes the flicker a per-frame denoiser
+    /// leaves.
+    Temporal,
 }
 
 impl DenoiseMode {
-    /// Parses `auto|on|off`.
+    /// Parses `auto|on|off|temporal`.
     pub fn parse(s: &str) -> Result<Self> {
         Ok(match s {
             "auto" => DenoiseMode::Auto,
             "on" => DenoiseMode::On,
             "off" => DenoiseMode::Off,
+            "temporal" => DenoiseMode::Temporal,
             _ => {
                 return Err(Error::invalid(format!(
-                    "parameter denoise: unknown value {s:?} (expected auto, on or off)"
+                    "parameter denoise: unknown value {s:?} (expected auto, on, off or temporal)"
                 )))
             }
         })
@@ -93,6 +99,7 @@ impl DenoiseMode {
             DenoiseMode::Auto => "auto",
             DenoiseMode::On => "on",
             DenoiseMode::Off => "off",
+            DenoiseMode::Temporal => "temporal",
         }
     }
 }
@@ -169,8 +176,9 @@ pub struct Params {
     pub tile_size: usize,
     /// Neural tile overlap in pixels, 0 = the manifest's (`tile_overlap`).
     pub tile_overlap: usize,
-    /// Denoise the color with Open Image Denoise before the backend
-    /// (`denoise`: "auto", "on" or "off").
+    /// Denoise the color with Open Image Denoise before the backend and
+    /// accumulate it over time (`denoise`: "auto", "on", "off" or
+    /// "temporal").
     pub denoise: DenoiseMode,
     /// Open Image Denoise's quality (`denoise_quality`: "high", "balanced"
     /// or "fast").
@@ -178,6 +186,10 @@ pub struct Params {
     /// The host's samples per pixel, 0 = unknown (`samples`); `denoise
     /// auto` is on for 1..=64 and off above.
     pub samples: u32,
+    /// Denoise the albedo and normal before the color
+    /// (`denoise_prefilter`), as OIDN recommends for noisy auxiliary
+    /// images: three filter runs a frame instead of one. Off by default.
+    pub denoise_prefilter: bool,
 }
 
 impl Default for Params {
@@ -202,6 +214,7 @@ impl Default for Params {
             denoise: DenoiseMode::Auto,
             denoise_quality: Quality::High,
             samples: 0,
+            denoise_prefilter: false,
         }
     }
 }
@@ -227,6 +240,7 @@ pub const PARAM_NAMES: &[&str] = &[
     "denoise",
     "denoise_quality",
     "samples",
+    "denoise_prefilter",
 ];
 
 fn want_int(name: &str, v: &ParamValue, lo: i64, hi: i64) -> Result<i64> {
@@ -327,6 +341,7 @@ impl Params {
             "denoise" => self.denoise = DenoiseMode::parse(want_str(name, v)?)?,
             "denoise_quality" => self.denoise_quality = parse_quality(want_str(name, v)?)?,
             "samples" => self.samples = want_int(name, v, 0, MAX_SAMPLES)? as u32,
+            "denoise_prefilter" => self.denoise_prefilter = want_bool(name, v)?,
             _ => {
                 return Err(Error::invalid(format!(
                     "unknown parameter {name:?} (known: {})",
@@ -371,6 +386,7 @@ impl Params {
             "denoise" => ParamValue::Str(self.denoise.name().into()),
             "denoise_quality" => ParamValue::Str(quality_name(self.denoise_quality).into()),
             "samples" => ParamValue::Int(self.samples as i64),
+            "denoise_prefilter" => ParamValue::Bool(self.denoise_prefilter),
             _ => {
                 return Err(Error::invalid(format!(
                     "unknown parameter {name:?} (known: {})",

@@ -22,6 +22,7 @@
 //! session's denoise stage (`stage.rs`) and the noise estimate that
 //! `denoise auto` decides on ([`noise_level`], `detect.rs`) build on them.
 
+pub mod accumulate;
 mod detect;
 #[allow(unsafe_code)]
 mod oidn;
@@ -202,11 +203,15 @@ pub struct DenoiseOptions {
     pub hdr: bool,
     /// OIDN's quality setting.
     pub quality: Quality,
-    /// The albedo and normal are noise-free. When false, they are
-    /// denoised first (each by its own RT filter into a scratch buffer) and
-    /// the color is then filtered with the clean images, as OIDN's
-    /// documentation recommends for noisy auxiliary images.
+    /// The albedo and normal are noise-free (OIDN's `cleanAux`).
     pub clean_aux: bool,
+    /// With `clean_aux` false: denoise the albedo and normal first (each
+    /// by its own RT filter into a scratch buffer) and filter the color
+    /// with the clean images, as OIDN's documentation recommends for noisy
+    /// auxiliary images (three filter runs); when false, one run with
+    /// `cleanAux` off (OIDN's filter then takes the noise of the auxiliary
+    /// images into account itself, a little less sharply).
+    pub prefilter: bool,
 }
 
 impl Default for DenoiseOptions {
@@ -216,6 +221,7 @@ impl Default for DenoiseOptions {
             hdr: true,
             quality: Quality::Default,
             clean_aux: false,
+            prefilter: true,
         }
     }
 }
@@ -318,7 +324,7 @@ impl Denoiser {
         }
 
         let aux = [input.albedo, input.normal];
-        let prefilter = !options.clean_aux && input.albedo.is_some();
+        let prefilter = !options.clean_aux && options.prefilter && input.albedo.is_some();
         let setup = Setup {
             width,
             height,
@@ -333,7 +339,10 @@ impl Denoiser {
             self.setup = None;
             self.main.set_bool(c"hdr", options.hdr);
             self.main.set_int(c"quality", options.quality.value());
-            self.main.set_bool(c"cleanAux", setup.albedo);
+            self.main.set_bool(
+                c"cleanAux",
+                setup.albedo && (options.clean_aux || prefilter),
+            );
             for (i, data) in aux.iter().enumerate() {
                 if prefilter && data.is_some() {
                     if self.prefilters[i].is_none() {

@@ -2,14 +2,8 @@
 //! color, before the backend, so the history and the temporal
 //! stabilization work on denoised frames; and the `denoise auto` decision.
 //!
-//! **Seam for the temporal accumulation (the next step).** The stage runs
-//! per frame on the frame alone. Accumulating over time (blending the
-//! denoised frame, or the noisy one before OIDN, with the reprojected
-//! accumulation of the previous frames) goes where the session calls
-//! [`Stage::run`]: it needs the history view the session builds after the
-//! reset decision, and keeps its own buffer in the session's committed
-//! state beside [`Decision`] (replaced only when a frame succeeds, as the
-//! backend's `Carry` is).
+//! The temporal accumulation that follows it, once the session knows
+//! whether the frame continues the sequence, is [`crate::denoise::accumulate`].
 
 use std::sync::Arc;
 
@@ -23,8 +17,30 @@ use crate::frame::{try_zeros, Image, PreparedFrame};
 /// after a reset (other than a scene cut) and kept until the next one.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Decision {
-    /// Whether the frames are denoised.
+    /// Whether Open Image Denoise runs on the frames (the spatial pass).
     pub on: bool,
+    /// Whether the frames are accumulated over time
+    /// ([`crate::denoise::accumulate`]): after the spatial pass, or alone
+    /// for frames the renderer denoised (`denoise temporal`).
+    pub temporal: bool,
+}
+
+impl Decision {
+    /// Neither pass.
+    pub const OFF: Decision = Decision {
+        on: false,
+        temporal: false,
+    };
+    /// Both passes.
+    pub const ON: Decision = Decision {
+        on: true,
+        temporal: true,
+    };
+    /// The temporal accumulation alone.
+    pub const TEMPORAL: Decision = Decision {
+        on: false,
+        temporal: true,
+    };
 }
 
 /// The denoiser of one session (created on its first denoised frame) and
@@ -47,8 +63,9 @@ impl Stage {
     /// Frame-sized f32 planes the stage holds while it denoises a frame
     /// with (`albedo`) an albedo and (`normal`) a normal: the interleaved
     /// color, the output, and each auxiliary image with its prefiltered
-    /// copy (Open Image Denoise's own working memory, bounded by its
-    /// tiling, is not counted).
+    /// copy (counted whether or not `denoise_prefilter` is on; Open Image
+    /// Denoise's own working memory, bounded by its tiling, is not
+    /// counted).
     pub fn working_planes(albedo: bool, normal: bool) -> usize {
         6 + 6 * usize::from(albedo) + 6 * usize::from(albedo && normal)
     }
@@ -56,9 +73,10 @@ impl Stage {
     /// Denoises the premultiplied RGB (the first 3 planes) of `frame` in
     /// place with OIDN's RT filter on `oidn`: HDR, `quality`, with
     /// `frame.albedo` when present and then the normal
-    /// (`frame.denoise_normal`, else `frame.normal`), both prefiltered
-    /// (`clean_aux` false: a renderer's albedo and normal are noisy too,
-    /// with depth of field, motion blur and glossy surfaces). The frame's
+    /// (`frame.denoise_normal`, else `frame.normal`), both prefiltered when
+    /// `prefilter` (`denoise_prefilter`; else one filter run with OIDN's
+    /// `cleanAux` off): a renderer's albedo and normal are noisy too, with
+    /// depth of field, motion blur and glossy surfaces. The frame's
     /// scene-cut samples are taken again from the denoised color.
     ///
     /// Coverage: the color is denoised premultiplied, as the renderer
@@ -80,6 +98,7 @@ impl Stage {
         oidn: &Arc<Oidn>,
         frame: &mut PreparedFrame,
         quality: Quality,
+        prefilter: bool,
         pool: &rayon::ThreadPool,
     ) -> Result<()> {
         let (w, h) = (frame.width(), frame.height());
@@ -111,6 +130,7 @@ impl Stage {
             hdr: true,
             quality,
             clean_aux: false,
+            prefilter,
         };
         let denoiser = self.denoiser.as_mut().expect("created above");
         denoiser.denoise(&input, options, &mut self.out)?;

@@ -1015,6 +1015,17 @@ impl CameraMap {
         let hc = frame
             .camera
             .expect("camera reprojection needs the history camera");
+        CameraMap::from_cameras(&cc, &hc, current.width(), current.height())
+    }
+
+    /// The map from a `width` x `height` frame seen by camera `cc` into
+    /// the frame seen by camera `hc`.
+    pub(crate) fn from_cameras(
+        cc: &crate::frame::Camera,
+        hc: &crate::frame::Camera,
+        width: usize,
+        height: usize,
+    ) -> CameraMap {
         let cam_to_world = cc.world_to_camera.as_dmat4().inverse();
         let cam_to_ndc: DMat4 = cc.world_to_ndc.as_dmat4() * cam_to_world;
         // Current camera space to the history frame's clip space and planar depth.
@@ -1026,9 +1037,16 @@ impl CameraMap {
             r3: cam_to_ndc.row(3),
             zrow: to_cam.row(2),
             to_clip,
-            wf: current.width() as f64,
-            hf: current.height() as f64,
+            wf: width as f64,
+            hf: height as f64,
         }
+    }
+
+    /// [`CameraMap::position`] of pixel (row `i`, column `j`) at planar
+    /// depth `d`: the position in the history frame (pixel centers at
+    /// `+0.5`) and the depth expected there.
+    pub(crate) fn position_at(&self, i: usize, j: usize, d: f32) -> Option<(f32, f32, f32)> {
+        self.position(self.row(i), j, d)
     }
 
     /// The row term of row `i` (see [`CameraMap::position`]).

@@ -172,6 +172,7 @@ fn options(quality: Quality, clean_aux: bool) -> DenoiseOptions {
         hdr: true,
         quality,
         clean_aux,
+        prefilter: true,
     }
 }
 
