@@ -288,7 +288,8 @@ def evaluate(s: dict, exe: Path, work: Path, threads: int, methods: tuple[str, .
     cache: dict = {}
     for m in methods:
         if m in OURS:
-            outs, spf = run_ours(exe, in_dir, work / m, OURS[m], T, threads)
+            host = [x for k, v in s.get("host_params", {}).items() for x in ("--set", f"{k}={v}")]
+            outs, spf = run_ours(exe, in_dir, work / m, OURS[m] + host, T, threads)
         else:
             outs, spf = run_peer(m, s, cache)
         rows = frame_metrics(outs, s)

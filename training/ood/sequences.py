@@ -226,5 +226,8 @@ def build(name: str, data: Path = DATA, cache: dict | None = None, frames: int =
             if name == "noisy_raw"
             else "4 samples per pixel through Cycles' denoiser per frame"
         )
+        # What the renderer knows and a host passes on (the Blender extension
+        # does): its sample count, or that it denoised each frame itself.
+        s["host_params"] = {"samples": "4"} if name == "noisy_raw" else {"denoise": "temporal"}
     s["frames"] = T
     return s
