@@ -21,8 +21,11 @@ Methods, all on the same inputs:
   frame's maximum (HDR kept), radius 3;
   on sequences without holes they return the input;
 - ``oidn``: Intel Open Image Denoise per frame (``pyoidn``; HDR, quality high;
-  with the render's noisy albedo and normal where the set has them, which OIDN
-  prefilters);
+  with the render's noisy albedo and normal where the set has them, taken as
+  noisy: one filter run with ``cleanAux`` off, as ``pyoidn.denoise`` runs it);
+- ``oidn_prefiltered``: the same with the albedo and normal denoised first
+  by their own RT filters and the color filtered with ``cleanAux`` on, as
+  OIDN's documentation recommends for noisy auxiliary images (three runs);
 - ``ema``: a reprojected exponential moving average of the input (alpha 0.2),
   history taken where the renderer's motion vectors land inside the frame on
   a surface whose depth agrees within 10 %;
@@ -71,7 +74,7 @@ from training.evaluate import psnr, read_rgb, srgb, ssim_map
 from training.synth.degrade import warp_bilinear
 
 REPO = Path(__file__).resolve().parent.parent
-PEERS = ("identity", "telea", "navier_stokes", "oidn", "ema", "oidn_ema")
+PEERS = ("identity", "telea", "navier_stokes", "oidn", "oidn_prefiltered", "ema", "oidn_ema")
 OURS = {
     "classical": ["--backend", "classical"],
     "neural": ["--backend", "neural"],
@@ -175,6 +178,49 @@ def oidn(inp: np.ndarray, albedo: np.ndarray | None, normal: np.ndarray | None) 
     return np.asarray(pyoidn.denoise(c, hdr=True, quality="high", **kw), np.float32)
 
 
+_PREFILTER: dict = {}
+
+
+def oidn_prefiltered(inp: np.ndarray, albedo: np.ndarray, normal: np.ndarray | None) -> np.ndarray:
+    """OIDN with the albedo and normal prefiltered (each by an RT filter of its own), then ``cleanAux``."""
+    import pyoidn
+
+    if "device" not in _PREFILTER:
+        dev = pyoidn.Device()
+        dev.commit()
+        _PREFILTER["device"] = dev
+    dev = _PREFILTER["device"]
+    f3 = pyoidn.OIDN_FORMAT_FLOAT3
+
+    def run(images: dict, out: np.ndarray, **opts) -> None:
+        with pyoidn.Filter(dev, pyoidn.OIDN_FILTER_TYPE_RT) as flt:
+            for k, v in images.items():
+                flt.set_image(k, v, f3)
+            flt.set_image(pyoidn.OIDN_IMAGE_OUTPUT, out, f3)
+            for k, v in opts.items():
+                flt.set_bool(k, v)
+            flt.set_quality(pyoidn.OIDN_QUALITY_HIGH)
+            flt.commit()
+            flt.execute()
+        err = dev.get_error()
+        if err is not None:
+            raise RuntimeError(f"OIDN: {err}")
+
+    c = np.ascontiguousarray(np.maximum(inp[..., :3], 0.0), np.float32)
+    a = np.ascontiguousarray(np.clip(albedo, 0.0, 1.0), np.float32)
+    a_clean = np.zeros_like(a)
+    run({pyoidn.OIDN_IMAGE_ALBEDO: a}, a_clean)
+    images = {pyoidn.OIDN_IMAGE_COLOR: c, pyoidn.OIDN_IMAGE_ALBEDO: a_clean}
+    if normal is not None:
+        n = np.ascontiguousarray(np.clip(normal, -1.0, 1.0), np.float32)
+        n_clean = np.zeros_like(n)
+        run({pyoidn.OIDN_IMAGE_NORMAL: n}, n_clean)
+        images[pyoidn.OIDN_IMAGE_NORMAL] = n_clean
+    out = np.zeros_like(c)
+    run(images, out, hdr=True, cleanAux=True)
+    return out
+
+
 def ema(frames: list[np.ndarray], s: dict) -> list[np.ndarray]:
     """Reprojected exponential moving average with the host's own motion and depth."""
     out = [frames[0]]
@@ -199,6 +245,12 @@ def run_peer(name: str, s: dict, cache: dict) -> tuple[list[np.ndarray], float]:
         alb, nrm = s.get("albedo"), s.get("aux_normal")
         outs = [oidn(inp[t], None if alb is None else alb[t], None if nrm is None else nrm[t]) for t in range(T)]
         cache["oidn"] = (outs, time.perf_counter() - t0)
+    elif name == "oidn_prefiltered":
+        alb, nrm = s.get("albedo"), s.get("aux_normal")
+        if alb is None:
+            outs = run_peer("oidn", s, cache)[0] if "oidn" not in cache else cache["oidn"][0]
+        else:
+            outs = [oidn_prefiltered(inp[t], alb[t], None if nrm is None else nrm[t]) for t in range(T)]
     elif name == "ema":
         outs = ema([inp[t, ..., :3] for t in range(T)], s)
     elif name == "oidn_ema":
