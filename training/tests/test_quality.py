@@ -92,6 +92,11 @@ def test_oidn_peer_removes_noise_with_and_without_auxiliary_images():
     normal = np.zeros_like(img)
     normal[..., 2] = 1.0
     assert quality.psnr(quality.srgb(quality.oidn(inp, img, normal)), tgt) > base + 5
+    # Prefiltered: the (noisy) guides denoised first, then the color with them.
+    noisy_albedo = np.clip(img * rng.uniform(0.8, 1.2, img.shape).astype(np.float32), 0.0, 1.0)
+    pre = quality.oidn_prefiltered(inp, noisy_albedo, normal)
+    assert pre.shape == img.shape and np.isfinite(pre).all()
+    assert quality.psnr(quality.srgb(pre), tgt) > base + 5
 
 
 def test_ema_peer_steadies_a_flickering_static_sequence_and_keeps_disocclusions():
