@@ -43,10 +43,17 @@ class Runner:
             view_layer = vl.name
         #: Notes for the user at the start (posted by the caller).
         self.notes: list[tuple[str, str]] = []
+        #: The denoise stage's ``denoise`` (the panel's, or ``temporal`` for
+        #: a render Cycles denoises, see ``denoise.session_mode``; the
+        #: sequence operator, which cannot tell, passes the panel's).
+        self.denoise = s.denoise
         if samples is None:
             vl = scene.view_layers.get(view_layer)
+            self.denoise, mode_why = denoise.session_mode(scene, vl, s.denoise)
             samples, why = denoise.session_samples(scene, vl) if vl is not None else (0, "")
-            if samples == 0 and s.denoise == "auto" and why:
+            if mode_why:
+                self.notes.append(("INFO", f"Harmonizer: denoise temporal: {mode_why}"))
+            elif samples == 0 and s.denoise == "auto" and why:
                 # The library's decision on the first frame names the noise it measured.
                 self.notes.append(("INFO", f"Harmonizer: denoise auto: the first frame's noise decides ({why})"))
         #: The denoise stage's ``samples`` (0: unknown).
@@ -85,7 +92,7 @@ class Runner:
                 strength=s.strength,
                 gap_policy=s.gap_policy,
                 depth_kind="planar",
-                denoise=s.denoise,
+                denoise=self.denoise,
                 denoise_quality=s.denoise_quality,
                 samples=self.samples,
                 on_message=self._on_message,
