@@ -190,6 +190,10 @@ pub struct Params {
     /// (`denoise_prefilter`), as OIDN recommends for noisy auxiliary
     /// images: three filter runs a frame instead of one. Off by default.
     pub denoise_prefilter: bool,
+    /// Run the neural network on frames with nothing it repairs (no hole,
+    /// no insert) too (`neural_clean_frames`); off by default: such frames
+    /// get the classical operations (their temporal stabilization alone).
+    pub neural_clean_frames: bool,
 }
 
 impl Default for Params {
@@ -215,6 +219,7 @@ impl Default for Params {
             denoise_quality: Quality::High,
             samples: 0,
             denoise_prefilter: false,
+            neural_clean_frames: false,
         }
     }
 }
@@ -241,6 +246,7 @@ pub const PARAM_NAMES: &[&str] = &[
     "denoise_quality",
     "samples",
     "denoise_prefilter",
+    "neural_clean_frames",
 ];
 
 fn want_int(name: &str, v: &ParamValue, lo: i64, hi: i64) -> Result<i64> {
@@ -342,6 +348,7 @@ impl Params {
             "denoise_quality" => self.denoise_quality = parse_quality(want_str(name, v)?)?,
             "samples" => self.samples = want_int(name, v, 0, MAX_SAMPLES)? as u32,
             "denoise_prefilter" => self.denoise_prefilter = want_bool(name, v)?,
+            "neural_clean_frames" => self.neural_clean_frames = want_bool(name, v)?,
             _ => {
                 return Err(Error::invalid(format!(
                     "unknown parameter {name:?} (known: {})",
@@ -387,6 +394,7 @@ impl Params {
             "denoise_quality" => ParamValue::Str(quality_name(self.denoise_quality).into()),
             "samples" => ParamValue::Int(self.samples as i64),
             "denoise_prefilter" => ParamValue::Bool(self.denoise_prefilter),
+            "neural_clean_frames" => ParamValue::Bool(self.neural_clean_frames),
             _ => {
                 return Err(Error::invalid(format!(
                     "unknown parameter {name:?} (known: {})",

@@ -182,9 +182,9 @@ pub fn accumulate(
             });
         }
         match (*camera, p.camera) {
-            (Some(c), Some(pc)) if cur_depth.is_some() => {
-                Some(Map::Camera(Box::new(CameraMap::from_cameras(&c, &pc, w, h))))
-            }
+            (Some(c), Some(pc)) if cur_depth.is_some() => Some(Map::Camera(Box::new(
+                CameraMap::from_cameras(&c, &pc, w, h),
+            ))),
             (Some(a), Some(b)) if a != b => None,
             _ => Some(Map::Identity),
         }

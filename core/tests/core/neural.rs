@@ -82,6 +82,10 @@ fn session(device: Arc<Device>, set: &[(&str, ParamValue)]) -> Session {
     params
         .set("denoise", &ParamValue::Str("off".into()))
         .unwrap();
+    // Nor does a frame without holes or insert skip the network.
+    params
+        .set("neural_clean_frames", &ParamValue::Bool(true))
+        .unwrap();
     for (k, v) in set {
         params.set(k, v).unwrap();
     }
@@ -1117,4 +1121,35 @@ fn a_model_that_reads_normals_gets_them_through_the_session() {
         "output.b = normal.y: {:?}",
         &out.plane(2)[..4]
     );
+}
+
+#[test]
+fn a_frame_with_nothing_to_repair_skips_the_network() {
+    // No hole, no insert: the network (a 3x3 box blur here) does not run
+    // unless `neural_clean_frames`; the frame gets the classical operations,
+    // bit for bit. With a hole it runs.
+    let (w, h) = (64, 48);
+    let rgb = hdr_rgb(w, h, 9);
+    let input = FrameInput::new(ImageView::from_f32("color", &rgb, w, h, 3).unwrap());
+    let device = device_file("box3");
+    let run = |backend: &str, clean: bool, input: &FrameInput<'_>| {
+        let mut params = Params::default();
+        for (k, v) in [
+            ("backend", ParamValue::Str(backend.into())),
+            ("denoise", ParamValue::Str("off".into())),
+            ("neural_clean_frames", ParamValue::Bool(clean)),
+        ] {
+            params.set(k, &v).unwrap();
+        }
+        let mut s = Session::new(device.clone(), params).unwrap();
+        s.process(input, None).unwrap().0
+    };
+    let classical = run("classical", false, &input);
+    assert!(run("neural", false, &input) == classical);
+    assert!(run("neural", true, &input) != classical);
+    let mut coverage = vec![1.0f32; w * h];
+    coverage[w * 10 + 10] = 0.0;
+    let mut holed = input;
+    holed.coverage = Some(ImageView::from_f32("coverage", &coverage, w, h, 1).unwrap());
+    assert!(run("neural", false, &holed) != run("classical", false, &holed));
 }
