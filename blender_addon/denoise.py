@@ -12,7 +12,7 @@ from the panel; ``samples`` comes from the render settings (``session_samples``)
   samples" here would denoise twice), only the library's temporal
   accumulation, which removes the frame-to-frame flicker a per-frame
   denoiser leaves (out of domain: 34.80 dB and 0.51x the warping error of
-  Cycles' per-frame output, docs/model-card.md). ``samples`` is 0.
+  Cycles' per-frame output, docs/model_card.md). ``samples`` is 0.
 - Adaptive sampling whose sample limit is above 64: 0, because Cycles stops
   each pixel once its noise threshold is reached, often long before the
   limit, so the limit says little about the noise left. At most 64 samples

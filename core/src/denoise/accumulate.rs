@@ -27,7 +27,7 @@
 //!
 //! Measured on the out-of-domain noisy sequences (`scripts/quality.sh`):
 //! see `training/experiments/temporal_denoise.py` for the reference and
-//! `docs/model-card.md` for the numbers.
+//! `docs/model_card.md` for the numbers.
 
 use rayon::prelude::*;
 

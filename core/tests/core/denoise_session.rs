@@ -263,7 +263,7 @@ fn the_accumulation_steadies_what_the_denoiser_leaves() {
     );
     // Measured: OIDN per frame 35.47 dB, flicker 0.0212; accumulated
     // 35.32 dB, 0.0135 (0.64x). On the out-of-domain 4-spp Cycles
-    // sequence the accumulation gains 0.7 dB (docs/model-card.md).
+    // sequence the accumulation gains 0.7 dB (docs/model_card.md).
     assert!(
         f_ours <= 0.7 * f_oidn,
         "flicker {f_ours:.5} against OIDN per frame {f_oidn:.5} (at most 0.7x)"
@@ -330,7 +330,7 @@ fn denoise_temporal_accumulates_without_a_second_spatial_pass() {
     // Measured: input 35.23 dB, flicker 0.0240; temporal 36.30 dB, 0.0146
     // (0.61x: per-pixel flicker, which the 3x3 clipping box partly keeps;
     // the out-of-domain Cycles sequence, blotches from frame to frame,
-    // gives 0.51x, see docs/model-card.md).
+    // gives 0.51x, see docs/model_card.md).
     assert!(
         f_ours <= 0.7 * f_in,
         "flicker {f_ours:.5} against the input's {f_in:.5}"
