@@ -54,9 +54,9 @@
 
 /** Version of this header (from Cargo.toml). */
 #define HZ_VERSION_MAJOR 0
-#define HZ_VERSION_MINOR 1
+#define HZ_VERSION_MINOR 2
 #define HZ_VERSION_PATCH 0
-#define HZ_VERSION_STRING "0.1.0"
+#define HZ_VERSION_STRING "0.2.0"
 
 
 /**

@@ -52,7 +52,7 @@ def tmp_root() -> str:
 
 @pytest.fixture(scope="session")
 def extension_zip() -> str:
-    path = os.environ.get("HARMONIZER_BLENDER_ZIP") or os.path.join(REPO, "dist", "harmonizer-0.1.0-linux-x64.zip")
+    path = os.environ.get("HARMONIZER_BLENDER_ZIP") or os.path.join(REPO, "dist", "harmonizer-0.2.0-linux-x64.zip")
     if not os.path.isfile(path):
         pytest.fail(
             f"extension zip not found: {path}. Build it with `python blender_addon/build.py` "

@@ -27,7 +27,7 @@ from .errors import (
 )
 
 #: Version of this binding (equals the library's version it ships with).
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 
 __all__ = [
     "CancelledError",

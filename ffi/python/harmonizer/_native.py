@@ -32,7 +32,7 @@ from .errors import LibraryNotFoundError, error_for
 #: The header major version this binding is written against (``HZ_VERSION_MAJOR``).
 ABI_MAJOR = 0
 #: The header minor version this binding needs at least (``HZ_VERSION_MINOR``).
-ABI_MINOR = 1
+ABI_MINOR = 2
 
 HZ_FORMAT_F32 = 1
 HZ_FORMAT_F16 = 2

@@ -25,7 +25,7 @@ from .process import FrameResult, Options, ProductRunner
 from .run import RunSummary, run_stage
 from .settings import ProductInfo, SettingsInfo, VarInfo, open_stage, resolve
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 
 __all__ = [
     "BindingError",
