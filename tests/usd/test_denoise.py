@@ -172,6 +172,23 @@ def test_cli_denoise_flags_win_over_the_stage(
     assert "--samples: -1 is not a sample count" in capsys.readouterr().err
 
 
+def test_temporal_accumulates_without_a_second_spatial_pass(
+    rendered: Path, tmp_path: Path
+) -> None:
+    """harmonizer:denoise = temporal (frames the renderer denoised): accumulated only."""
+    stage = noisy_shot(
+        rendered, tmp_path, settings_attrs={"harmonizer:denoise": "temporal"}
+    )
+    with PostFrameHook(str(stage), backend="classical", params=PARAMS) as hook:
+        results = [hook(f)[0] for f in fixtures.FRAMES]
+    assert all(r.denoised for r in results)
+    first = results[0].denoise_decision
+    assert first is not None and first.startswith("denoise temporal"), first
+    assert results[0].noise_level is None
+    # The first frame has no history: it comes out as it went in (no OIDN).
+    assert abs(gains(rendered, results)[0]) < 0.5
+
+
 def test_off_is_not_denoised(rendered: Path, tmp_path: Path) -> None:
     stage = noisy_shot(rendered, tmp_path)
     with PostFrameHook(
@@ -201,7 +218,7 @@ def test_wrong_albedo_channel_count_names_the_file_and_channel(
 @pytest.mark.parametrize(
     ("attr", "value", "message"),
     [
-        ("harmonizer:denoise", "maybe", "'maybe' is not one of auto, on, off"),
+        ("harmonizer:denoise", "maybe", "'maybe' is not one of auto, on, off, temporal"),
         (
             "harmonizer:denoiseQuality",
             "best",

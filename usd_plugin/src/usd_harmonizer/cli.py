@@ -3,7 +3,7 @@
 usd-harmonize STAGE [--settings PRIM] [--product NAME] [--frames 1001-1024]
               [--out-dir DIR] [--layer FILE | --in-place | --no-layer]
               [--backend auto|neural|classical|bypass] [--param NAME=VALUE]
-              [--denoise auto|on|off] [--denoise-quality high|balanced|fast]
+              [--denoise auto|on|off|temporal] [--denoise-quality high|balanced|fast]
               [--samples N] [--map VAR=ROLE] [--motion-scale SX,SY] [--ocio CONFIG]
 """
 
@@ -101,7 +101,7 @@ def add_cmdline_args(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--denoise",
-        choices=["auto", "on", "off"],
+        choices=["auto", "on", "off", "temporal"],
         help="denoise with Open Image Denoise before enhancing (default: the stage's "
         "harmonizer:denoise, else auto: on for 1-64 samples, else the first frame's noise decides)",
     )

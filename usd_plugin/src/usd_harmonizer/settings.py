@@ -44,7 +44,9 @@ DENOISE_ATTRS: dict[str, str] = {
 }
 #: Values each denoise parameter accepts (``samples``: an integer >= 0).
 DENOISE_VALUES: dict[str, tuple[str, ...]] = {
-    "denoise": ("auto", "on", "off"),
+    # ``temporal``: the renderer denoised each frame; the library only
+    # accumulates them over time (no second spatial pass).
+    "denoise": ("auto", "on", "off", "temporal"),
     "denoise_quality": ("high", "balanced", "fast"),
 }
 
@@ -73,7 +75,7 @@ def _color_space_of(prim: Usd.Prim) -> tuple[str, str] | None:
 
 
 def check_denoise_param(name: str, value: object, where: str) -> object:
-    """A denoise parameter's value, checked: ``denoise`` auto/on/off,
+    """A denoise parameter's value, checked: ``denoise`` auto/on/off/temporal,
     ``denoise_quality`` high/balanced/fast (case-insensitive), ``samples`` an
     integer >= 0 (0: unknown, the first frame's noise decides). ``where``
     names the attribute or option for the error."""
