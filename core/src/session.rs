@@ -613,7 +613,7 @@ impl Session {
         // The backend's parameters: with the denoise stage accumulating,
         // the backend does not stabilize again (the accumulation is these
         // frames' stabilization; a second blend over it only lags and
-        // smears: 32.7 dB against 34.5 on the out-of-domain 4-spp
+        // smears: 32.7 dB against 34.3 on the out-of-domain 4-spp
         // sequence, `scripts/quality.sh`).
         let stabilized_params;
         let params = if decision.temporal && self.params.stabilize {

@@ -380,31 +380,12 @@ mod tests {
                 }
             }
         }
-        PreparedFrame {
-            color: Image {
-                width: w,
-                height: h,
-                channels: 3,
-                data,
-            },
-            coverage: None,
-            depth: None,
-            motion: None,
-            normal: None,
-            albedo: None,
-            denoise_normal: None,
-            insert_mask: None,
-            camera: None,
-            frame_index: None,
-            sanitized: 0,
-            out_of_gamut: Vec::new(),
-            sanitized_aovs: 0,
-            sanitized_normals: 0,
-            sanitized_albedo: 0,
-            huge_motion: 0,
-            scan: None,
-            scene_samples: None,
-        }
+        PreparedFrame::from_color(Image {
+            width: w,
+            height: h,
+            channels: 3,
+            data,
+        })
     }
 
     fn noise(seed: u64, c: usize, i: usize, j: usize) -> f32 {

@@ -205,12 +205,12 @@ pub struct DenoiseOptions {
     pub quality: Quality,
     /// The albedo and normal are noise-free (OIDN's `cleanAux`).
     pub clean_aux: bool,
-    /// With `clean_aux` false: denoise the albedo and normal first (each
-    /// by its own RT filter into a scratch buffer) and filter the color
-    /// with the clean images, as OIDN's documentation recommends for noisy
-    /// auxiliary images (three filter runs); when false, one run with
-    /// `cleanAux` off (OIDN's filter then takes the noise of the auxiliary
-    /// images into account itself, a little less sharply).
+    /// Read with `clean_aux` false. True: denoise the albedo and normal
+    /// first (each by its own RT filter into a scratch buffer) and filter
+    /// the color with the clean images, as OIDN's documentation recommends
+    /// for noisy auxiliary images (three filter runs). False: one run with
+    /// `cleanAux` off (OIDN's filter then allows for the noise of the
+    /// auxiliary images itself, a little less sharply).
     pub prefilter: bool,
 }
 

@@ -459,6 +459,32 @@ impl Default for PrepareOptions {
 }
 
 impl PreparedFrame {
+    /// A frame of `color` (premultiplied RGB planes, taken as they are)
+    /// and nothing else: no AOVs, no camera, nothing sanitized or scanned.
+    /// For tools and tests that build a frame's planes themselves.
+    pub fn from_color(color: Image) -> PreparedFrame {
+        PreparedFrame {
+            color,
+            coverage: None,
+            depth: None,
+            motion: None,
+            normal: None,
+            albedo: None,
+            denoise_normal: None,
+            insert_mask: None,
+            camera: None,
+            frame_index: None,
+            sanitized: 0,
+            out_of_gamut: Vec::new(),
+            sanitized_aovs: 0,
+            sanitized_normals: 0,
+            sanitized_albedo: 0,
+            huge_motion: 0,
+            scan: None,
+            scene_samples: None,
+        }
+    }
+
     /// Width in pixels.
     pub fn width(&self) -> usize {
         self.color.width

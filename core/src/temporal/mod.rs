@@ -628,25 +628,12 @@ mod tests {
                 };
                 history.push(frame, 4);
             }
+            let color = planes(w, h, 3, &mut seed, |r| r);
             let current = PreparedFrame {
-                color: planes(w, h, 3, &mut seed, |r| r),
-                coverage: None,
                 depth: with_depth.then(|| depth(n, &mut seed)),
                 motion: motion.then(|| planes(w, h, 2, &mut seed, |r| (r - 0.5) * 7.0)),
-                normal: None,
-                albedo: None,
-                denoise_normal: None,
-                insert_mask: None,
                 camera: cams.map(|c| c.0),
-                frame_index: None,
-                sanitized: 0,
-                out_of_gamut: Vec::new(),
-                sanitized_aovs: 0,
-                sanitized_normals: 0,
-                sanitized_albedo: 0,
-                huge_motion: 0,
-                scan: None,
-                scene_samples: None,
+                ..PreparedFrame::from_color(color)
             };
             let full = HistoryView::new(&history, &current, 3, &pool);
             for k in 0..full.len() {

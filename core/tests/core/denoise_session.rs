@@ -110,6 +110,33 @@ fn run(
         .collect()
 }
 
+/// The prepared color of each frame of `seq` (what the session works on:
+/// sanitized, premultiplied), interleaved RGB.
+fn prepared(seq: &[SynthFrame]) -> Vec<Vec<f32>> {
+    seq.iter()
+        .map(|f| {
+            let p = PreparedFrame::from_input(&f.input.frame_input(), DepthKind::Planar).unwrap();
+            synth::interleave(&p.color, 3)
+        })
+        .collect()
+}
+
+/// Interleaved images (`channels` per pixel) as the planar RGBA outputs
+/// and (empty) reports [`mean_psnr`] takes.
+fn as_outputs(imgs: &[Vec<f32>], channels: usize) -> Vec<(Image, harmonizer_core::FrameReport)> {
+    imgs.iter()
+        .map(|v| {
+            let mut img = Image::zeros(W, H, 4);
+            for p in 0..W * H {
+                for c in 0..3 {
+                    img.data[c * W * H + p] = v[channels * p + c];
+                }
+            }
+            (img, harmonizer_core::FrameReport::default())
+        })
+        .collect()
+}
+
 /// Mean PSNR of the outputs against the truth on [`plain`] pixels, over
 /// the frames after the first.
 fn mean_psnr(seq: &[SynthFrame], outs: &[(Image, harmonizer_core::FrameReport)]) -> f64 {
@@ -126,16 +153,7 @@ fn mean_psnr(seq: &[SynthFrame], outs: &[(Image, harmonizer_core::FrameReport)])
 fn denoise_on_gains_over_off_on_a_noisy_sequence() {
     let seq = frames(W, H, 6, Some(4));
     let dev = device(None);
-    let input: Vec<(Image, _)> = seq
-        .iter()
-        .map(|f| {
-            let p = PreparedFrame::from_input(&f.input.frame_input(), DepthKind::Planar).unwrap();
-            let mut img = Image::zeros(W, H, 4);
-            img.data[..3 * W * H].copy_from_slice(&p.color.data);
-            (img, harmonizer_core::FrameReport::default())
-        })
-        .collect();
-    let noisy = mean_psnr(&seq, &input);
+    let noisy = mean_psnr(&seq, &as_outputs(&prepared(&seq), 3));
     let mut results = Vec::new();
     for (mode, albedo) in [("off", false), ("on", false), ("on", true)] {
         let mut sess = session(&dev, &[("denoise", s(mode))]);
@@ -205,8 +223,7 @@ fn the_accumulation_steadies_what_the_denoiser_leaves() {
     let per_frame: Vec<Vec<f32>> = seq
         .iter()
         .map(|f| {
-            let p = PreparedFrame::from_input(&f.input.frame_input(), DepthKind::Planar).unwrap();
-            let rgb = synth::interleave(&p.color, 3);
+            let rgb = prepared(std::slice::from_ref(f)).remove(0);
             let mut out = vec![0.0f32; rgb.len()];
             d.denoise(
                 &DenoiseInput {
@@ -241,21 +258,8 @@ fn the_accumulation_steadies_what_the_denoiser_leaves() {
     }
     let ours: Vec<Vec<f32>> = outs.iter().map(|(o, _)| synth::interleave(o, 3)).collect();
     let (f_oidn, f_ours) = (flicker(&seq, &per_frame, 3), flicker(&seq, &ours, 3));
-    let as_reports = |imgs: &[Vec<f32>]| -> Vec<(Image, harmonizer_core::FrameReport)> {
-        imgs.iter()
-            .map(|v| {
-                let mut img = Image::zeros(W, H, 4);
-                for p in 0..W * H {
-                    for c in 0..3 {
-                        img.data[c * W * H + p] = v[3 * p + c];
-                    }
-                }
-                (img, harmonizer_core::FrameReport::default())
-            })
-            .collect()
-    };
     let (p_oidn, p_ours) = (
-        mean_psnr(&seq, &as_reports(&per_frame)),
+        mean_psnr(&seq, &as_outputs(&per_frame, 3)),
         mean_psnr(&seq, &outs),
     );
     println!(
@@ -314,16 +318,10 @@ fn denoise_temporal_accumulates_without_a_second_spatial_pass() {
     let inputs: Vec<Vec<f32>> = seq.iter().map(|f| f.input.color.clone()).collect();
     let ours: Vec<Vec<f32>> = outs.iter().map(|(o, _)| synth::interleave(o, 3)).collect();
     let (f_in, f_ours) = (flicker(&seq, &inputs, 4), flicker(&seq, &ours, 3));
-    let input_reports: Vec<(Image, harmonizer_core::FrameReport)> = seq
-        .iter()
-        .map(|f| {
-            let p = PreparedFrame::from_input(&f.input.frame_input(), DepthKind::Planar).unwrap();
-            let mut img = Image::zeros(W, H, 4);
-            img.data[..3 * W * H].copy_from_slice(&p.color.data);
-            (img, harmonizer_core::FrameReport::default())
-        })
-        .collect();
-    let (p_in, p_ours) = (mean_psnr(&seq, &input_reports), mean_psnr(&seq, &outs));
+    let (p_in, p_ours) = (
+        mean_psnr(&seq, &as_outputs(&prepared(&seq), 3)),
+        mean_psnr(&seq, &outs),
+    );
     println!(
         "input: {p_in:.2} dB, flicker {f_in:.5}; temporal: {p_ours:.2} dB, flicker {f_ours:.5}"
     );
