@@ -650,6 +650,7 @@ fn oidn_alone(
         quality: params.denoise_quality,
         clean_aux: false,
         prefilter: params.denoise_prefilter,
+        max_memory_mb: None,
     };
     let t = std::time::Instant::now();
     d.denoise(&input, options, &mut out)?;

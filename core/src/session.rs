@@ -568,13 +568,19 @@ impl Session {
                 }
             }
         }
+        // With a device `memory_limit`, Open Image Denoise gets half of what
+        // the frame's counted planes leave (its filters keep their working
+        // memory while the backend runs), the backend the other half.
+        let limited = self.device.options().memory_limit > 0;
+        let oidn_memory = (decision.on && limited).then_some(budget / 2);
+        let budget = budget - oidn_memory.unwrap_or(0);
         if decision.on {
             let quality = self.params.denoise_quality;
             let prefilter = self.params.denoise_prefilter;
             let ran = self.device.oidn().and_then(|oidn| {
                 stages.time("denoise", || {
                     self.denoiser
-                        .run(&oidn, &mut frame, quality, prefilter, pool)
+                        .run(&oidn, &mut frame, quality, prefilter, oidn_memory, pool)
                 })
             });
             // The stage takes long (OIDN has no cancellation point of

@@ -212,6 +212,10 @@ pub struct DenoiseOptions {
     /// `cleanAux` off (OIDN's filter then allows for the noise of the
     /// auxiliary images itself, a little less sharply).
     pub prefilter: bool,
+    /// OIDN's `maxMemoryMB` for each filter: it keeps its working memory
+    /// under this many MiB by processing smaller tiles (slower, and not
+    /// guaranteed); `None`: no limit (OIDN's default).
+    pub max_memory_mb: Option<u32>,
 }
 
 impl Default for DenoiseOptions {
@@ -222,6 +226,7 @@ impl Default for DenoiseOptions {
             quality: Quality::Default,
             clean_aux: false,
             prefilter: true,
+            max_memory_mb: None,
         }
     }
 }
@@ -339,6 +344,10 @@ impl Denoiser {
             self.setup = None;
             self.main.set_bool(c"hdr", options.hdr);
             self.main.set_int(c"quality", options.quality.value());
+            let max_mb = options
+                .max_memory_mb
+                .map_or(-1, |m| i32::try_from(m).unwrap_or(i32::MAX));
+            self.main.set_int(c"maxMemoryMB", max_mb);
             self.main.set_bool(
                 c"cleanAux",
                 setup.albedo && (options.clean_aux || prefilter),
@@ -350,6 +359,7 @@ impl Denoiser {
                     }
                     if let Some(f) = self.prefilters[i].as_mut() {
                         f.set_int(c"quality", options.quality.value());
+                        f.set_int(c"maxMemoryMB", max_mb);
                     }
                     self.scratch[i].resize(values, 0.0);
                 } else {

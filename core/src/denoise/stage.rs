@@ -75,7 +75,9 @@ impl Stage {
     /// `frame.albedo` when present and then the normal
     /// (`frame.denoise_normal`, else `frame.normal`), both prefiltered when
     /// `prefilter` (`denoise_prefilter`; else one filter run with OIDN's
-    /// `cleanAux` off): a renderer's albedo and normal are noisy too, with
+    /// `cleanAux` off), within `max_memory` bytes of OIDN working memory
+    /// when given (OIDN's `maxMemoryMB`: smaller tiles; best effort):
+    /// a renderer's albedo and normal are noisy too, with
     /// depth of field, motion blur and glossy surfaces. The frame's
     /// scene-cut samples are taken again from the denoised color.
     ///
@@ -99,6 +101,7 @@ impl Stage {
         frame: &mut PreparedFrame,
         quality: Quality,
         prefilter: bool,
+        max_memory: Option<usize>,
         pool: &rayon::ThreadPool,
     ) -> Result<()> {
         let (w, h) = (frame.width(), frame.height());
@@ -131,6 +134,8 @@ impl Stage {
             quality,
             clean_aux: false,
             prefilter,
+            // At least 1 MiB: 0 would ask OIDN for the impossible.
+            max_memory_mb: max_memory.map(|b| u32::try_from((b >> 20).max(1)).unwrap_or(u32::MAX)),
         };
         let denoiser = self.denoiser.as_mut().expect("created above");
         denoiser.denoise(&input, options, &mut self.out)?;

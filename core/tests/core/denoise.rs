@@ -173,6 +173,7 @@ fn options(quality: Quality, clean_aux: bool) -> DenoiseOptions {
         quality,
         clean_aux,
         prefilter: true,
+        max_memory_mb: None,
     }
 }
 

@@ -238,6 +238,7 @@ fn the_accumulation_steadies_what_the_denoiser_leaves() {
                     quality: Quality::High,
                     clean_aux: false,
                     prefilter: false,
+                    max_memory_mb: None,
                 },
                 &mut out,
             )
@@ -559,6 +560,7 @@ fn the_albedo_of_the_generic_layout_reaches_the_denoiser() {
             quality: Quality::High,
             clean_aux: false,
             prefilter: false,
+            max_memory_mb: None,
         },
         &mut direct,
     )
@@ -815,4 +817,36 @@ fn noise_level_timing_1920x1080() {
     ms.sort_by(f64::total_cmp);
     let level = noise_level(&p.color, p.coverage.as_deref(), Some(&pool)).unwrap();
     println!("noise_level 1920x1080: {:.2} ms (level {level:.3})", ms[2]);
+}
+
+#[test]
+fn a_device_memory_limit_bounds_open_image_denoise_too() {
+    // With a `memory_limit` just above the frame's counted planes, OIDN is
+    // given half of what is left (`maxMemoryMB`, 2 MiB here) and works in
+    // smaller tiles: the frame still comes out denoised, as the unlimited
+    // one (measured identical: OIDN's tiles overlap by the network's
+    // receptive field). What OIDN then allocates is not measured here.
+    let (w, h) = (W, H);
+    let seq = frames(w, h, 1, Some(4));
+    let input = seq[0].input.frame_input_with_albedo();
+    let free = device(None);
+    let params = [("denoise", s("on"))];
+    let (want, _) = session(&free, &params).process(&input, None).unwrap();
+    let need = session(&free, &params)
+        .memory_estimate(&FrameShape::of(&input))
+        .unwrap();
+    let limited = Device::new(DeviceOptions {
+        threads: 2,
+        memory_limit: need + (4 << 20),
+        ..DeviceOptions::default()
+    })
+    .unwrap();
+    let (got, r) = session(&limited, &params).process(&input, None).unwrap();
+    assert!(r.denoised && r.warnings.is_empty(), "{:?}", r.warnings);
+    let (a, b) = (synth::interleave(&got, 3), synth::interleave(&want, 3));
+    let db = synth::psnr(&a, 3, &b, 3, None);
+    println!("limited against unlimited: {db:.1} dB");
+    assert!(db > 40.0, "{db:.1} dB");
+    let noisy = synth::psnr(&prepared(&seq)[0], 3, &b, 3, None);
+    assert!(db > noisy + 10.0, "{db:.1} dB, the input {noisy:.1} dB");
 }
