@@ -38,9 +38,11 @@ subst() {
 subst ffi/harmonizer.pc.in >"$PREFIX/lib/pkgconfig/harmonizer.pc"
 subst cmake/harmonizer-config.cmake.in >"$PREFIX/lib/cmake/harmonizer/harmonizer-config.cmake"
 subst cmake/harmonizer-config-version.cmake.in >"$PREFIX/lib/cmake/harmonizer/harmonizer-config-version.cmake"
-# The Python binding, with the library next to it (found without HARMONIZER_LIB).
-install -d "$PREFIX/python/harmonizer"
+# The Python binding with its library where the wheel carries it
+# (harmonizer/lib/, found without HARMONIZER_LIB); `pip install PREFIX/python`
+# builds a wheel from it (hatch_build.py takes the library as it is).
+install -d "$PREFIX/python/harmonizer/lib"
 install -m 644 ffi/python/harmonizer/*.py ffi/python/harmonizer/py.typed "$PREFIX/python/harmonizer/"
-install -m 644 ffi/python/pyproject.toml ffi/python/README.md "$PREFIX/python/"
-install -m 755 "$TARGET_DIR/release/$SHARED" "$PREFIX/python/harmonizer/"
+install -m 644 ffi/python/pyproject.toml ffi/python/hatch_build.py ffi/python/README.md "$PREFIX/python/"
+install -m 755 "$TARGET_DIR/release/$SHARED" "$PREFIX/python/harmonizer/lib/"
 echo "installed libharmonizer $VERSION into $PREFIX"

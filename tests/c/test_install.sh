@@ -56,7 +56,7 @@ c = np.ones((4, 4, 4), np.float32); assert (s.process(c)[..., :3] == 1).all(); p
 
 echo "== pip install of the installed Python package (a wheel with the library inside)"
 "$ROOT/.venv/bin/python" -m pip install -q --no-deps --target "$WORK/site" "$PREFIX/python"
-test -f "$WORK/site/harmonizer/$(basename "$(ls "$PREFIX"/python/harmonizer/libharmonizer.* | head -n 1)")" ||
+test -f "$WORK/site/harmonizer/lib/$(basename "$(ls "$PREFIX"/python/harmonizer/lib/libharmonizer.* | head -n 1)")" ||
     { echo "FAIL: the wheel does not carry the library"; exit 1; }
 (cd "$WORK" && env -u HARMONIZER_LIB PYTHONPATH="$WORK/site" "$ROOT/.venv/bin/python" -c \
     "import harmonizer as hz, numpy as np; assert hz.__file__.startswith('$WORK/site'), hz.__file__; \

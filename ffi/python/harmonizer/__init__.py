@@ -1,8 +1,9 @@
 """harmonizer: Python binding of ``libharmonizer`` (ctypes + numpy).
 
 Shared by the Blender extension and the USD hook; imports neither ``bpy`` nor
-``pxr``. The library is found through ``$HARMONIZER_LIB``, next to this
-package, or in the repository's ``target/release`` / ``target/debug``.
+``pxr``. The library is found through ``$HARMONIZER_LIB`` (an override), inside
+this package (the wheel's ``harmonizer/lib/``, or next to it), or in the
+repository's ``target/release`` / ``target/debug``.
 
 Conventions: color is scene-linear Linear Rec.709 premultiplied by coverage;
 depth planar; motion vectors in pixels from the current pixel to where the

@@ -31,6 +31,13 @@ def version() -> str:
 class Device:
     """Thread pool, ONNX Runtime location, memory limit and model; shared by sessions.
 
+    ``ort_library``: ``libonnxruntime``; ``None`` = ``$HARMONIZER_ORT_LIB`` or
+    ``$ORT_DYLIB_PATH`` when set, else the installed ``onnxruntime`` wheel's
+    (``harmonizer[neural]``), else the library's own search. Open Image Denoise
+    (the denoise stage): ``$HARMONIZER_OIDN_LIB`` when set, else the installed
+    ``pyoidn`` wheel's (``harmonizer[denoise]``; put into ``HARMONIZER_OIDN_LIB``
+    of this process), else the library's own search.
+
     ``model``: ``None`` = the embedded default, a path to an ``.onnx`` file (its
     JSON manifest beside it), or ``(onnx_bytes, manifest_json_str)``.
     """
@@ -51,8 +58,18 @@ class Device:
         opts.struct_size = ctypes.sizeof(N.hz_device_options)
         opts.threads = int(threads)
         opts.memory_limit = int(memory_limit)
+        if ort_library is None and not (os.environ.get("HARMONIZER_ORT_LIB") or os.environ.get("ORT_DYLIB_PATH")):
+            # pip install harmonizer[neural]: the onnxruntime wheel beside this one.
+            ort_library = N.ort_library()
         if ort_library is not None:
             opts.ort_library = os.fsencode(ort_library)
+        if not os.environ.get("HARMONIZER_OIDN_LIB"):
+            # pip install harmonizer[denoise]: the pyoidn wheel beside this one. The C
+            # ABI's device options have no Open Image Denoise path; the library reads
+            # this variable (set in this process only, and only when unset).
+            oidn = N.oidn_library()
+            if oidn is not None:
+                os.environ["HARMONIZER_OIDN_LIB"] = str(oidn)
         keep: Any = None
         if model is None:
             pass

@@ -1,8 +1,14 @@
 """Finds and loads ``libharmonizer`` and declares the C ABI for ctypes.
 
-Search order: ``$HARMONIZER_LIB`` (a file), the library next to this package
-(``harmonizer/libharmonizer.so``), then the repository's ``target/release`` and
-``target/debug`` (and ``$CARGO_TARGET_DIR``'s), the most recently built first.
+Search order: ``$HARMONIZER_LIB`` (a file: an override), the library the wheel
+carries (``harmonizer/lib/libharmonizer.so``), the library next to this package
+(``harmonizer/libharmonizer.so``, the layout of ``scripts/build-ffi.sh``'s
+prefix), then the repository's ``target/release`` and ``target/debug`` (and
+``$CARGO_TARGET_DIR``'s), the most recently built first.
+
+The runtimes the library loads itself are located here too when their Python
+wheels are installed (``harmonizer[neural]``: onnxruntime, ``harmonizer[denoise]``:
+pyoidn); see :func:`ort_library` and :func:`oidn_library`.
 """
 
 from __future__ import annotations
@@ -159,7 +165,42 @@ def candidates() -> list[Path]:
     # In a checkout, the most recently built library wins (a stale release build
     # must not shadow a fresh debug one).
     built.sort(key=lambda p: p.stat().st_mtime if p.is_file() else float("-inf"), reverse=True)
-    return [here / name, *built]
+    return [here / "lib" / name, here / name, *built]
+
+
+def _wheel_library(package: str, subdir: str, patterns: tuple[str, ...]) -> Path | None:
+    """A shared library inside an installed Python package, found without
+    importing the package (``importlib.util.find_spec`` of a top-level name
+    reads no module code). The highest-named match wins (``.so.1.31.1`` over
+    ``.so.1``)."""
+    import importlib.util
+
+    try:
+        spec = importlib.util.find_spec(package)
+    except (ImportError, ValueError):
+        return None
+    if spec is None or not spec.submodule_search_locations:
+        return None
+    for root in spec.submodule_search_locations:
+        d = Path(root) / subdir
+        found = sorted(p for pat in patterns for p in d.glob(pat) if p.is_file())
+        if found:
+            return found[-1]
+    return None
+
+
+def ort_library() -> Path | None:
+    """``libonnxruntime`` of the installed ``onnxruntime`` wheel
+    (``pip install harmonizer[neural]``), or None."""
+    return _wheel_library("onnxruntime", "capi", ("libonnxruntime.so*", "libonnxruntime*.dylib", "onnxruntime.dll"))
+
+
+def oidn_library() -> Path | None:
+    """``libOpenImageDenoise`` of the installed ``pyoidn`` wheel
+    (``pip install harmonizer[denoise]``), or None."""
+    return _wheel_library(
+        "pyoidn", "oidn/lib", ("libOpenImageDenoise.so*", "libOpenImageDenoise*.dylib", "OpenImageDenoise.dll")
+    )
 
 
 _lock = threading.Lock()

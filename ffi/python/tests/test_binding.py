@@ -402,3 +402,45 @@ def test_model_and_runtime_errors():
         hz.Device(model=(b"this is not an ONNX model", (FIXTURES / "identity.json").read_text()))
     with pytest.raises(hz.InvalidArgumentError, match="model"):
         hz.Device(model=(b"", "{}"))
+
+
+def test_packaged_library_and_wheel_runtimes_are_found(tmp_path, monkeypatch):
+    """Issue 21: without HARMONIZER_LIB the wheel's ``harmonizer/lib/`` is
+    searched first (HARMONIZER_LIB stays an override); the onnxruntime and
+    pyoidn wheels of this interpreter are located without importing them, and
+    ``Device()`` puts pyoidn's library into HARMONIZER_OIDN_LIB only when unset."""
+    from harmonizer import _native
+
+    here = Path(_native.__file__).resolve().parent
+    monkeypatch.delenv("HARMONIZER_LIB", raising=False)
+    assert _native.candidates()[:2] == [here / "lib" / _native._lib_name(), here / _native._lib_name()]
+    monkeypatch.setenv("HARMONIZER_LIB", str(tmp_path / "x.so"))
+    assert _native.candidates() == [tmp_path / "x.so"]
+
+    # A fake installed wheel layout: found by find_spec, never imported.
+    pkg = tmp_path / "site" / "onnxruntime"
+    (pkg / "capi").mkdir(parents=True)
+    (pkg / "__init__.py").write_text("raise RuntimeError('imported')\n")
+    for name in ("libonnxruntime.so.1", "libonnxruntime.so.1.31.1"):
+        (pkg / "capi" / name).write_bytes(b"")
+    oidn = tmp_path / "site" / "pyoidn"
+    (oidn / "oidn" / "lib").mkdir(parents=True)
+    (oidn / "__init__.py").write_text("raise RuntimeError('imported')\n")
+    (oidn / "oidn" / "lib" / "libOpenImageDenoise.so.2").write_bytes(b"")
+    monkeypatch.syspath_prepend(str(tmp_path / "site"))
+    for mod in ("onnxruntime", "pyoidn"):
+        monkeypatch.delitem(sys.modules, mod, raising=False)
+    assert _native.ort_library() == pkg / "capi" / "libonnxruntime.so.1.31.1"
+    assert _native.oidn_library() == oidn / "oidn" / "lib" / "libOpenImageDenoise.so.2"
+    assert "onnxruntime" not in sys.modules and "pyoidn" not in sys.modules
+
+    monkeypatch.delenv("HARMONIZER_OIDN_LIB", raising=False)
+    monkeypatch.setattr(_native, "oidn_library", lambda: Path("/opt/pyoidn/libOpenImageDenoise.so.2"))
+    monkeypatch.setattr(_native, "ort_library", lambda: None)  # not the empty fake file
+    with hz.Device(threads=1):
+        pass
+    assert os.environ["HARMONIZER_OIDN_LIB"] == "/opt/pyoidn/libOpenImageDenoise.so.2"
+    monkeypatch.setenv("HARMONIZER_OIDN_LIB", "/given/libOpenImageDenoise.so.2")
+    with hz.Device(threads=1):
+        pass
+    assert os.environ["HARMONIZER_OIDN_LIB"] == "/given/libOpenImageDenoise.so.2"
