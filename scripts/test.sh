@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Sets up everything and runs every test of harmonizer: formatting, lints,
 # docs, header drift, Rust unit and integration tests, the C/C++ host tests,
-# the Python binding, the USD hook and the Blender extension (real Blender),
+# the Python binding, the USD hook, the wheels (installed into a clean venv)
+# and the Blender extension (real Blender),
 # the training smoke test, and each fuzz target for a short fixed time
 # (HARMONIZER_FUZZ_SECONDS, 45 by default). Works on a fresh machine with
 # only the package registries (creates .venv, .venv-bpy and .venv-usd as
@@ -16,7 +17,7 @@ set -uo pipefail
 cd "$(dirname "$0")/.."
 export PATH="$HOME/.cargo/bin:$PATH"
 
-all_steps=(setup fmt clippy doc header rust release c python usd blender training quality fuzz)
+all_steps=(setup fmt clippy doc header rust release c python usd wheels blender training quality fuzz)
 steps=("$@")
 [ ${#steps[@]} -gt 0 ] || steps=("${all_steps[@]}")
 
@@ -62,6 +63,9 @@ want c && run_step c-hosts make -C tests/c PROFILE=release
 want c && run_step c-install ./tests/c/test_install.sh
 want python && run_step python env PYTHONPATH="$PWD/ffi/python" .venv/bin/python -m pytest -q -p no:cacheprovider ffi/python/tests
 want usd && run_step usd ./tests/usd/run.sh -q
+# Issue 21: the wheels in a clean venv, no HARMONIZER_* variable, checkout untouched
+# (cargo reuses the release build above).
+want wheels && run_step wheels env CARGO_TARGET_DIR="${CARGO_TARGET_DIR:-$PWD/target}" ./tests/wheels/run.sh
 want blender && run_step blender ./tests/blender/run.sh
 want training && run_step training ./training/smoke_test.sh
 want quality && run_step quality ./scripts/quality.sh --smoke
