@@ -74,6 +74,12 @@ enum Command {
         /// Only frames A-B (all must exist).
         #[arg(long)]
         frames: Option<String>,
+        /// Process the N frames before A first, without writing them, so a
+        /// chunk A-B of a longer sequence starts with the temporal state a
+        /// sequential run would have (needs --frames; fewer at the start of
+        /// the sequence).
+        #[arg(long, default_value_t = 0)]
+        preroll: usize,
         /// What a gap in frame numbers does: reset the temporal state or keep it (with a warning).
         #[arg(long, default_value = "reset")]
         gap: String,
@@ -139,6 +145,7 @@ fn main() -> ExitCode {
             channel,
             insert_index,
             frames,
+            preroll,
             gap,
             report,
             session,
@@ -149,6 +156,7 @@ fn main() -> ExitCode {
             channel,
             insert_index,
             frames,
+            preroll,
             gap,
             report,
             session,
@@ -245,6 +253,7 @@ fn frame_json(r: &FrameResult) -> Value {
     warnings.extend(r.report.warnings.iter().cloned());
     json!({
         "frame": r.planned.frame,
+        "preroll": r.planned.preroll,
         "input": r.planned.input.display().to_string(),
         "output": r.planned.output.display().to_string(),
         "backend": r.report.backend,
@@ -358,6 +367,7 @@ fn cmd_run(
     channel: Vec<String>,
     insert_index: Option<i64>,
     frames: Option<String>,
+    preroll: usize,
     gap: String,
     report: Option<PathBuf>,
     session_args: SessionArgs,
@@ -367,6 +377,7 @@ fn cmd_run(
         output: output.clone(),
         layout: layout_options(&layout, &channel, insert_index)?,
         frames: frames.as_deref().map(FrameRange::parse).transpose()?,
+        preroll,
     };
     let planned = plan(&options)?;
     let mut files = Files::default();
@@ -374,7 +385,7 @@ fn cmd_run(
         files.input(format!("input frame {}", p.frame), &p.input);
     }
     model_inputs(&mut files, session_args.model.as_deref());
-    for p in &planned {
+    for p in planned.iter().filter(|p| !p.preroll) {
         files.output(format!("output frame {}", p.frame), &p.output);
     }
     if let Some(path) = &report {
@@ -390,14 +401,24 @@ fn cmd_run(
         done.push(res.clone());
     });
     bar.finish_and_clear();
+    // The summary counts the frames written; the pre-roll frames are in
+    // the report's frame list, marked.
+    let prerolled = done.iter().filter(|r| r.planned.preroll).count();
+    let written: Vec<FrameResult> = done
+        .iter()
+        .filter(|r| !r.planned.preroll)
+        .cloned()
+        .collect();
     if let Some(path) = &report {
+        let mut summary = summary_json(&written);
+        summary["preroll_frames"] = json!(prerolled);
         let mut v = json!({
             "input": options.input,
             "output": options.output,
             "layout": layout,
             "version": harmonizer_core::VERSION,
             "frames": done.iter().map(frame_json).collect::<Vec<_>>(),
-            "summary": summary_json(&done),
+            "summary": summary,
         });
         if let Err(e) = &r {
             v["error"] = json!(e.to_string());
@@ -405,7 +426,10 @@ fn cmd_run(
         write_json(path, &v)?;
     }
     r?;
-    print_summary(&done, &output);
+    print_summary(&written, &output);
+    if prerolled > 0 {
+        println!("  pre-roll: {prerolled} frame(s) before the first, processed and not written");
+    }
     if let Some(path) = &report {
         println!("  report: {}", path.display());
     }
@@ -499,6 +523,7 @@ fn cmd_demo(out: &Path, args: SessionArgs) -> Result<()> {
         output: output.clone(),
         layout: LayoutOptions::default(),
         frames: None,
+        preroll: 0,
     };
     let planned = plan(&options)?;
     let mut session = make_session(&args, None)?;

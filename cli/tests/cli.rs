@@ -884,3 +884,201 @@ mod safety {
         std::fs::set_permissions(&ro, std::fs::Permissions::from_mode(0o755)).unwrap();
     }
 }
+
+/// `--preroll`: a chunk of a longer sequence warmed by the frames before it.
+mod preroll {
+    use super::*;
+
+    /// RGB of frames `range` written under `pattern`, interleaved.
+    fn read(pattern: &str, range: std::ops::RangeInclusive<i64>) -> Vec<Vec<f32>> {
+        let p = FramePattern::parse(pattern).unwrap();
+        range
+            .map(|n| {
+                LoadedFrame::read(&p.path(n), Some(n), &LayoutOptions::default())
+                    .unwrap()
+                    .color
+            })
+            .collect()
+    }
+
+    fn out(dir: &Path, name: &str) -> String {
+        dir.join(name)
+            .join("shot.####.exr")
+            .to_string_lossy()
+            .to_string()
+    }
+
+    /// Runs `harmonize run` over `input` (the frames `frames`, pre-roll
+    /// `n`; all frames when `frames` is empty) with `backend`, into `out`.
+    fn run(input: &str, out: &str, backend: &str, frames: &str, n: usize) -> Output {
+        let n = n.to_string();
+        let mut args = vec![
+            "run",
+            input,
+            "-o",
+            out,
+            "--threads",
+            "2",
+            "--backend",
+            backend,
+        ];
+        if !frames.is_empty() {
+            args.extend_from_slice(&["--frames", frames, "--preroll", &n]);
+        }
+        let o = harmonize(&args);
+        assert!(o.status.success(), "{:?}", text(&o));
+        o
+    }
+
+    /// Mean PSNR of frames `a` against `b` (interleaved RGB).
+    fn psnr(a: &[Vec<f32>], b: &[Vec<f32>]) -> f64 {
+        let v: Vec<f64> = a
+            .iter()
+            .zip(b)
+            .map(|(x, y)| harmonizer_core::synth::psnr(x, 3, y, 3, None).min(99.0))
+            .collect();
+        v.iter().sum::<f64>() / v.len() as f64
+    }
+
+    #[test]
+    fn a_chunk_with_a_preroll_matches_the_sequential_run_and_writes_only_its_frames() {
+        let dir = tempfile::tempdir().unwrap();
+        let (_, input) = sequence(
+            dir.path(),
+            SynthConfig {
+                width: 96,
+                height: 54,
+                frames: 32,
+                ..Default::default()
+            },
+        );
+        let seq_out = out(dir.path(), "sequential");
+        run(&input, &seq_out, "classical", "", 0);
+        let want = read(&seq_out, 17..=32);
+        let chunk = out(dir.path(), "chunk");
+        let report = dir.path().join("report.json");
+        let o = harmonize(&[
+            "run",
+            &input,
+            "-o",
+            &chunk,
+            "--threads",
+            "2",
+            "--backend",
+            "classical",
+            "--frames",
+            "17-32",
+            "--preroll",
+            "8",
+            "--report",
+            report.to_str().unwrap(),
+        ]);
+        let (stdout, stderr) = text(&o);
+        assert!(o.status.success(), "{stdout}\n{stderr}");
+        assert!(stdout.contains("16 frame(s) written"), "{stdout}");
+        assert!(stdout.contains("pre-roll: 8 frame(s)"), "{stdout}");
+        let cp = FramePattern::parse(&chunk).unwrap();
+        assert!(
+            (9..=16).all(|n| !cp.path(n).exists()),
+            "pre-roll frames written"
+        );
+        let r: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+        assert_eq!(r["summary"]["frames"], 16);
+        assert_eq!(r["summary"]["preroll_frames"], 8);
+        let frames = r["frames"].as_array().unwrap();
+        assert_eq!(frames.len(), 24);
+        assert!(frames[..8].iter().all(|f| f["preroll"] == true));
+        assert!(frames[8..].iter().all(|f| f["preroll"] == false));
+        let got = read(&chunk, 17..=32);
+        let warm = psnr(&got, &want);
+        // Without a pre-roll the chunk starts cold: its first frames differ.
+        let cold_out = out(dir.path(), "cold");
+        run(&input, &cold_out, "classical", "17-32", 0);
+        let cold = psnr(&read(&cold_out, 17..=32), &want);
+        println!(
+            "chunk 17-32 against the sequential run: pre-roll 8 {warm:.1} dB, none {cold:.1} dB"
+        );
+        assert!(
+            warm > 40.0 && warm > cold,
+            "pre-roll 8 {warm:.1} dB, none {cold:.1} dB"
+        );
+        // The same chunk again: the same bytes.
+        let again = out(dir.path(), "again");
+        run(&input, &again, "classical", "17-32", 8);
+        let ap = FramePattern::parse(&again).unwrap();
+        for n in 17..=32 {
+            assert_eq!(
+                std::fs::read(cp.path(n)).unwrap(),
+                std::fs::read(ap.path(n)).unwrap(),
+                "frame {n}"
+            );
+        }
+        // At the start of the sequence the pre-roll has fewer frames.
+        let head = out(dir.path(), "head");
+        let o = run(&input, &head, "classical", "3-8", 8);
+        assert!(
+            text(&o).0.contains("pre-roll: 2 frame(s)"),
+            "{:?}",
+            text(&o)
+        );
+    }
+
+    #[test]
+    fn a_preroll_without_frames_is_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let (_, input) = sequence(
+            dir.path(),
+            SynthConfig {
+                width: 32,
+                height: 18,
+                frames: 3,
+                ..Default::default()
+            },
+        );
+        let o = harmonize(&["run", &input, "-o", &out(dir.path(), "o"), "--preroll", "4"]);
+        let (_, stderr) = text(&o);
+        assert!(!o.status.success());
+        assert!(stderr.contains("--preroll needs --frames"), "{stderr}");
+    }
+
+    /// PSNR of 12-frame chunks (13-24, 25-36, 37-48) of the 48-frame
+    /// synthetic sequence (its camera leaves the scene after about 50
+    /// frames) against one sequential run, for pre-rolls 0, 4, 8 and 12,
+    /// classical and neural. A measurement: run it alone, `cargo test -p
+    /// harmonizer-cli --release --test cli preroll::measure -- --ignored
+    /// --nocapture`.
+    #[test]
+    #[ignore = "a measurement: run it alone, see the doc comment"]
+    fn measure() {
+        let dir = tempfile::tempdir().unwrap();
+        let (_, input) = sequence(
+            dir.path(),
+            SynthConfig {
+                width: 320,
+                height: 180,
+                frames: 48,
+                ..Default::default()
+            },
+        );
+        for backend in ["classical", "neural"] {
+            let seq_out = out(dir.path(), &format!("{backend}-all"));
+            run(&input, &seq_out, backend, "", 0);
+            for n in [0usize, 4, 8, 12] {
+                let mut line = format!("{backend} pre-roll {n:2}:");
+                let mut firsts = Vec::new();
+                for start in [13i64, 25, 37] {
+                    let frames = format!("{start}-{}", start + 11);
+                    let o = out(dir.path(), &format!("{backend}-{n}-{start}"));
+                    run(&input, &o, backend, &frames, n);
+                    let got = read(&o, start..=start + 11);
+                    let want = read(&seq_out, start..=start + 11);
+                    line += &format!(" {frames} {:.2} dB", psnr(&got, &want));
+                    firsts.push(psnr(&got[..1], &want[..1]));
+                }
+                let first = firsts.iter().cloned().fold(f64::INFINITY, f64::min);
+                println!("{line}; the chunks' first frames at least {first:.2} dB");
+            }
+        }
+    }
+}

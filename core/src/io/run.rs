@@ -24,6 +24,25 @@ pub struct RunOptions {
     pub layout: LayoutOptions,
     /// Only these frames (all must exist); `None` = every existing frame.
     pub frames: Option<FrameRange>,
+    /// Frames before `frames` run first to warm the temporal state, not
+    /// written (those of `start - preroll ..= start - 1` that exist): a
+    /// chunk of a sequence then starts with the history a sequential run
+    /// would have. Needs `frames`.
+    pub preroll: usize,
+}
+
+impl RunOptions {
+    /// Options for `input` to `output` with `layout`: every frame, no
+    /// pre-roll.
+    pub fn new(input: impl Into<String>, output: impl Into<String>, layout: LayoutOptions) -> Self {
+        RunOptions {
+            input: input.into(),
+            output: output.into(),
+            layout,
+            frames: None,
+            preroll: 0,
+        }
+    }
 }
 
 /// One frame to process.
@@ -35,6 +54,8 @@ pub struct PlannedFrame {
     pub input: PathBuf,
     /// Output file.
     pub output: PathBuf,
+    /// A pre-roll frame ([`RunOptions::preroll`]): processed, not written.
+    pub preroll: bool,
 }
 
 /// One processed frame.
@@ -70,29 +91,51 @@ pub fn with_context(e: Error, context: &str) -> Error {
     }
 }
 
-/// Lists the frames to process and their outputs; refuses an output that
-/// would overwrite an input.
+/// Lists the frames to process and their outputs, the pre-roll frames
+/// first; refuses an output that would overwrite an input.
 pub fn plan(options: &RunOptions) -> Result<Vec<PlannedFrame>> {
     let input = FramePattern::parse(&options.input)?;
     let output = FramePattern::parse(&options.output)?;
     let frames = select_frames(&input, options.frames)?;
-    let planned: Vec<PlannedFrame> = frames
-        .into_iter()
-        .map(|(frame, path)| PlannedFrame {
-            frame,
-            output: output.path(frame),
-            input: path,
-        })
-        .collect();
-    for p in &planned {
+    let mut planned: Vec<PlannedFrame> = Vec::new();
+    if options.preroll > 0 {
+        let Some(range) = options.frames else {
+            return Err(Error::invalid(
+                "--preroll needs --frames A-B: the frames before A warm the temporal state",
+            ));
+        };
+        let n = i64::try_from(options.preroll).unwrap_or(i64::MAX);
+        let first = range.start.saturating_sub(n);
+        // The pre-roll frames that exist (a chunk at the start of a
+        // sequence has fewer); a missing one in between is a gap, which
+        // the session's `gap_policy` handles as in any run.
+        for (frame, path) in input.list()? {
+            if (first..range.start).contains(&frame) {
+                planned.push(PlannedFrame {
+                    frame,
+                    output: output.path(frame),
+                    input: path,
+                    preroll: true,
+                });
+            }
+        }
+    }
+    planned.extend(frames.into_iter().map(|(frame, path)| PlannedFrame {
+        frame,
+        output: output.path(frame),
+        input: path,
+        preroll: false,
+    }));
+    for p in planned.iter().filter(|p| !p.preroll) {
         refuse_input(&p.output, &p.input, Some(p.frame))?;
     }
     Ok(planned)
 }
 
 /// Runs `session` over the planned frames. `on_frame` sees each result as it
-/// is written (for progress bars and reports). With `keep_outputs` the
-/// enhanced images are kept in the results.
+/// is written (for progress bars and reports), pre-roll frames too (not
+/// written; `planned.preroll`). With `keep_outputs` the enhanced images are
+/// kept in the results.
 pub fn run_sequence(
     session: &mut Session,
     options: &RunOptions,
@@ -134,7 +177,9 @@ pub fn run_sequence(
                 .map(|r| r.name().to_string())
                 .unwrap_or_default(),
         };
-        loaded.write_enhanced(&out, &p.output, &meta)?;
+        if !p.preroll {
+            loaded.write_enhanced(&out, &p.output, &meta)?;
+        }
         let write_ms = t.elapsed().as_secs_f64() * 1e3;
         let result = FrameResult {
             planned: p.clone(),

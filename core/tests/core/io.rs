@@ -618,6 +618,7 @@ fn runner_refuses_to_overwrite_inputs_and_names_size_changes() {
         output: same,
         layout: LayoutOptions::default(),
         frames: None,
+        preroll: 0,
     };
     let e = plan(&opts).unwrap_err().to_string();
     assert!(e.contains("frame 1") && e.contains("input file"), "{e}");
@@ -645,6 +646,7 @@ fn runner_refuses_to_overwrite_inputs_and_names_size_changes() {
         output: out.clone(),
         layout: LayoutOptions::default(),
         frames: None,
+        preroll: 0,
     };
     let planned = plan(&opts).unwrap();
     let mut s = session("bypass");
@@ -687,6 +689,7 @@ fn bypass_run_reproduces_the_input_color() {
         output: out.clone(),
         layout: LayoutOptions::default(),
         frames: Some(FrameRange::parse("7-8").unwrap()),
+        preroll: 0,
     };
     let planned = plan(&opts).unwrap();
     let res = run_sequence(&mut session("bypass"), &opts, &planned, false, &mut |_| {}).unwrap();
