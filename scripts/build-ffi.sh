@@ -29,7 +29,15 @@ STATIC_LIBS=${STATIC_LIBS:--lpthread -ldl -lm}
 
 install -d "$PREFIX/include" "$PREFIX/lib/pkgconfig" "$PREFIX/lib/cmake/harmonizer"
 install -m 644 ffi/include/harmonizer.h "$PREFIX/include/"
-install -m 755 "$TARGET_DIR/release/$SHARED" "$PREFIX/lib/"
+if [[ $SHARED == *.so ]]; then
+    # The soname is libharmonizer.so.MAJOR (ffi/build.rs): the real file carries
+    # the full version, with the usual links for the loader and the linker.
+    install -m 755 "$TARGET_DIR/release/$SHARED" "$PREFIX/lib/$SHARED.$VERSION"
+    ln -sfn "$SHARED.$VERSION" "$PREFIX/lib/$SHARED.$MAJOR"
+    ln -sfn "$SHARED.$MAJOR" "$PREFIX/lib/$SHARED"
+else
+    install -m 755 "$TARGET_DIR/release/$SHARED" "$PREFIX/lib/"
+fi
 install -m 644 "$TARGET_DIR/release/$STATIC" "$PREFIX/lib/"
 subst() {
     sed -e "s|@PREFIX@|$PREFIX|g" -e "s|@VERSION@|$VERSION|g" -e "s|@VERSION_MAJOR@|$MAJOR|g" \

@@ -13,6 +13,19 @@ PREFIX=$WORK/prefix
 EXAMPLE=$ROOT/examples/c/enhance_sequence.c
 WARN="-Wall -Wextra -Werror -pedantic"
 
+echo "== soname and links"
+MAJOR=$(sed -n 's/^#define HZ_VERSION_MAJOR \([0-9]*\)$/\1/p' "$ROOT/ffi/include/harmonizer.h")
+VERSION=$(sed -n 's/^#define HZ_VERSION_STRING "\(.*\)"$/\1/p' "$ROOT/ffi/include/harmonizer.h")
+[[ -f "$PREFIX/lib/libharmonizer.so.$VERSION" && ! -L "$PREFIX/lib/libharmonizer.so.$VERSION" ]] ||
+    { echo "FAIL: no libharmonizer.so.$VERSION file"; exit 1; }
+[[ "$(readlink "$PREFIX/lib/libharmonizer.so.$MAJOR")" == "libharmonizer.so.$VERSION" ]] ||
+    { echo "FAIL: libharmonizer.so.$MAJOR is not a link to libharmonizer.so.$VERSION"; exit 1; }
+[[ "$(readlink "$PREFIX/lib/libharmonizer.so")" == "libharmonizer.so.$MAJOR" ]] ||
+    { echo "FAIL: libharmonizer.so is not a link to libharmonizer.so.$MAJOR"; exit 1; }
+soname=$(readelf -d "$PREFIX/lib/libharmonizer.so.$VERSION" | sed -n 's/.*(SONAME).*\[\(.*\)\]/\1/p')
+[[ "$soname" == "libharmonizer.so.$MAJOR" ]] || { echo "FAIL: soname '$soname', expected libharmonizer.so.$MAJOR"; exit 1; }
+echo "ok: soname $soname, links libharmonizer.so -> .so.$MAJOR -> .so.$VERSION"
+
 echo "== exported symbols"
 bad=$(nm -D --defined-only "$PREFIX/lib/libharmonizer.so" | awk '{print $3}' | grep -v '^hz_' || true)
 if [[ -n "$bad" ]]; then
@@ -32,6 +45,8 @@ mkdir -p "$WORK/frames"
 "$WORK/enhance_pc_shared" 6 64 36 "$WORK/frames" | tail -n 2
 "$WORK/enhance_pc_static" 3 64 36 | tail -n 1
 [[ -s "$WORK/frames/output_0005.pfm" ]]
+readelf -d "$WORK/enhance_pc_shared" | grep -q "NEEDED.*\[libharmonizer.so.$MAJOR\]" ||
+    { echo "FAIL: the shared build does not record libharmonizer.so.$MAJOR"; exit 1; }
 if ldd "$WORK/enhance_pc_static" | grep -q libharmonizer; then
     echo "FAIL: the static build links libharmonizer.so"; exit 1
 fi
