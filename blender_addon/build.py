@@ -5,19 +5,29 @@ The zip holds the add-on modules, ``blender_manifest.toml`` (with its
 ``wheels`` list filled in) and ``wheels/``:
 
 - ``harmonizer-<version>-py3-none-linux_x86_64.whl``: the Python binding
-  (``ffi/python/harmonizer``) with ``libharmonizer.so`` inside the package,
-  built here from the files (no setuptools needed);
+  (``ffi/python/harmonizer``) with ``libharmonizer.so`` inside the package
+  (``harmonizer/lib/``, the layout of the wheel ``scripts/wheels.sh`` builds),
+  built here from the files (no build backend needed), or that wheel itself
+  (``--binding-wheel dist/harmonizer-*.whl``);
 - ``onnxruntime-1.31.*-cp311-...manylinux...whl``: fetched with
   ``pip download`` (ONNX Runtime for the neural backend; the add-on only loads
-  its shared library);
+  its shared library), or given (``--onnxruntime-wheel FILE``, offline);
 - ``pyoidn-2.*-py3-none-manylinux2014_x86_64.whl``: fetched the same way
   (Intel Open Image Denoise for the denoise stage; the add-on only locates its
-  shared library and hands its path to libharmonizer).
+  shared library and hands its path to libharmonizer), or given
+  (``--oidn-wheel FILE``).
+
+Only the zip is written, into ``--out`` (default ``dist/``); the staging and
+the downloads live in a temporary directory (``--cache DIR`` keeps the
+downloaded wheels between builds). With ``--binding-wheel`` (or ``--lib``),
+``--onnxruntime-wheel`` and ``--oidn-wheel`` the build needs no network.
 
 Usage::
 
-    python blender_addon/build.py [--lib target/release/libharmonizer.so] [--cargo]
-                                  [--out dist/] [--no-onnxruntime] [--no-oidn]
+    python blender_addon/build.py [--lib target/release/libharmonizer.so | --binding-wheel WHL]
+                                  [--cargo] [--out dist/] [--cache DIR]
+                                  [--onnxruntime-wheel WHL | --no-onnxruntime]
+                                  [--oidn-wheel WHL | --no-oidn]
 
 Blender installs the zip with Edit > Preferences > Get Extensions > Install
 from Disk, or ``blender --command extension install-file -r user_default <zip>``.
@@ -33,6 +43,7 @@ import re
 import shutil
 import subprocess
 import sys
+import tempfile
 import zipfile
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -75,7 +86,7 @@ def build_binding_wheel(lib: str, version: str, out_dir: str) -> str:
             with open(full, "rb") as fh:
                 files.append((arc, fh.read()))
     with open(lib, "rb") as fh:
-        files.append(("harmonizer/libharmonizer.so", fh.read()))
+        files.append(("harmonizer/lib/libharmonizer.so", fh.read()))
     metadata = (
         "Metadata-Version: 2.1\n"
         f"Name: harmonizer\nVersion: {version}\n"
@@ -137,6 +148,17 @@ def fetch_wheel(spec: str, prefix: str, cache: str) -> str:
     if not have:
         raise SystemExit(f"pip download {spec} produced no wheel in {cache}")
     return os.path.join(cache, have[-1])
+
+
+def given_wheel(path: str, prefix: str, option: str) -> str:
+    """A wheel file the caller gave (``--onnxruntime-wheel`` and the like): it must exist and be ``prefix*.whl``."""
+    path = os.path.abspath(path)
+    name = os.path.basename(path)
+    if not os.path.isfile(path):
+        raise SystemExit(f"{option}: {path} not found")
+    if not (name.startswith(prefix) and name.endswith(".whl")):
+        raise SystemExit(f"{option}: {name} is not a {prefix}*.whl wheel")
+    return path
 
 
 def fetch_onnxruntime(cache: str) -> str:
@@ -220,12 +242,19 @@ def main(argv: list[str] | None = None) -> int:
         help="libharmonizer.so to bundle (default: $HARMONIZER_LIB or target/release)",
     )
     ap.add_argument("--cargo", action="store_true", help="build it first: cargo build --release -p harmonizer-ffi")
-    ap.add_argument("--out", default=os.path.join(REPO, "dist"), help="output folder for the zip")
+    ap.add_argument(
+        "--binding-wheel",
+        metavar="WHL",
+        help="bundle this harmonizer wheel (scripts/wheels.sh's dist/harmonizer-*.whl) instead of building one from --lib",
+    )
+    ap.add_argument("--out", default=os.path.join(REPO, "dist"), help="output folder for the zip (the only thing written)")
     ap.add_argument(
         "--cache",
-        default=os.path.join(REPO, "build", "blender_addon", "wheel-cache"),
-        help="where downloaded wheels are kept between builds",
+        metavar="DIR",
+        help="keep downloaded wheels here between builds (default: a temporary directory; pip's cache still serves)",
     )
+    ap.add_argument("--onnxruntime-wheel", metavar="WHL", help=f"bundle this {ORT_SPEC} wheel (no download)")
+    ap.add_argument("--oidn-wheel", metavar="WHL", help=f"bundle this {OIDN_SPEC} wheel (no download)")
     ap.add_argument("--no-onnxruntime", action="store_true", help="do not bundle onnxruntime (classical/bypass only)")
     ap.add_argument(
         "--no-oidn",
@@ -235,32 +264,46 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-validate", action="store_true", help="skip Blender's manifest validation")
     args = ap.parse_args(argv)
 
-    if args.cargo:
-        subprocess.run(["cargo", "build", "--release", "-p", "harmonizer-ffi"], cwd=REPO, check=True)
-    lib = os.path.abspath(args.lib)
-    if not os.path.isfile(lib):
-        print(
-            f"error: {lib} not found; build it with `cargo build --release -p harmonizer-ffi` or pass --lib/--cargo",
-            file=sys.stderr,
-        )
-        return 2
+    if args.no_onnxruntime and args.onnxruntime_wheel:
+        ap.error("--no-onnxruntime and --onnxruntime-wheel exclude each other")
+    if args.no_oidn and args.oidn_wheel:
+        ap.error("--no-oidn and --oidn-wheel exclude each other")
     with open(os.path.join(HERE, "blender_manifest.toml"), encoding="utf-8") as fh:
         version = _manifest_version(fh.read())
-    work = os.path.join(REPO, "build", "blender_addon")
-    wheel_dir = os.path.join(work, "wheels")
-    os.makedirs(wheel_dir, exist_ok=True)
-    for f in os.listdir(wheel_dir):
-        os.unlink(os.path.join(wheel_dir, f))
-    wheels = [build_binding_wheel(lib, version, wheel_dir)]
-    if not args.no_onnxruntime:
-        wheels.append(fetch_onnxruntime(args.cache))
-    if not args.no_oidn:
-        wheels.append(fetch_pyoidn(args.cache))
-    stage = os.path.join(work, "stage")
-    stage_addon(stage, wheels)
-    os.makedirs(args.out, exist_ok=True)
-    zip_path = os.path.join(os.path.abspath(args.out), f"harmonizer-{version}-linux-x64.zip")
-    write_zip(stage, zip_path)
+    if args.binding_wheel:
+        binding = given_wheel(args.binding_wheel, f"harmonizer-{version}-", "--binding-wheel")
+        if not binding.endswith(f"-{WHEEL_PLATFORM}.whl"):
+            raise SystemExit(f"--binding-wheel: {os.path.basename(binding)} is not a {WHEEL_PLATFORM} wheel")
+    else:
+        if args.cargo:
+            subprocess.run(["cargo", "build", "--release", "-p", "harmonizer-ffi"], cwd=REPO, check=True)
+        lib = os.path.abspath(args.lib)
+        if not os.path.isfile(lib):
+            print(
+                f"error: {lib} not found; build it with `cargo build --release -p harmonizer-ffi` or pass "
+                "--lib/--cargo/--binding-wheel",
+                file=sys.stderr,
+            )
+            return 2
+    # Nothing but the zip goes outside this temporary directory.
+    with tempfile.TemporaryDirectory(prefix="harmonizer-blender-") as work:
+        cache = os.path.abspath(args.cache) if args.cache else os.path.join(work, "downloads")
+        wheel_dir = os.path.join(work, "wheels")
+        os.makedirs(wheel_dir)
+        wheels = [binding if args.binding_wheel else build_binding_wheel(lib, version, wheel_dir)]
+        if args.onnxruntime_wheel:
+            wheels.append(given_wheel(args.onnxruntime_wheel, "onnxruntime-1.31.", "--onnxruntime-wheel"))
+        elif not args.no_onnxruntime:
+            wheels.append(fetch_onnxruntime(cache))
+        if args.oidn_wheel:
+            wheels.append(given_wheel(args.oidn_wheel, "pyoidn-2.", "--oidn-wheel"))
+        elif not args.no_oidn:
+            wheels.append(fetch_pyoidn(cache))
+        stage = os.path.join(work, "stage")
+        stage_addon(stage, wheels)
+        os.makedirs(args.out, exist_ok=True)
+        zip_path = os.path.join(os.path.abspath(args.out), f"harmonizer-{version}-linux-x64.zip")
+        write_zip(stage, zip_path)
     if not args.no_validate:
         validate(zip_path)
     print(zip_path)

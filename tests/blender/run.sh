@@ -38,7 +38,8 @@ if [[ ! -f "$LIB" ]]; then
 fi
 
 OUT="$REPO/build/blender_addon/dist"
-ZIP=$("$VENV/bin/python" blender_addon/build.py --lib "$LIB" --out "$OUT" | tail -n 1)
+ZIP=$("$VENV/bin/python" blender_addon/build.py --lib "$LIB" --out "$OUT" \
+    --cache "$REPO/build/blender_addon/wheel-cache" | tail -n 1)
 echo "extension: $ZIP"
 export HARMONIZER_BLENDER_ZIP="$ZIP"
 exec nice -n 10 "$VENV/bin/python" -m pytest tests/blender -q -p no:cacheprovider -W ignore::DeprecationWarning "$@"

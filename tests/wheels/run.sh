@@ -5,7 +5,8 @@
 # every HARMONIZER_* variable unset and the working directory outside the
 # checkout: runs frames through harmonizer.Session (classical, neural with the
 # onnxruntime wheel, denoise with the pyoidn wheel) and a small hand-made
-# stage through usd-harmonize. Fails when `git status --porcelain --ignored`
+# stage through usd-harmonize; builds the Blender zip from the same binding
+# wheel (offline). Fails when `git status --porcelain --ignored`
 # of the checkout differs afterwards (nothing written into the source tree).
 #
 #   tests/wheels/run.sh          # CARGO_TARGET_DIR: reused when set (CI: target/)
@@ -94,6 +95,19 @@ run "$V/usd-harmonize" "$WORK/shot/stage.usda" --frames 1-3 --backend classical 
 ls "$WORK"/shot/out/*/* 2>/dev/null || ls -R "$WORK/shot/out"
 n=$(find "$WORK/shot/out" -name '*.exr' | wc -l)
 [[ "$n" -eq 3 ]] || { echo "FAIL: usd-harmonize wrote $n EXR files, expected 3"; exit 1; }
+
+echo "== the Blender zip reuses the binding wheel (offline, writes only into --out)"
+run "$PY" -B "$ROOT/blender_addon/build.py" --binding-wheel "$hz_whl" --no-onnxruntime --no-oidn \
+    --no-validate --out "$WORK/blender"
+[[ "$(ls -A "$WORK/blender")" == "harmonizer-"*"-linux-x64.zip" ]] || { echo "FAIL: --out holds $(ls -A "$WORK/blender")"; exit 1; }
+"$PY" - "$WORK"/blender/*.zip "$hz_whl" <<'PY'
+import hashlib, os, sys, zipfile
+
+zf = zipfile.ZipFile(sys.argv[1])
+inner = zf.read("wheels/" + os.path.basename(sys.argv[2]))
+assert hashlib.sha256(inner).digest() == hashlib.sha256(open(sys.argv[2], "rb").read()).digest(), "not the same wheel"
+print("ok: the zip carries", os.path.basename(sys.argv[2]))
+PY
 
 after=$(git status --porcelain --ignored)
 if [[ "$before" != "$after" ]]; then
