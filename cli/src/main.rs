@@ -113,7 +113,10 @@ enum Command {
         /// as over a long sequence); the median is reported.
         #[arg(long, default_value_t = 10)]
         frames: usize,
-        /// Backends to time (default: classical, plus neural when a model is available).
+        /// Backends to time (default: classical, plus neural when a model is
+        /// available, plus denoise when Open Image Denoise is found);
+        /// `denoise` is the classical backend with `denoise=on` (the denoise
+        /// stage with its accumulation), timed beside OIDN alone.
         #[arg(long)]
         backend: Vec<String>,
         /// ONNX model file for the neural backend.
@@ -824,9 +827,13 @@ fn cmd_bench(
             Ok(None) => {}
             Err(e) => eprintln!("harmonize bench: neural backend skipped: {e}"),
         }
+        match device.oidn() {
+            Ok(_) => b.push("denoise".to_string()),
+            Err(e) => eprintln!("harmonize bench: denoise skipped: {e}"),
+        }
         b
     } else {
-        for b in &backends {
+        for b in backends.iter().filter(|b| *b != "denoise") {
             BackendKind::parse(b)?;
         }
         backends
@@ -834,7 +841,17 @@ fn cmd_bench(
     let mut runs = Vec::new();
     for b in &backends {
         for &size in &sizes {
-            let run = bench_one(&device, b, size, frames, context, sets)?;
+            let run = match b.as_str() {
+                // The denoise stage on the classical backend's frames.
+                "denoise" => {
+                    let mut with = sets.to_vec();
+                    with.push("denoise=on".to_string());
+                    let mut run = bench_one(&device, "classical", size, frames, context, &with)?;
+                    run["backend"] = json!("denoise");
+                    run
+                }
+                _ => bench_one(&device, b, size, frames, context, sets)?,
+            };
             if !as_json {
                 let stages: Vec<String> = run["stages"]
                     .as_object()

@@ -578,6 +578,28 @@ mod denoise {
         assert!(
             v["runs"][0]["oidn_alone_ms"].is_null() && v["runs"][0]["stages"]["denoise"].is_null()
         );
+        // The `denoise` entry: the classical backend with the stage on, its
+        // accumulation timed too, beside OIDN alone.
+        let o = harmonize(&[
+            "bench",
+            "--json",
+            "--sizes",
+            "64x36",
+            "--frames",
+            "2",
+            "--threads",
+            "2",
+            "--backend",
+            "denoise",
+        ]);
+        let (out, err) = text(&o);
+        assert!(o.status.success(), "{err}");
+        let v: serde_json::Value = serde_json::from_str(out.trim()).unwrap();
+        let run = &v["runs"][0];
+        assert_eq!(run["backend"], "denoise");
+        assert!(run["stages"]["denoise"].as_f64().unwrap() > 0.0, "{run}");
+        assert!(run["stages"]["accumulate"].as_f64().unwrap() > 0.0, "{run}");
+        assert!(run["oidn_alone_ms"].as_f64().unwrap() > 0.0, "{run}");
     }
 }
 
