@@ -14,6 +14,8 @@ OUT=${1:-$ROOT/dist}
 mkdir -p "$OUT"
 OUT=$(cd "$OUT" && pwd)
 PY=${PYTHON:-python3.11}
+# hatchling imports ffi/python/hatch_build.py: no __pycache__ beside it.
+export PYTHONDONTWRITEBYTECODE=1
 # pip wheel keeps its build in a temporary directory; hatchling writes only the wheel.
 rm -f "$OUT"/harmonizer-*.whl "$OUT"/usd_harmonizer-*.whl
 "$PY" -m pip wheel --quiet --disable-pip-version-check --no-deps -w "$OUT" "$ROOT/ffi/python" "$ROOT/usd_plugin"
