@@ -395,6 +395,11 @@ fn cmd_run(
         files.output("--report file", path);
     }
     files.check()?;
+    let mut session_args = session_args;
+    if let Some((set, why)) = render_hints(&options, &planned, &session_args.set) {
+        println!("harmonize: {why}");
+        session_args.set.push(set);
+    }
     let mut session = make_session(&session_args, Some(&gap))?;
     let bar = progress_bar(planned.len() as u64);
     let mut done: Vec<FrameResult> = Vec::new();
@@ -437,6 +442,37 @@ fn cmd_run(
         println!("  report: {}", path.display());
     }
     Ok(())
+}
+
+/// What the first input file says about its noise (Blender's
+/// `cycles.<layer>.samples`, Cycles' `Noisy Image` pass), as the `--set`
+/// a host would pass and why, when the user set neither `denoise` nor
+/// `samples` (`RenderHints::params`); `None` when the file says nothing
+/// or cannot be read (the run then reports that itself).
+fn render_hints(
+    options: &RunOptions,
+    planned: &[harmonizer_core::io::run::PlannedFrame],
+    sets: &[String],
+) -> Option<(String, String)> {
+    if sets
+        .iter()
+        .any(|s| s.starts_with("denoise=") || s.starts_with("samples="))
+    {
+        return None;
+    }
+    let first = planned.first()?;
+    let file = harmonizer_core::io::exr::ExrFile::open(&first.input, Some(first.frame)).ok()?;
+    let layer = file.resolve(&options.layout).ok()?.view_layer;
+    let (name, value, why) = file.render_hints(layer.as_deref()).params()?;
+    let value = match value {
+        ParamValue::Str(s) => s,
+        ParamValue::Int(i) => i.to_string(),
+        _ => return None,
+    };
+    Some((
+        format!("{name}={value}"),
+        format!("{why} (from {})", first.input.display()),
+    ))
 }
 
 fn progress_bar(len: u64) -> indicatif::ProgressBar {

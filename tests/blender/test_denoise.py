@@ -253,3 +253,48 @@ def test_samples_from_the_render_settings(addon):
     assert samples(scene, vl)[0] == 0
     assert not addon.denoise.guides_available(scene, vl)
     assert addon.denoise.auto_summary(scene, vl).startswith("Auto: the first frame's noise decides")
+
+
+def _harmonize_run(src_dir: str, dst_dir: str) -> dict:
+    """``harmonize run`` (the release CLI) over the raw frames in ``src_dir``; its report."""
+    import json
+    import subprocess
+
+    from conftest import REPO
+
+    exe = os.path.join(REPO, "target", "release", "harmonize")
+    assert os.path.isfile(exe), f"{exe} missing: cargo build --release -p harmonizer-cli"
+    report = os.path.join(dst_dir, "report.json")
+    p = subprocess.run(
+        [exe, "run", os.path.join(src_dir, "frame_####.exr"), "-o", os.path.join(dst_dir, "frame_####.exr"),
+         "--backend", "classical", "--threads", "2", "--report", report],
+        capture_output=True, text=True,
+    )
+    assert p.returncode == 0, p.stdout + p.stderr
+    with open(report) as f:
+        rep = json.load(f)
+    rep["stdout"] = p.stdout
+    return rep
+
+
+def test_the_cli_reads_what_cycles_recorded_in_the_files(addon, auto_run, tmp_root):
+    """Blender's files say how they were rendered; ``harmonize run`` with nothing set uses it.
+
+    Raw 4-sample frames carry ``cycles.ViewLayer.samples 4``: the CLI passes
+    samples 4 and ``denoise auto`` denoises (the noise estimate alone finds
+    these sunlit frames clean). Frames Cycles denoised carry its Noisy Image
+    pass: the CLI passes ``denoise temporal``.
+    """
+    _scene, out, _log, _ = auto_run
+    rep = _harmonize_run(os.path.join(out, "raw"), os.path.join(tmp_root, "denoise", "cli", "raw"))
+    assert "samples 4" in rep["stdout"], rep["stdout"]
+    assert rep["frames"][0]["denoise_decision"].startswith("denoise auto: on (the host renders 4 samples"), rep
+    assert all(f["denoised"] for f in rep["frames"])
+
+    scene, dn_out = _denoise_render(addon, tmp_root, "cli_cycles_denoised")
+    scene.cycles.use_denoising = True
+    scene.harmonizer.enabled = False
+    render(scene)
+    rep = _harmonize_run(os.path.join(dn_out, "raw"), os.path.join(tmp_root, "denoise", "cli", "denoised"))
+    assert "denoise temporal" in rep["stdout"], rep["stdout"]
+    assert rep["frames"][0]["denoise_decision"].startswith("denoise temporal"), rep

@@ -110,6 +110,41 @@ fn rows_matrix(r: &[[f32; 4]; 4]) -> [f32; 16] {
     m
 }
 
+/// What a rendered file says about its noise ([`ExrFile::render_hints`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct RenderHints {
+    /// Samples per pixel the renderer recorded (Blender/Cycles:
+    /// `cycles.<view layer>.samples`).
+    pub samples: Option<u32>,
+    /// The renderer denoised the color itself (Cycles wrote its `Noisy
+    /// Image` pass beside the denoised `Combined`).
+    pub denoised_by_renderer: bool,
+}
+
+impl RenderHints {
+    /// The session parameters a host would pass for such frames when the
+    /// user set neither `denoise` nor `samples`: `denoise temporal` for
+    /// frames the renderer denoised, else `samples`; and why, for the user.
+    pub fn params(&self) -> Option<(&'static str, crate::params::ParamValue, String)> {
+        use crate::params::ParamValue;
+        if self.denoised_by_renderer {
+            return Some((
+                "denoise",
+                ParamValue::Str("temporal".into()),
+                "the renderer denoised the frames (Cycles' Noisy Image pass is there): denoise temporal"
+                    .to_string(),
+            ));
+        }
+        self.samples.map(|n| {
+            (
+                "samples",
+                ParamValue::Int(i64::from(n)),
+                format!("the file says the renderer took {n} samples per pixel: samples {n}"),
+            )
+        })
+    }
+}
+
 impl ExrFile {
     /// Reads every part and channel of `path`; `frame` only names the frame in
     /// errors. The header's claims are checked first with the default
@@ -284,6 +319,49 @@ impl ExrFile {
             .get(part)
             .and_then(|l| of(&l.attributes))
             .or_else(|| self.image.layer_data.iter().find_map(|l| of(&l.attributes)))
+    }
+
+    /// What the renderer recorded about its noise, for `denoise auto`
+    /// (see [`RenderHints`]): Blender's `cycles.<view layer>.samples`
+    /// header attribute (for `view_layer`, or the only one), and whether
+    /// the file has Cycles' `Noisy Image` pass (written when its denoiser
+    /// ran: the color was denoised per frame).
+    pub fn render_hints(&self, view_layer: Option<&str>) -> RenderHints {
+        let mut found: Vec<(String, u32)> = Vec::new();
+        for l in &self.image.layer_data {
+            for (k, v) in &l.attributes.other {
+                let key = k.to_string();
+                let Some(layer) = key
+                    .strip_prefix("cycles.")
+                    .and_then(|r| r.strip_suffix(".samples"))
+                else {
+                    continue;
+                };
+                let n = match v {
+                    AttributeValue::Text(t) => t.to_string().trim().parse::<u32>().ok(),
+                    AttributeValue::I32(i) => u32::try_from(*i).ok(),
+                    _ => None,
+                };
+                if let Some(n) = n.filter(|&n| n > 0) {
+                    if !found.iter().any(|(l, _)| l == layer) {
+                        found.push((layer.to_string(), n));
+                    }
+                }
+            }
+        }
+        let samples = match view_layer {
+            Some(vl) => found.iter().find(|(l, _)| l == vl).map(|f| f.1),
+            None if found.len() == 1 => Some(found[0].1),
+            None => None,
+        };
+        let noisy_pass = |name: &str| match view_layer {
+            Some(vl) => name.starts_with(&format!("{vl}.Noisy Image.")),
+            None => name.contains("Noisy Image."),
+        };
+        RenderHints {
+            samples,
+            denoised_by_renderer: self.channels.iter().any(|c| noisy_pass(&c.qualified)),
+        }
     }
 
     fn samples(&self, c: &ChannelInfo) -> &FlatSamples {
