@@ -86,6 +86,33 @@ def session_mode(scene: bpy.types.Scene, view_layer: bpy.types.ViewLayer | None,
     return mode, ""
 
 
+def file_hints(exr, view_layer: str) -> tuple[int, bool]:
+    """What a rendered multilayer EXR says about its noise: Cycles' samples
+    (``cycles.<view layer>.samples``, 0 when absent) and whether Cycles'
+    denoiser ran (its ``Noisy Image`` pass is in the file)."""
+    try:
+        samples = int(str(exr.attribute(f"cycles.{view_layer}.samples", 0)).strip())
+    except ValueError:
+        samples = 0
+    denoised = any(c.startswith(f"{view_layer}.Noisy Image.") for c in exr.channel_names())
+    return max(samples, 0), denoised
+
+
+def sequence_settings(mode: str, exr, view_layer: str) -> tuple[str, int, str]:
+    """``denoise``, ``samples`` and why for the sequence operator: with the
+    panel's Auto, what the first file says (``file_hints``): ``temporal``
+    for frames Cycles denoised, else its sample count (0: the library
+    measures the first frame); other modes as they are, samples 0."""
+    if mode != "auto":
+        return mode, 0, ""
+    samples, denoised = file_hints(exr, view_layer)
+    if denoised:
+        return "temporal", 0, "the files have Cycles' Noisy Image pass: its denoiser ran, so denoise temporal"
+    if samples:
+        return "auto", samples, f"the files say Cycles took {samples} samples per pixel"
+    return "auto", 0, ""
+
+
 def expected(scene: bpy.types.Scene, view_layer: bpy.types.ViewLayer) -> bool:
     """Whether this render will be denoised as far as the settings tell.
 

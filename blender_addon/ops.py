@@ -15,7 +15,7 @@ import time
 import bpy
 from bpy.props import BoolProperty, StringProperty
 
-from . import deps, exrio, processor, reports, runtime, sequence
+from . import denoise, deps, exrio, processor, reports, runtime, sequence
 
 
 class _Job:
@@ -23,9 +23,9 @@ class _Job:
         frames = sequence.list_frames(directory)
         if not frames:
             raise processor.FrameError(f"{directory}: no frame-numbered .exr files")
+        first = exrio.read(deps.oiio(), frames[0][1])
         if not view_layer:
-            oiio = deps.oiio()
-            view_layer = processor.detect_view_layer(exrio.read(oiio, frames[0][1])) or ""
+            view_layer = processor.detect_view_layer(first) or ""
             if not view_layer:
                 raise processor.FrameError(f"{frames[0][1]}: no view layer with a Combined pass")
         self.frames = frames
@@ -36,10 +36,13 @@ class _Job:
         self.resets: list[tuple[int, str]] = []
         self.denoised = 0
         self.denoise_decision: str | None = None
-        # samples 0: the files do not say whether Cycles denoised them (their
-        # header's sample count is the same either way), so with denoise auto
-        # the first frame's measured noise decides.
-        self.runner = runtime.Runner(scene, view_layer=view_layer, samples=0)
+        # With denoise Auto, what the first file says: Cycles' Noisy Image
+        # pass (its denoiser ran: denoise temporal), else its sample count;
+        # neither, samples 0 and the first frame's measured noise decides.
+        mode, samples, why = denoise.sequence_settings(scene.harmonizer.denoise, first, view_layer)
+        self.runner = runtime.Runner(scene, view_layer=view_layer, samples=samples, denoise_mode=mode)
+        if why:
+            reports.post("INFO", f"Harmonizer: {why}")
         for level, text in self.runner.notes:
             reports.post(level, text)
         self.started = time.perf_counter()

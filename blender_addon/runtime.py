@@ -24,13 +24,22 @@ def renumber(text: str, frame_of: Callable[[int], int] | None) -> str:
 class Runner:
     """A device, a session and a frame processor for one sequence; close() frees them."""
 
-    def __init__(self, scene: bpy.types.Scene, *, view_layer: str | None = None, samples: int | None = None):
+    def __init__(
+        self,
+        scene: bpy.types.Scene,
+        *,
+        view_layer: str | None = None,
+        samples: int | None = None,
+        denoise_mode: str | None = None,
+    ):
         """A session for ``scene``'s settings.
 
         ``view_layer``: the layer in the files (default: the panel's, else the
         first that renders). ``samples``: the denoise stage's ``samples``
         parameter (default: from the scene's render settings, see
-        ``denoise.session_samples``; the sequence operator passes 0).
+        ``denoise.session_samples``; the sequence operator passes what the
+        files say, ``denoise.sequence_settings``). ``denoise_mode``: the
+        ``denoise`` parameter (default: the panel's, see below).
         """
         s = scene.harmonizer
         hz = deps.harmonizer()
@@ -46,7 +55,7 @@ class Runner:
         #: The denoise stage's ``denoise`` (the panel's, or ``temporal`` for
         #: a render Cycles denoises, see ``denoise.session_mode``; the
         #: sequence operator, which cannot tell, passes the panel's).
-        self.denoise = s.denoise
+        self.denoise = denoise_mode or s.denoise
         if samples is None:
             vl = scene.view_layers.get(view_layer)
             self.denoise, mode_why = denoise.session_mode(scene, vl, s.denoise)

@@ -158,10 +158,9 @@ def test_frames_cycles_denoised_are_not_denoised_again(addon, tmp_root):
 def test_sequence_operator_denoises_files_with_the_denoising_passes(addon, auto_run, tmp_root):
     """Existing multilayer EXRs: the guides are read from the files as during a render.
 
-    The operator passes samples 0 (the files do not say whether Cycles
-    denoised them), so ``auto`` measures; this fixture's 4-sample frames
-    measure clean to the library's noise estimate (sunlit, little indirect
-    light), so the test asks for ``on``.
+    With the panel's Auto the operator passes what the first file says:
+    ``cycles.ViewLayer.samples`` 4, so ``auto`` denoises (the noise
+    estimate alone finds these sunlit frames clean).
     """
     _scene, out, _log, _ = auto_run
     scene = bpy.context.scene
@@ -169,7 +168,9 @@ def test_sequence_operator_denoises_files_with_the_denoising_passes(addon, auto_
     os.makedirs(src, exist_ok=True)
     for path in _frames(out, "raw"):
         shutil.copy(path, src)
-    configure(scene, backend="classical", denoise="on", denoise_quality="balanced")
+    configure(scene, backend="classical", denoise="auto", denoise_quality="balanced")
+    assert addon.denoise.sequence_settings("auto", addon.exrio.read(addon.deps.oiio(), _frames(out, "raw")[0]),
+                                           "ViewLayer") == ("auto", 4, "the files say Cycles took 4 samples per pixel")
     dst = os.path.join(tmp_root, "denoise", "sequence", "enhanced")
     assert bpy.ops.harmonizer.enhance_sequence(directory=src, output_directory=dst) == {"FINISHED"}
     written = sorted(os.listdir(dst))
@@ -298,3 +299,7 @@ def test_the_cli_reads_what_cycles_recorded_in_the_files(addon, auto_run, tmp_ro
     rep = _harmonize_run(os.path.join(dn_out, "raw"), os.path.join(tmp_root, "denoise", "cli", "denoised"))
     assert "denoise temporal" in rep["stdout"], rep["stdout"]
     assert rep["frames"][0]["denoise_decision"].startswith("denoise temporal"), rep
+    # The extension's sequence operator reads the same.
+    first = addon.exrio.read(addon.deps.oiio(), _frames(dn_out, "raw")[0])
+    assert addon.denoise.sequence_settings("auto", first, "ViewLayer")[:2] == ("temporal", 0)
+    assert addon.denoise.sequence_settings("on", first, "ViewLayer")[:2] == ("on", 0)
