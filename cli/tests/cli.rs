@@ -538,63 +538,38 @@ mod denoise {
         );
     }
 
+    /// `harmonize bench --json --sizes 64x36 --threads 2` with `extra`; its JSON.
+    fn bench_json(extra: &[&str]) -> serde_json::Value {
+        let mut args = vec!["bench", "--json", "--sizes", "64x36", "--threads", "2"];
+        args.extend_from_slice(extra);
+        let o = harmonize(&args);
+        let (out, err) = text(&o);
+        assert!(o.status.success(), "{err}");
+        serde_json::from_str(out.trim()).unwrap()
+    }
+
     #[test]
     fn bench_times_the_stage_beside_oidn_alone() {
-        let o = harmonize(&[
-            "bench",
-            "--json",
-            "--sizes",
-            "64x36",
+        let v = bench_json(&[
             "--frames",
-            "2",
-            "--threads",
             "2",
             "--backend",
             "classical",
             "--set",
             "denoise=on",
         ]);
-        let (out, err) = text(&o);
-        assert!(o.status.success(), "{err}");
-        let v: serde_json::Value = serde_json::from_str(out.trim()).unwrap();
         let run = &v["runs"][0];
         assert_eq!(run["set"][0], "denoise=on");
         assert!(run["stages"]["denoise"].as_f64().unwrap() > 0.0, "{run}");
         assert!(run["oidn_alone_ms"].as_f64().unwrap() > 0.0, "{run}");
         // Without the stage, no OIDN timing.
-        let o = harmonize(&[
-            "bench",
-            "--json",
-            "--sizes",
-            "64x36",
-            "--frames",
-            "1",
-            "--threads",
-            "2",
-            "--backend",
-            "classical",
-        ]);
-        let v: serde_json::Value = serde_json::from_str(text(&o).0.trim()).unwrap();
+        let v = bench_json(&["--frames", "1", "--backend", "classical"]);
         assert!(
             v["runs"][0]["oidn_alone_ms"].is_null() && v["runs"][0]["stages"]["denoise"].is_null()
         );
         // The `denoise` entry: the classical backend with the stage on, its
         // accumulation timed too, beside OIDN alone.
-        let o = harmonize(&[
-            "bench",
-            "--json",
-            "--sizes",
-            "64x36",
-            "--frames",
-            "2",
-            "--threads",
-            "2",
-            "--backend",
-            "denoise",
-        ]);
-        let (out, err) = text(&o);
-        assert!(o.status.success(), "{err}");
-        let v: serde_json::Value = serde_json::from_str(out.trim()).unwrap();
+        let v = bench_json(&["--frames", "2", "--backend", "denoise"]);
         let run = &v["runs"][0];
         assert_eq!(run["backend"], "denoise");
         assert!(run["stages"]["denoise"].as_f64().unwrap() > 0.0, "{run}");
