@@ -447,8 +447,8 @@ fn cmd_run(
 /// What the first input file says about its noise (Blender's
 /// `cycles.<layer>.samples`, Cycles' `Noisy Image` pass), as the `--set`
 /// a host would pass and why, when the user set neither `denoise` nor
-/// `samples` (`RenderHints::params`); `None` when the file says nothing
-/// or cannot be read (the run then reports that itself).
+/// `samples` (`RenderHints::params`; its headers only); `None` when the
+/// file says nothing or cannot be read (the run then reports that itself).
 fn render_hints(
     options: &RunOptions,
     planned: &[harmonizer_core::io::run::PlannedFrame],
@@ -461,9 +461,8 @@ fn render_hints(
         return None;
     }
     let first = planned.first()?;
-    let file = harmonizer_core::io::exr::ExrFile::open(&first.input, Some(first.frame)).ok()?;
-    let layer = file.resolve(&options.layout).ok()?.view_layer;
-    let (name, value, why) = file.render_hints(layer.as_deref()).params()?;
+    let hints = harmonizer_core::io::exr::read_render_hints(&first.input, &options.layout);
+    let (name, value, why) = hints.params()?;
     let value = match value {
         ParamValue::Str(s) => s,
         ParamValue::Int(i) => i.to_string(),

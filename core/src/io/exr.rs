@@ -110,7 +110,76 @@ fn rows_matrix(r: &[[f32; 4]; 4]) -> [f32; 16] {
     m
 }
 
-/// What a rendered file says about its noise ([`ExrFile::render_hints`]).
+/// A channel's name with its part's in front (`part.name`), unless the
+/// name already starts with it or the part is unnamed.
+fn qualify(part: Option<&str>, name: &str) -> String {
+    match part {
+        Some(p) if !p.is_empty() && !name.starts_with(&format!("{p}.")) => format!("{p}.{name}"),
+        _ => name.to_string(),
+    }
+}
+
+/// What a rendered file says about its noise, for `denoise auto`, from its
+/// headers alone (no pixel is decoded): Blender's `cycles.<view layer>.samples`
+/// attribute (for the view layer `options` resolve to, or the only one),
+/// and whether the file has Cycles' `Noisy Image` pass (written when its
+/// denoiser ran: the color was denoised per frame). A file whose headers
+/// cannot be read says nothing (`RenderHints::default()`): reading it for
+/// real reports why.
+pub fn read_render_hints(path: &Path, options: &LayoutOptions) -> RenderHints {
+    let meta = std::panic::catch_unwind(|| exr::meta::MetaData::read_from_file(path, false));
+    let Ok(Ok(meta)) = meta else {
+        return RenderHints::default();
+    };
+    let mut names = Vec::new();
+    let mut found: Vec<(String, u32)> = Vec::new();
+    for h in meta.headers.iter() {
+        let part = h.own_attributes.layer_name.as_ref().map(|t| t.to_string());
+        names.extend(
+            h.channels
+                .list
+                .iter()
+                .map(|c| qualify(part.as_deref(), &c.name.to_string())),
+        );
+        for (k, v) in &h.own_attributes.other {
+            let key = k.to_string();
+            let Some(layer) = key
+                .strip_prefix("cycles.")
+                .and_then(|r| r.strip_suffix(".samples"))
+            else {
+                continue;
+            };
+            let n = match v {
+                AttributeValue::Text(t) => t.to_string().trim().parse::<u32>().ok(),
+                AttributeValue::I32(i) => u32::try_from(*i).ok(),
+                _ => None,
+            };
+            if let Some(n) = n.filter(|&n| n > 0) {
+                if !found.iter().any(|(l, _)| l == layer) {
+                    found.push((layer.to_string(), n));
+                }
+            }
+        }
+    }
+    let view_layer = layout::resolve(options, &names, &|n| names.iter().any(|x| x == n))
+        .ok()
+        .and_then(|r| r.view_layer);
+    let samples = match view_layer.as_deref() {
+        Some(vl) => found.iter().find(|(l, _)| l == vl).map(|f| f.1),
+        None if found.len() == 1 => Some(found[0].1),
+        None => None,
+    };
+    let noisy_pass = |name: &str| match view_layer.as_deref() {
+        Some(vl) => name.starts_with(&format!("{vl}.Noisy Image.")),
+        None => name.contains("Noisy Image."),
+    };
+    RenderHints {
+        samples,
+        denoised_by_renderer: names.iter().any(|n| noisy_pass(n)),
+    }
+}
+
+/// What a rendered file says about its noise ([`read_render_hints`]).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub struct RenderHints {
     /// Samples per pixel the renderer recorded (Blender/Cycles:
@@ -226,12 +295,7 @@ impl ExrFile {
             let part_name = layer.attributes.layer_name.as_ref().map(|t| t.to_string());
             for (index, ch) in layer.channel_data.list.iter().enumerate() {
                 let name = ch.name.to_string();
-                let qualified = match &part_name {
-                    Some(p) if !p.is_empty() && !name.starts_with(&format!("{p}.")) => {
-                        format!("{p}.{name}")
-                    }
-                    _ => name.clone(),
-                };
+                let qualified = qualify(part_name.as_deref(), &name);
                 channels.push(ChannelInfo {
                     part,
                     index,
@@ -319,49 +383,6 @@ impl ExrFile {
             .get(part)
             .and_then(|l| of(&l.attributes))
             .or_else(|| self.image.layer_data.iter().find_map(|l| of(&l.attributes)))
-    }
-
-    /// What the renderer recorded about its noise, for `denoise auto`
-    /// (see [`RenderHints`]): Blender's `cycles.<view layer>.samples`
-    /// header attribute (for `view_layer`, or the only one), and whether
-    /// the file has Cycles' `Noisy Image` pass (written when its denoiser
-    /// ran: the color was denoised per frame).
-    pub fn render_hints(&self, view_layer: Option<&str>) -> RenderHints {
-        let mut found: Vec<(String, u32)> = Vec::new();
-        for l in &self.image.layer_data {
-            for (k, v) in &l.attributes.other {
-                let key = k.to_string();
-                let Some(layer) = key
-                    .strip_prefix("cycles.")
-                    .and_then(|r| r.strip_suffix(".samples"))
-                else {
-                    continue;
-                };
-                let n = match v {
-                    AttributeValue::Text(t) => t.to_string().trim().parse::<u32>().ok(),
-                    AttributeValue::I32(i) => u32::try_from(*i).ok(),
-                    _ => None,
-                };
-                if let Some(n) = n.filter(|&n| n > 0) {
-                    if !found.iter().any(|(l, _)| l == layer) {
-                        found.push((layer.to_string(), n));
-                    }
-                }
-            }
-        }
-        let samples = match view_layer {
-            Some(vl) => found.iter().find(|(l, _)| l == vl).map(|f| f.1),
-            None if found.len() == 1 => Some(found[0].1),
-            None => None,
-        };
-        let noisy_pass = |name: &str| match view_layer {
-            Some(vl) => name.starts_with(&format!("{vl}.Noisy Image.")),
-            None => name.contains("Noisy Image."),
-        };
-        RenderHints {
-            samples,
-            denoised_by_renderer: self.channels.iter().any(|c| noisy_pass(&c.qualified)),
-        }
     }
 
     fn samples(&self, c: &ChannelInfo) -> &FlatSamples {

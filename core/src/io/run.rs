@@ -31,20 +31,6 @@ pub struct RunOptions {
     pub preroll: usize,
 }
 
-impl RunOptions {
-    /// Options for `input` to `output` with `layout`: every frame, no
-    /// pre-roll.
-    pub fn new(input: impl Into<String>, output: impl Into<String>, layout: LayoutOptions) -> Self {
-        RunOptions {
-            input: input.into(),
-            output: output.into(),
-            layout,
-            frames: None,
-            preroll: 0,
-        }
-    }
-}
-
 /// One frame to process.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct PlannedFrame {
