@@ -192,16 +192,21 @@ def oidn_prefiltered(inp: np.ndarray, albedo: np.ndarray, normal: np.ndarray | N
     dev = _PREFILTER["device"]
     f3 = pyoidn.OIDN_FORMAT_FLOAT3
 
-    def run(images: dict, out: np.ndarray, **opts) -> None:
-        with pyoidn.Filter(dev, pyoidn.OIDN_FILTER_TYPE_RT) as flt:
-            for k, v in images.items():
-                flt.set_image(k, v, f3)
-            flt.set_image(pyoidn.OIDN_IMAGE_OUTPUT, out, f3)
+    def run(key: str, images: dict, out: np.ndarray, **opts) -> None:
+        # One filter per role, kept across frames (as OIDN's users do: a
+        # filter is set up once, committed again only when its images change).
+        flt = _PREFILTER.get(key)
+        if flt is None:
+            flt = pyoidn.Filter(dev, pyoidn.OIDN_FILTER_TYPE_RT)
             for k, v in opts.items():
                 flt.set_bool(k, v)
             flt.set_quality(pyoidn.OIDN_QUALITY_HIGH)
-            flt.commit()
-            flt.execute()
+            _PREFILTER[key] = flt
+        for k, v in images.items():
+            flt.set_image(k, v, f3)
+        flt.set_image(pyoidn.OIDN_IMAGE_OUTPUT, out, f3)
+        flt.commit()
+        flt.execute()
         err = dev.get_error()
         if err is not None:
             raise RuntimeError(f"OIDN: {err}")
@@ -209,15 +214,15 @@ def oidn_prefiltered(inp: np.ndarray, albedo: np.ndarray, normal: np.ndarray | N
     c = np.ascontiguousarray(np.maximum(inp[..., :3], 0.0), np.float32)
     a = np.ascontiguousarray(np.clip(albedo, 0.0, 1.0), np.float32)
     a_clean = np.zeros_like(a)
-    run({pyoidn.OIDN_IMAGE_ALBEDO: a}, a_clean)
+    run("albedo", {pyoidn.OIDN_IMAGE_ALBEDO: a}, a_clean)
     images = {pyoidn.OIDN_IMAGE_COLOR: c, pyoidn.OIDN_IMAGE_ALBEDO: a_clean}
     if normal is not None:
         n = np.ascontiguousarray(np.clip(normal, -1.0, 1.0), np.float32)
         n_clean = np.zeros_like(n)
-        run({pyoidn.OIDN_IMAGE_NORMAL: n}, n_clean)
+        run("normal", {pyoidn.OIDN_IMAGE_NORMAL: n}, n_clean)
         images[pyoidn.OIDN_IMAGE_NORMAL] = n_clean
     out = np.zeros_like(c)
-    run(images, out, hdr=True, cleanAux=True)
+    run("color+normal" if normal is not None else "color", images, out, hdr=True, cleanAux=True)
     return out
 
 
@@ -468,7 +473,7 @@ def write_figures(out: Path, per_frame: dict, shown: dict, methods: tuple[str, .
         cols = ["input"] + [m for m in methods if m != "identity"] + ["truth"]
         fig, axes = plt.subplots(1, len(cols), figsize=(2.4 * len(cols), 1.8))
         for ax, c in zip(axes, cols, strict=True):
-            ax.imshow(srgb(imgs["identity" if c == "input" else c]))
+            ax.imshow(srgb(imgs[c]))
             ax.set_title(c, fontsize=8)
             ax.axis("off")
         fig.suptitle(f"{seq} (middle frame)", fontsize=8)
@@ -546,6 +551,7 @@ def main(argv: list[str] | None = None) -> int:
                 info["about"][set_name][name] = s.get("about", "")
                 info["region"][set_name][name] = s.get("region")
                 shown["truth"] = s["target"][s["frames"] // 2]
+                shown["input"] = s["input"][s["frames"] // 2, ..., :3]
                 shown_all[name] = shown
                 row = summary[set_name][name]
                 print(

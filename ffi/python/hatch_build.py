@@ -22,6 +22,8 @@ from pathlib import Path
 from hatchling.builders.hooks.plugin.interface import BuildHookInterface
 
 
+# The same names as harmonizer._native._lib_name: a build hook cannot import
+# the package it is building.
 def _lib_name() -> str:
     if sys.platform == "darwin":
         return "libharmonizer.dylib"
