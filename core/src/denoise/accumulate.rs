@@ -35,6 +35,7 @@ use crate::error::Result;
 use crate::frame::{Camera, Image, PreparedFrame, Recycler};
 use crate::ops::inpaint::FULL;
 use crate::temporal::reproject::{depth_match, CameraMap};
+use crate::temporal::{camera_mode, consecutive, ReprojectionMode};
 
 /// Weight of the current frame in the blend. Chosen on the out-of-domain
 /// noisy sequences among 0.3 to 0.7 (`training/experiments/temporal_denoise.py`
@@ -157,10 +158,6 @@ pub fn accumulate(
     let (w, h) = (frame.width(), frame.height());
     let n = w * h;
     let prev = prev.filter(|p| p.width == w && p.height == h && n > 0);
-    let consecutive = |a: Option<i64>, b: Option<i64>| match (a, b) {
-        (Some(a), Some(b)) => b.checked_add(1) == Some(a),
-        _ => true,
-    };
     let PreparedFrame {
         color,
         motion,
@@ -171,6 +168,7 @@ pub fn accumulate(
         ..
     } = frame;
     let (cur_depth, cur_coverage) = (cur_depth.as_deref(), cur_coverage.as_deref());
+    // As the history is reprojected (`HistoryView::mode` for frame 0).
     let map = prev.and_then(|p| {
         if let Some(m) = motion
             .as_ref()
@@ -181,32 +179,25 @@ pub fn accumulate(
                 my: m.plane(1),
             });
         }
-        match (*camera, p.camera) {
-            (Some(c), Some(pc)) if cur_depth.is_some() => Some(Map::Camera(Box::new(
-                CameraMap::from_cameras(&c, &pc, w, h),
-            ))),
-            (Some(a), Some(b)) if a != b => None,
-            _ => Some(Map::Identity),
+        match camera_mode(*camera, p.camera, cur_depth.is_some()) {
+            ReprojectionMode::DepthCamera => {
+                let (c, pc) = (camera.as_ref()?, p.camera.as_ref()?);
+                Some(Map::Camera(Box::new(CameraMap::from_cameras(c, pc, w, h))))
+            }
+            ReprojectionMode::Identity => Some(Map::Identity),
+            _ => None,
         }
     });
+    // The new accumulation keeps the frame's depth and coverage as they are
+    // (a buffer dropped on an allocation error is freed, not recycled).
+    let copy = |src: &[f32]| -> Result<Vec<f32>> {
+        let mut v = rec.try_take(src.len())?;
+        v.copy_from_slice(src);
+        Ok(v)
+    };
     let mut rgb = rec.try_take(3 * n)?;
-    let depth = match cur_depth.map(|_| rec.try_take(n)).transpose() {
-        Ok(d) => d,
-        Err(e) => {
-            rec.give(rgb);
-            return Err(e);
-        }
-    };
-    let coverage = match cur_coverage.map(|_| rec.try_take(n)).transpose() {
-        Ok(c) => c,
-        Err(e) => {
-            rec.give(rgb);
-            if let Some(d) = depth {
-                rec.give(d);
-            }
-            return Err(e);
-        }
-    };
+    let depth = cur_depth.map(copy).transpose()?;
+    let coverage = cur_coverage.map(copy).transpose()?;
     if let (Some(prev), Some(map)) = (prev, map) {
         // The current frame in log-YCoCg (read by the 3x3 statistics while
         // the color is written in place).
@@ -232,14 +223,6 @@ pub fn accumulate(
         rgb = cur;
     }
     rgb.copy_from_slice(&color.data[..3 * n]);
-    let mut depth = depth;
-    if let (Some(d), Some(src)) = (depth.as_mut(), cur_depth) {
-        d.copy_from_slice(src);
-    }
-    let mut coverage = coverage;
-    if let (Some(c), Some(src)) = (coverage.as_mut(), cur_coverage) {
-        c.copy_from_slice(src);
-    }
     Ok(Accumulation {
         width: w,
         height: h,

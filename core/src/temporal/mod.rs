@@ -27,6 +27,31 @@ pub struct ReprojectedFrame {
     pub valid: Vec<f32>,
 }
 
+/// Whether frame numbers `newer` and `older` follow each other (an unknown
+/// one counts as yes): motion vectors lead from a frame to the one before
+/// it only.
+pub(crate) fn consecutive(newer: Option<i64>, older: Option<i64>) -> bool {
+    match (newer, older) {
+        (Some(a), Some(b)) => b.checked_add(1) == Some(a),
+        _ => true,
+    }
+}
+
+/// How an earlier frame is aligned to the current one without motion
+/// vectors: with the current depth and both cameras; else the identity
+/// when the cameras are equal or unknown; else not at all.
+pub(crate) fn camera_mode(
+    current: Option<crate::frame::Camera>,
+    earlier: Option<crate::frame::Camera>,
+    depth: bool,
+) -> ReprojectionMode {
+    match (current, earlier) {
+        (Some(_), Some(_)) if depth => ReprojectionMode::DepthCamera,
+        (Some(a), Some(b)) if a != b => ReprojectionMode::Unavailable,
+        _ => ReprojectionMode::Identity,
+    }
+}
+
 /// How a history frame is aligned to the current view.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum ReprojectionMode {
@@ -281,10 +306,6 @@ impl<'a> HistoryView<'a> {
     pub fn mode(&self, k: usize) -> ReprojectionMode {
         let hk = self.frame(k);
         let cur = self.current;
-        let consecutive = |newer: Option<i64>, older: Option<i64>| match (newer, older) {
-            (Some(a), Some(b)) => b.checked_add(1) == Some(a),
-            _ => true,
-        };
         let chain_ok = cur.motion.is_some()
             && consecutive(cur.frame_index, self.frame(0).frame_index)
             && (0..k).all(|h| {
@@ -294,11 +315,7 @@ impl<'a> HistoryView<'a> {
         if chain_ok {
             return ReprojectionMode::MotionVectors;
         }
-        match (cur.camera, hk.camera) {
-            (Some(_), Some(_)) if cur.depth.is_some() => ReprojectionMode::DepthCamera,
-            (Some(a), Some(b)) if a != b => ReprojectionMode::Unavailable,
-            _ => ReprojectionMode::Identity,
-        }
+        camera_mode(cur.camera, hk.camera, cur.depth.is_some())
     }
 
     /// History frame `k` (0 = previous) reprojected into the current view;
