@@ -8,7 +8,7 @@ The zip holds the add-on modules, ``blender_manifest.toml`` (with its
   (``ffi/python/harmonizer``) with ``libharmonizer.so`` inside the package
   (``harmonizer/lib/``, the layout of the wheel ``scripts/wheels.sh`` builds),
   built here from the files (no build backend needed), or that wheel itself
-  (``--binding-wheel dist/harmonizer-*.whl``);
+  (``--binding-wheel dist/harmonizer-*.whl``, tagged ``manylinux_*_x86_64``);
 - ``onnxruntime-1.31.*-cp311-...manylinux...whl``: fetched with
   ``pip download`` (ONNX Runtime for the neural backend; the add-on only loads
   its shared library), or given (``--onnxruntime-wheel FILE``, offline);
@@ -54,6 +54,14 @@ ORT_SPEC = "onnxruntime==1.31.*"
 OIDN_SPEC = "pyoidn==2.*"
 ADDON_FILES_EXCLUDE = {"build.py"}
 WHEEL_PLATFORM = "linux_x86_64"
+
+
+def _linux_x64_wheel(path: str) -> bool:
+    """Whether a wheel's platform tags include Linux x86_64: ``linux_x86_64``
+    (a local build) or a manylinux tag (``scripts/wheels.sh``'s, repaired by
+    auditwheel), which Blender maps to ``linux-x64`` alike."""
+    platforms = os.path.basename(path)[: -len(".whl")].split("-")[-1].split(".")
+    return any(re.fullmatch(r"(many)?linux[0-9_]*_x86_64", p) for p in platforms)
 
 
 def _manifest_version(text: str) -> str:
@@ -272,8 +280,8 @@ def main(argv: list[str] | None = None) -> int:
         version = _manifest_version(fh.read())
     if args.binding_wheel:
         binding = given_wheel(args.binding_wheel, f"harmonizer-{version}-", "--binding-wheel")
-        if not binding.endswith(f"-{WHEEL_PLATFORM}.whl"):
-            raise SystemExit(f"--binding-wheel: {os.path.basename(binding)} is not a {WHEEL_PLATFORM} wheel")
+        if not _linux_x64_wheel(binding):
+            raise SystemExit(f"--binding-wheel: {os.path.basename(binding)} is not a Linux x86_64 wheel")
     else:
         if args.cargo:
             subprocess.run(["cargo", "build", "--release", "-p", "harmonizer-ffi"], cwd=REPO, check=True)

