@@ -17,9 +17,11 @@ cargo build --release -p harmonizer-ffi
 TARGET_DIR=${CARGO_TARGET_DIR:-$ROOT/target}
 VERSION=$(sed -n 's/^#define HZ_VERSION_STRING "\(.*\)"$/\1/p' ffi/include/harmonizer.h)
 MAJOR=${VERSION%%.*}
+# SHARED_FILE is the installed file, SHARED_SONAME what a consumer records
+# (the CMake package's IMPORTED_LOCATION and IMPORTED_SONAME).
 case "$(uname -s)" in
-    Darwin) SHARED=libharmonizer.dylib ;;
-    *) SHARED=libharmonizer.so ;;
+    Darwin) SHARED=libharmonizer.dylib SHARED_FILE=libharmonizer.dylib SHARED_SONAME=@rpath/libharmonizer.dylib ;;
+    *) SHARED=libharmonizer.so SHARED_FILE=libharmonizer.so.$VERSION SHARED_SONAME=libharmonizer.so.$MAJOR ;;
 esac
 STATIC=libharmonizer.a
 # The system libraries the Rust static library needs (rustc's native-static-libs).
@@ -41,7 +43,7 @@ fi
 install -m 644 "$TARGET_DIR/release/$STATIC" "$PREFIX/lib/"
 subst() {
     sed -e "s|@PREFIX@|$PREFIX|g" -e "s|@VERSION@|$VERSION|g" -e "s|@VERSION_MAJOR@|$MAJOR|g" \
-        -e "s|@SHARED_NAME@|$SHARED|g" -e "s|@STATIC_NAME@|$STATIC|g" -e "s|@STATIC_LIBS@|$STATIC_LIBS|g" "$1"
+        -e "s|@SHARED_FILE@|$SHARED_FILE|g" -e "s|@SHARED_SONAME@|$SHARED_SONAME|g" -e "s|@STATIC_NAME@|$STATIC|g" -e "s|@STATIC_LIBS@|$STATIC_LIBS|g" "$1"
 }
 subst ffi/harmonizer.pc.in >"$PREFIX/lib/pkgconfig/harmonizer.pc"
 subst cmake/harmonizer-config.cmake.in >"$PREFIX/lib/cmake/harmonizer/harmonizer-config.cmake"

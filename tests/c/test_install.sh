@@ -2,8 +2,9 @@
 # Installs libharmonizer into a fresh prefix (scripts/build-ffi.sh) and builds
 # examples/c/enhance_sequence.c the ways a host would: with pkg-config (shared
 # and static) and with CMake's find_package(harmonizer) (imported targets
-# harmonizer::harmonizer and harmonizer::harmonizer_static); runs each, and
-# checks that the shared library exports only hz_* symbols.
+# harmonizer::harmonizer and harmonizer::harmonizer_static); runs each, checks
+# that the shared consumers record the soname libharmonizer.so.MAJOR (readelf
+# NEEDED) and that the shared library exports only hz_* symbols.
 set -euo pipefail
 ROOT=$(cd "$(dirname "$0")/../.." && pwd)
 WORK=$(mktemp -d "${TMPDIR:-/tmp}/harmonizer-install.XXXXXX")
@@ -61,7 +62,16 @@ if [[ -z "$CMAKE" ]]; then
 fi
 "$CMAKE" -S "$ROOT/tests/c/cmake" -B "$WORK/cmake-build" -DCMAKE_PREFIX_PATH="$PREFIX" -DCMAKE_BUILD_TYPE=Release >/dev/null
 "$CMAKE" --build "$WORK/cmake-build" >/dev/null
-LD_LIBRARY_PATH=$PREFIX/lib "$WORK/cmake-build/enhance_shared" 3 64 36 | tail -n 1
+# The imported target names the real file and its soname (IMPORTED_SONAME):
+# the consumer records libharmonizer.so.MAJOR, never a path, and runs through
+# the build tree's RUNPATH that CMake sets from the imported location.
+needed=$(readelf -d "$WORK/cmake-build/enhance_shared" | sed -n 's/.*(NEEDED).*\[\(.*harmonizer.*\)\]/\1/p')
+[[ "$needed" == "libharmonizer.so.$MAJOR" ]] ||
+    { echo "FAIL: the CMake consumer records '$needed', expected libharmonizer.so.$MAJOR"; exit 1; }
+env -u LD_LIBRARY_PATH "$WORK/cmake-build/enhance_shared" 3 64 36 | tail -n 1
+env -u LD_LIBRARY_PATH ldd "$WORK/cmake-build/enhance_shared" | grep -q "libharmonizer.so.$MAJOR => $PREFIX/lib/libharmonizer.so.$MAJOR" ||
+    { echo "FAIL: the CMake consumer does not load $PREFIX/lib/libharmonizer.so.$MAJOR:"; ldd "$WORK/cmake-build/enhance_shared"; exit 1; }
+echo "ok: the CMake consumer needs libharmonizer.so.$MAJOR and runs"
 "$WORK/cmake-build/enhance_static" 3 64 36 | tail -n 1
 
 echo "== Python binding next to its library"
