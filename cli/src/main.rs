@@ -11,7 +11,9 @@ use clap::{Parser, Subcommand};
 use harmonizer_core::denoise::{DenoiseInput, DenoiseOptions, Denoiser};
 use harmonizer_core::io::layout::{ChannelMapping, LayoutOptions, LayoutPreset};
 use harmonizer_core::io::pattern::{FramePattern, FrameRange};
-use harmonizer_core::io::run::{plan, run_sequence, FrameResult, RunOptions};
+use harmonizer_core::io::run::{
+    plan, report_json, run_sequence, summary_json, FrameResult, RunOptions,
+};
 use harmonizer_core::params::{BackendKind, DenoiseMode};
 use harmonizer_core::synth::{self, Scene, Sequence, SynthConfig};
 use harmonizer_core::{
@@ -131,6 +133,33 @@ enum Command {
         #[arg(long = "set", value_name = "NAME=VALUE")]
         set: Vec<String>,
     },
+    /// Write a synthetic sequence with ground truth as `generic` EXRs
+    /// (DIR/input/shot.####.exr, DIR/truth/shot.####.exr): inputs for tests,
+    /// benchmarks and farm trials.
+    Synth {
+        /// Output directory.
+        #[arg(long)]
+        out: PathBuf,
+        /// Number of frames.
+        #[arg(long, default_value_t = 24)]
+        frames: usize,
+        /// Frame size, WxH.
+        #[arg(long, default_value = "320x180")]
+        size: String,
+        /// Number of the first frame.
+        #[arg(long, default_value_t = 1)]
+        first: i64,
+        /// Seed of the holes, flicker and noise.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// Camera path: default (leaves the scene after about 50 frames) or
+        /// sway (stays in it for any length).
+        #[arg(long, default_value = "default")]
+        camera: String,
+        /// Also write the ground truth (DIR/truth/).
+        #[arg(long)]
+        truth: bool,
+    },
     /// Describe an EXR file: parts, channels, detected layout, camera.
     Info {
         /// The file.
@@ -175,6 +204,15 @@ fn main() -> ExitCode {
             context,
             set,
         } => cmd_bench(json, threads, &sizes, frames, backend, model, context, &set),
+        Command::Synth {
+            out,
+            frames,
+            size,
+            first,
+            seed,
+            camera,
+            truth,
+        } => cmd_synth(&out, frames, &size, first, seed, &camera, truth),
         Command::Info { file } => cmd_info(&file),
     };
     match r {
@@ -241,61 +279,6 @@ fn model_inputs(files: &mut Files, model: Option<&Path>) {
             harmonizer_core::backend::neural::manifest_path(m),
         );
     }
-}
-
-fn stages_json(stages: &harmonizer_core::backend::Stages) -> Value {
-    let mut m = Map::new();
-    for (k, v) in &stages.0 {
-        m.insert(k.clone(), json!(v));
-    }
-    Value::Object(m)
-}
-
-fn frame_json(r: &FrameResult) -> Value {
-    let mut warnings: Vec<String> = r.read_warnings.clone();
-    warnings.extend(r.report.warnings.iter().cloned());
-    json!({
-        "frame": r.planned.frame,
-        "preroll": r.planned.preroll,
-        "input": r.planned.input.display().to_string(),
-        "output": r.planned.output.display().to_string(),
-        "backend": r.report.backend,
-        "reset": r.report.reset.map(|x| x.name()),
-        "history_used": r.report.history_used,
-        "sanitized": r.report.sanitized,
-        "out_of_gamut": r.report.out_of_gamut,
-        "denoised": r.report.denoised,
-        "denoise_decision": r.report.denoise_decision,
-        "noise_level": r.report.noise_level,
-        "warnings": warnings,
-        "read_ms": r.read_ms,
-        "process_ms": r.report.total_ms,
-        "write_ms": r.write_ms,
-        "stages": stages_json(&r.report.stages),
-    })
-}
-
-fn summary_json(results: &[FrameResult]) -> Value {
-    let n = results.len().max(1) as f64;
-    let resets: Vec<Value> = results
-        .iter()
-        .filter_map(|r| {
-            r.report
-                .reset
-                .map(|x| json!({"frame": r.planned.frame, "reason": x.name()}))
-        })
-        .collect();
-    json!({
-        "frames": results.len(),
-        "resets": resets,
-        "sanitized": results.iter().map(|r| r.report.sanitized).sum::<usize>(),
-        "out_of_gamut": results.iter().map(|r| r.report.out_of_gamut).sum::<usize>(),
-        "denoised": results.iter().filter(|r| r.report.denoised).count(),
-        "warnings": results.iter().map(|r| r.report.warnings.len() + r.read_warnings.len()).sum::<usize>(),
-        "mean_process_ms": results.iter().map(|r| r.report.total_ms).sum::<f64>() / n,
-        "mean_read_ms": results.iter().map(|r| r.read_ms).sum::<f64>() / n,
-        "mean_write_ms": results.iter().map(|r| r.write_ms).sum::<f64>() / n,
-    })
 }
 
 fn write_json(path: &Path, v: &Value) -> Result<()> {
@@ -407,6 +390,7 @@ fn cmd_run(
         bar.set_message(format!("frame {}", res.planned.frame));
         bar.inc(1);
         done.push(res.clone());
+        Ok(())
     });
     bar.finish_and_clear();
     // The summary counts the frames written; the pre-roll frames are in
@@ -418,20 +402,10 @@ fn cmd_run(
         .cloned()
         .collect();
     if let Some(path) = &report {
-        let mut summary = summary_json(&written);
-        summary["preroll_frames"] = json!(prerolled);
-        let mut v = json!({
-            "input": options.input,
-            "output": options.output,
-            "layout": layout,
-            "version": harmonizer_core::VERSION,
-            "frames": done.iter().map(frame_json).collect::<Vec<_>>(),
-            "summary": summary,
-        });
-        if let Err(e) = &r {
-            v["error"] = json!(e.to_string());
-        }
-        write_json(path, &v)?;
+        write_json(
+            path,
+            &report_json(&options, &layout, &done, r.as_ref().err()),
+        )?;
     }
     r?;
     print_summary(&written, &output);
@@ -524,6 +498,57 @@ fn contact_sheet(path: &Path, rows: &[[(&[f32], usize); 3]], w: usize, h: usize)
     harmonizer_core::io::exr::write_atomic(path, enc)
 }
 
+fn cmd_synth(
+    out: &Path,
+    frames: usize,
+    size: &str,
+    first: i64,
+    seed: u64,
+    camera: &str,
+    truth: bool,
+) -> Result<()> {
+    let [(width, height)] = parse_sizes(size)?[..] else {
+        return Err(Error::invalid(format!("--size {size:?}: expected one WxH")));
+    };
+    let config = SynthConfig {
+        width,
+        height,
+        frames,
+        seed,
+        first_frame: first,
+    };
+    let scene = Scene::with_path(config, synth::CameraPath::parse(camera)?)?;
+    let pattern = "shot.####.exr";
+    let input = FramePattern::parse(&out.join("input").join(pattern).to_string_lossy())?;
+    let truths = FramePattern::parse(&out.join("truth").join(pattern).to_string_lossy())?;
+    let mut files = Files::default();
+    for n in first..first + frames as i64 {
+        files.output(format!("input frame {n}"), input.path(n));
+        if truth {
+            files.output(format!("truth frame {n}"), truths.path(n));
+        }
+    }
+    files.check()?;
+    let bar = progress_bar(frames as u64);
+    for n in first..first + frames as i64 {
+        let f = scene.frame(n);
+        harmonizer_core::io::exr::write_generic(&input.path(n), &f.input)?;
+        if truth {
+            harmonizer_core::io::exr::write_truth(&truths.path(n), &f)?;
+        }
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    println!(
+        "harmonize synth: {frames} frame(s) {width}x{height}, camera {camera}: {}",
+        input.as_str()
+    );
+    if truth {
+        println!("  truth: {}", truths.as_str());
+    }
+    Ok(())
+}
+
 fn cmd_demo(out: &Path, args: SessionArgs) -> Result<()> {
     let config = SynthConfig::default();
     println!(
@@ -566,7 +591,10 @@ fn cmd_demo(out: &Path, args: SessionArgs) -> Result<()> {
     let planned = plan(&options)?;
     let mut session = make_session(&args, None)?;
     let bar = progress_bar(planned.len() as u64);
-    let results = run_sequence(&mut session, &options, &planned, true, &mut |_| bar.inc(1))?;
+    let results = run_sequence(&mut session, &options, &planned, true, &mut |_| {
+        bar.inc(1);
+        Ok(())
+    })?;
     bar.finish_and_clear();
     let outs: Vec<Vec<f32>> = results
         .iter()

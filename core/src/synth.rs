@@ -57,6 +57,34 @@ impl Default for SynthConfig {
     }
 }
 
+/// How the camera (and the inserted sphere) move; [`Scene::with_path`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum CameraPath {
+    /// Sideways and forward at a constant speed (the demo's): after about
+    /// 50 frames the view has left the part of the scene with the boxes,
+    /// the holes and the sphere.
+    #[default]
+    Default,
+    /// A slow sway that stays inside the scene for any number of frames:
+    /// the camera goes right and forward, then back, over 96 frames (period
+    /// 96, the sphere rolling to and fro with it), at up to about the
+    /// default path's speed. For long sequences (the farm's seam measurement).
+    Sway,
+}
+
+impl CameraPath {
+    /// Parses `default` or `sway`.
+    pub fn parse(s: &str) -> Result<CameraPath> {
+        match s {
+            "default" => Ok(CameraPath::Default),
+            "sway" => Ok(CameraPath::Sway),
+            _ => Err(Error::invalid(format!(
+                "camera path {s:?}: expected default or sway"
+            ))),
+        }
+    }
+}
+
 /// One frame's degraded input, in the library's conventions, interleaved.
 #[derive(Debug, Clone)]
 pub struct SynthInput {
@@ -169,6 +197,7 @@ struct Blob {
 pub struct Scene {
     config: SynthConfig,
     blobs: Vec<Blob>,
+    path: CameraPath,
 }
 
 const WALL_Z: f64 = 8.0;
@@ -233,8 +262,14 @@ fn smoothstep(e0: f64, e1: f64, x: f64) -> f64 {
 }
 
 impl Scene {
-    /// A scene for `config`; the holes are drawn from the seed.
+    /// A scene for `config` seen along the default camera path; the holes
+    /// are drawn from the seed.
     pub fn new(config: SynthConfig) -> Result<Scene> {
+        Scene::with_path(config, CameraPath::Default)
+    }
+
+    /// A scene for `config` seen along `path`.
+    pub fn with_path(config: SynthConfig, path: CameraPath) -> Result<Scene> {
         if config.width < 8 || config.height < 8 {
             return Err(Error::invalid(format!(
                 "synthetic sequence: size {}x{} is too small (at least 8x8)",
@@ -254,7 +289,11 @@ impl Scene {
             };
             blobs.push(Blob { centre, radius: r });
         }
-        Ok(Scene { config, blobs })
+        Ok(Scene {
+            config,
+            blobs,
+            path,
+        })
     }
 
     /// The configuration.
@@ -269,12 +308,28 @@ impl Scene {
     /// The camera of frame `frame`.
     pub fn camera(&self, frame: i64) -> Camera {
         let t = self.time(frame);
-        let eye = Vec3::new(
-            (-0.9 + 0.075 * t) as f32,
-            (1.5 + 0.01 * t) as f32,
-            (-2.2 + 0.04 * t) as f32,
-        );
-        let target = Vec3::new((0.1 + 0.02 * t) as f32, 0.7, 4.5);
+        let (eye, target) = match self.path {
+            CameraPath::Default => (
+                Vec3::new(
+                    (-0.9 + 0.075 * t) as f32,
+                    (1.5 + 0.01 * t) as f32,
+                    (-2.2 + 0.04 * t) as f32,
+                ),
+                Vec3::new((0.1 + 0.02 * t) as f32, 0.7, 4.5),
+            ),
+            CameraPath::Sway => {
+                // Phase over the 96-frame period: right and forward, then back.
+                let a = std::f64::consts::TAU * t / 96.0;
+                (
+                    Vec3::new(
+                        (-0.9 + 0.9 * (1.0 - a.cos())) as f32,
+                        (1.5 + 0.1 * a.sin()) as f32,
+                        (-2.2 + 0.4 * (1.0 - a.cos())) as f32,
+                    ),
+                    Vec3::new((0.1 + 0.5 * a.sin()) as f32, 0.7, 4.5),
+                )
+            }
+        };
         Camera::look_at(
             eye,
             target,
@@ -284,7 +339,12 @@ impl Scene {
     }
 
     fn sphere_centre(&self, frame: i64) -> DVec3 {
-        DVec3::new(-0.2 + 0.035 * self.time(frame), SPHERE_R, 2.6)
+        let t = self.time(frame);
+        let x = match self.path {
+            CameraPath::Default => -0.2 + 0.035 * t,
+            CameraPath::Sway => -0.2 + 1.2 * (std::f64::consts::TAU * t / 96.0).sin(),
+        };
+        DVec3::new(x, SPHERE_R, 2.6)
     }
 
     /// Exposure gain of the input's flicker for `frame`.
@@ -587,7 +647,12 @@ impl Scene {
 impl Sequence {
     /// Generates every frame of `config`.
     pub fn generate(config: SynthConfig) -> Result<Sequence> {
-        let scene = Scene::new(config)?;
+        Sequence::generate_with(config, CameraPath::Default)
+    }
+
+    /// Generates every frame of `config` seen along `path`.
+    pub fn generate_with(config: SynthConfig, path: CameraPath) -> Result<Sequence> {
+        let scene = Scene::with_path(config, path)?;
         let frames = (0..config.frames as i64)
             .map(|t| scene.frame(config.first_frame + t))
             .collect();
@@ -940,6 +1005,34 @@ mod tests {
         // texture at sub-pixel shifts is the truth's own floor.)
         let (input, truth) = (s.input_warping_error(), s.warping_error(&truths, 3));
         assert!(input > 1.5 * truth, "input {input} vs truth {truth}");
+    }
+
+    #[test]
+    fn the_sway_path_starts_where_the_default_does_and_returns_after_96_frames() {
+        let config = SynthConfig {
+            width: 32,
+            height: 18,
+            frames: 1,
+            ..Default::default()
+        };
+        let (default, sway) = (
+            Scene::new(config).unwrap(),
+            Scene::with_path(config, CameraPath::Sway).unwrap(),
+        );
+        let close = |a: Camera, b: Camera| a.world_to_camera.abs_diff_eq(b.world_to_camera, 1e-4);
+        assert!(close(sway.camera(1), default.camera(1)));
+        assert!(close(sway.camera(97), sway.camera(1)));
+        assert!(!close(sway.camera(49), sway.camera(1)));
+        // The default path is what it was (other tests depend on it).
+        let want = Camera::look_at(
+            Vec3::new(-0.9 + 0.75, 1.5 + 0.1, -2.2 + 0.4),
+            Vec3::new(0.1 + 0.2, 0.7, 4.5),
+            50f32.to_radians(),
+            32.0 / 18.0,
+        );
+        assert!(close(default.camera(11), want));
+        assert_eq!(CameraPath::parse("sway").unwrap(), CameraPath::Sway);
+        assert!(CameraPath::parse("orbit").is_err());
     }
 
     #[test]

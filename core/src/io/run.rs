@@ -5,6 +5,8 @@
 
 use std::path::PathBuf;
 
+use serde_json::{json, Map, Value};
+
 use super::exr::{refuse_input, LoadedFrame, OutputMeta};
 use super::guard::ReadLimits;
 use super::layout::LayoutOptions;
@@ -120,14 +122,15 @@ pub fn plan(options: &RunOptions) -> Result<Vec<PlannedFrame>> {
 
 /// Runs `session` over the planned frames. `on_frame` sees each result as it
 /// is written (for progress bars and reports), pre-roll frames too (not
-/// written; `planned.preroll`). With `keep_outputs` the enhanced images are
-/// kept in the results.
+/// written; `planned.preroll`); an error it returns stops the run after
+/// that frame (a host's cancel). With `keep_outputs` the enhanced images
+/// are kept in the results.
 pub fn run_sequence(
     session: &mut Session,
     options: &RunOptions,
     planned: &[PlannedFrame],
     keep_outputs: bool,
-    on_frame: &mut dyn FnMut(&FrameResult),
+    on_frame: &mut dyn FnMut(&FrameResult) -> Result<()>,
 ) -> Result<Vec<FrameResult>> {
     let mut first: Option<(usize, usize, PathBuf)> = None;
     let mut results = Vec::with_capacity(planned.len());
@@ -175,8 +178,99 @@ pub fn run_sequence(
             write_ms,
             output: keep_outputs.then_some(out),
         };
-        on_frame(&result);
+        on_frame(&result)?;
         results.push(result);
     }
     Ok(results)
+}
+
+impl FrameResult {
+    /// The frame's entry in a run report (`harmonize run --report`,
+    /// `hz_run_sequence`): frame, pre-roll, files, backend, reset, counts,
+    /// warnings (the file's, then the session's), times and stages.
+    pub fn json(&self) -> Value {
+        let mut warnings: Vec<String> = self.read_warnings.clone();
+        warnings.extend(self.report.warnings.iter().cloned());
+        let stages: Map<String, Value> = self
+            .report
+            .stages
+            .0
+            .iter()
+            .map(|(k, v)| (k.clone(), json!(v)))
+            .collect();
+        let r = &self.report;
+        json!({
+            "frame": self.planned.frame,
+            "preroll": self.planned.preroll,
+            "input": self.planned.input.display().to_string(),
+            "output": self.planned.output.display().to_string(),
+            "backend": r.backend,
+            "reset": r.reset.map(|x| x.name()),
+            "history_used": r.history_used,
+            "sanitized": r.sanitized,
+            "out_of_gamut": r.out_of_gamut,
+            "denoised": r.denoised,
+            "denoise_decision": r.denoise_decision,
+            "noise_level": r.noise_level,
+            "warnings": warnings,
+            "read_ms": self.read_ms,
+            "process_ms": r.total_ms,
+            "write_ms": self.write_ms,
+            "stages": Value::Object(stages),
+        })
+    }
+}
+
+/// The summary of a run's written frames: counts, resets, mean times.
+pub fn summary_json(results: &[FrameResult]) -> Value {
+    let n = results.len().max(1) as f64;
+    let resets: Vec<Value> = results
+        .iter()
+        .filter_map(|r| {
+            r.report
+                .reset
+                .map(|x| json!({"frame": r.planned.frame, "reason": x.name()}))
+        })
+        .collect();
+    json!({
+        "frames": results.len(),
+        "resets": resets,
+        "sanitized": results.iter().map(|r| r.report.sanitized).sum::<usize>(),
+        "out_of_gamut": results.iter().map(|r| r.report.out_of_gamut).sum::<usize>(),
+        "denoised": results.iter().filter(|r| r.report.denoised).count(),
+        "warnings": results.iter().map(|r| r.report.warnings.len() + r.read_warnings.len()).sum::<usize>(),
+        "mean_process_ms": results.iter().map(|r| r.report.total_ms).sum::<f64>() / n,
+        "mean_read_ms": results.iter().map(|r| r.read_ms).sum::<f64>() / n,
+        "mean_write_ms": results.iter().map(|r| r.write_ms).sum::<f64>() / n,
+    })
+}
+
+/// The report of a run (`harmonize run --report`, `hz_run_options.report`):
+/// every processed frame, pre-roll frames marked, and the summary of the
+/// written ones with `preroll_frames`; `error` when the run stopped on one.
+pub fn report_json(
+    options: &RunOptions,
+    layout: &str,
+    done: &[FrameResult],
+    error: Option<&Error>,
+) -> Value {
+    let written: Vec<FrameResult> = done
+        .iter()
+        .filter(|r| !r.planned.preroll)
+        .cloned()
+        .collect();
+    let mut summary = summary_json(&written);
+    summary["preroll_frames"] = json!(done.len() - written.len());
+    let mut v = json!({
+        "input": options.input,
+        "output": options.output,
+        "layout": layout,
+        "version": crate::VERSION,
+        "frames": done.iter().map(FrameResult::json).collect::<Vec<_>>(),
+        "summary": summary,
+    });
+    if let Some(e) = error {
+        v["error"] = json!(e.to_string());
+    }
+    v
 }

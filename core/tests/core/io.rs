@@ -651,9 +651,12 @@ fn runner_refuses_to_overwrite_inputs_and_names_size_changes() {
     let planned = plan(&opts).unwrap();
     let mut s = session("bypass");
     let mut seen = 0;
-    let e = run_sequence(&mut s, &opts, &planned, false, &mut |_| seen += 1)
-        .unwrap_err()
-        .to_string();
+    let e = run_sequence(&mut s, &opts, &planned, false, &mut |_| {
+        seen += 1;
+        Ok(())
+    })
+    .unwrap_err()
+    .to_string();
     assert!(
         e.contains("frame 3")
             && e.contains("16x9")
@@ -692,7 +695,10 @@ fn bypass_run_reproduces_the_input_color() {
         preroll: 0,
     };
     let planned = plan(&opts).unwrap();
-    let res = run_sequence(&mut session("bypass"), &opts, &planned, false, &mut |_| {}).unwrap();
+    let res = run_sequence(&mut session("bypass"), &opts, &planned, false, &mut |_| {
+        Ok(())
+    })
+    .unwrap();
     assert_eq!(res.len(), 2);
     let f = ExrFile::open(&FramePattern::parse(&out).unwrap().path(8), Some(8)).unwrap();
     assert!(
