@@ -8,13 +8,15 @@
  *   hz_last_error_message). On failure hz_last_error_message() explains it
  *   (per thread, also for a failed _new), outputs are not written (a created
  *   handle is set to NULL) and no state changes: there is no partial success.
+ *   The one exception is hz_run_sequence, which writes files: the frames
+ *   before a failing one stay written (each complete, written atomically).
  * - const pointers are read only; outputs come last.
- * - Per-call structs (hz_image, hz_frame, hz_report, hz_device_options) start
- *   with struct_size: zero-initialize them and set struct_size = sizeof(T).
- *   Zero or NULL fields mean "absent" or "default". Structs grow only by
- *   fields appended at their end; the sizeof an older header gave hz_frame
- *   or hz_report stays accepted (the fields it lacks read as absent, and
- *   nothing is written past it).
+ * - Per-call structs (hz_image, hz_frame, hz_report, hz_device_options,
+ *   hz_run_options) start with struct_size: zero-initialize them and set
+ *   struct_size = sizeof(T). Zero or NULL fields mean "absent" or
+ *   "default". Structs grow only by fields appended at their end; the
+ *   sizeof an older header gave hz_frame or hz_report stays accepted (the
+ *   fields it lacks read as absent, and nothing is written past it).
  * - Parameters are set by name (hz_session_set_int/float/bool/string) and
  *   applied by hz_session_commit; adding a parameter never changes the ABI.
  * - Strings out: functions taking (char *buffer, size_t buffer_size,
@@ -58,6 +60,26 @@
 #define HZ_VERSION_PATCH 0
 #define HZ_VERSION_STRING "0.2.0"
 
+
+/**
+ * Only the frames `frame_first..=frame_last` (`hz_run_options.flags`);
+ * without it every existing frame of the input pattern.
+ */
+#define HZ_RUN_HAS_FRAMES 1
+
+/**
+ * `hz_run_options.insert_index` is set (`hz_run_options.flags`).
+ */
+#define HZ_RUN_HAS_INSERT_INDEX 2
+
+/**
+ * When the session's committed `denoise` and `samples` are their defaults,
+ * set what the first file's headers say about its noise before the run
+ * (Blender's `cycles.<layer>.samples` gives `samples`, Cycles' Noisy Image
+ * pass `denoise temporal`), as `harmonize run` does when the user set
+ * neither (`hz_run_options.flags`).
+ */
+#define HZ_RUN_RENDER_HINTS 4
 
 /**
  * Drop the temporal state before this frame (`hz_frame.flags`).
@@ -316,6 +338,77 @@ typedef struct hz_device_options {
      */
     const char *model_manifest;
 } hz_device_options;
+
+/**
+ * What `hz_run_sequence` runs. Zero-initialize, set `struct_size =
+ * sizeof(hz_run_options)`, `input` and `output`; NULL or zero fields are
+ * the defaults.
+ */
+typedef struct hz_run_options {
+    /**
+     * `sizeof(hz_run_options)`.
+     */
+    size_t struct_size;
+    /**
+     * Input frame pattern (`####`, `%04d`, `$F4`, `${F4}` or `<F4>`). Required.
+     */
+    const char *input;
+    /**
+     * Output frame pattern. Required. An output that would overwrite an
+     * input is refused before any frame is read.
+     */
+    const char *output;
+    /**
+     * Channel layout: `"auto"` (NULL), `"generic"` or `"blender"`.
+     */
+    const char *layout;
+    /**
+     * Channel mapping as `harmonize run --channel` takes it, entries
+     * separated by `;`: `"color=R,G,B;coverage=A"`. NULL = none.
+     */
+    const char *channels;
+    /**
+     * `HZ_RUN_HAS_FRAMES`, `HZ_RUN_HAS_INSERT_INDEX`, `HZ_RUN_RENDER_HINTS`.
+     */
+    uint32_t flags;
+    /**
+     * First frame written (with `HZ_RUN_HAS_FRAMES`).
+     */
+    int64_t frame_first;
+    /**
+     * Last frame written (with `HZ_RUN_HAS_FRAMES`); every frame of the
+     * range must exist.
+     */
+    int64_t frame_last;
+    /**
+     * Frames before `frame_first` processed first and not written, so the
+     * chunk starts with the temporal state a sequential run would have
+     * (those of `frame_first - preroll ..= frame_first - 1` that exist).
+     * Needs `HZ_RUN_HAS_FRAMES`.
+     */
+    size_t preroll;
+    /**
+     * Blender layout: the Object Index of the inserted object (with
+     * `HZ_RUN_HAS_INSERT_INDEX`).
+     */
+    int64_t insert_index;
+    /**
+     * Where to write the run's JSON report (what `harmonize run --report`
+     * writes; also after a failed run, with its `error`). NULL = none.
+     */
+    const char *report;
+} hz_run_options;
+
+/**
+ * Called after each frame of `hz_run_sequence` (pre-roll frames too) with
+ * the frame's report as JSON (`{"frame", "preroll", "input", "output",
+ * "backend", "reset", "history_used", "warnings": [..], "read_ms",
+ * "process_ms", "write_ms", ...}`; valid during the call only). Return
+ * false to stop the run after this frame (`HZ_ERROR_CANCELLED`). Runs with
+ * the session's lock held, like the session's callbacks.
+ */
+typedef bool (*hz_run_frame_fn)(void *user,
+                                const char *frame_json);
 
 /**
  * Progress callback: `progress` is monotonic in [0, 1]; return false to
@@ -601,6 +694,31 @@ hz_status hz_device_free(struct hz_device *device);
  */
 hz_status hz_device_get_threads(const struct hz_device *device,
                                 uint32_t *out_threads);
+
+/**
+ * Runs `session` over an EXR sequence, reading and writing the files
+ * itself, as `harmonize run INPUT -o OUTPUT [--frames A-B --preroll N]`
+ * does with the session's committed parameters: the same plan, the same
+ * outputs byte for byte (written atomically: a temporary file renamed, so
+ * an output is complete or absent, and a chunk run again writes the same
+ * bytes), the same report (`options.report`). `on_frame` (may be NULL)
+ * sees each frame's report as JSON.
+ *
+ * Unlike the other calls, a failing run has done part of its work: the
+ * frames before the failing one are written and the session's temporal
+ * state and report are those of the last frame that succeeded. The error
+ * names the frame and file. The session keeps its state after a run
+ * (call `hz_session_reset` before an unrelated sequence).
+ *
+ * # Safety
+ * `session` is a live handle; `options` points to an `hz_run_options`
+ * whose strings are NUL-terminated or NULL; `on_frame` stays callable with
+ * `user` during the call.
+ */
+hz_status hz_run_sequence(struct hz_session *session,
+                          const struct hz_run_options *options,
+                          hz_run_frame_fn on_frame,
+                          void *user);
 
 /**
  * Creates a session on `device` with default parameters (`backend` `auto`:

@@ -25,6 +25,7 @@
 pub mod callbacks;
 pub mod device;
 pub mod image;
+pub mod run;
 pub mod session;
 
 use std::cell::RefCell;

@@ -200,9 +200,9 @@ pub struct hz_session {
     state: Mutex<State>,
 }
 
-struct State {
-    session: Session,
-    report: Option<FrameReport>,
+pub(crate) struct State {
+    pub(crate) session: Session,
+    pub(crate) report: Option<FrameReport>,
     progress: Option<callbacks::Progress>,
     message: Option<callbacks::Message>,
 }
@@ -214,7 +214,7 @@ thread_local! {
 }
 
 /// A locked session.
-struct Locked<'a> {
+pub(crate) struct Locked<'a> {
     guard: MutexGuard<'a, State>,
     key: usize,
 }
@@ -247,7 +247,7 @@ impl std::ops::DerefMut for Locked<'_> {
 ///
 /// # Safety
 /// `s` is NULL or a live handle from `hz_session_new`.
-unsafe fn lock<'a>(s: *const hz_session) -> Result<Locked<'a>, Error> {
+pub(crate) unsafe fn lock<'a>(s: *const hz_session) -> Result<Locked<'a>, Error> {
     if s.is_null() {
         return Err(Error::invalid("session is NULL"));
     }
@@ -778,7 +778,7 @@ impl FrameDesc {
 }
 
 /// True when parameters were staged but not committed.
-fn uncommitted(s: &Session) -> Option<&'static str> {
+pub(crate) fn uncommitted(s: &Session) -> Option<&'static str> {
     PARAM_NAMES
         .iter()
         .copied()

@@ -82,16 +82,16 @@ pub fn with_context(e: Error, context: &str) -> Error {
 /// Lists the frames to process and their outputs, the pre-roll frames
 /// first; refuses an output that would overwrite an input.
 pub fn plan(options: &RunOptions) -> Result<Vec<PlannedFrame>> {
+    if options.preroll > 0 && options.frames.is_none() {
+        return Err(Error::invalid(
+            "--preroll needs --frames A-B: the frames before A warm the temporal state",
+        ));
+    }
     let input = FramePattern::parse(&options.input)?;
     let output = FramePattern::parse(&options.output)?;
     let frames = select_frames(&input, options.frames)?;
     let mut planned: Vec<PlannedFrame> = Vec::new();
-    if options.preroll > 0 {
-        let Some(range) = options.frames else {
-            return Err(Error::invalid(
-                "--preroll needs --frames A-B: the frames before A warm the temporal state",
-            ));
-        };
+    if let Some(range) = options.frames.filter(|_| options.preroll > 0) {
         let n = i64::try_from(options.preroll).unwrap_or(i64::MAX);
         let first = range.start.saturating_sub(n);
         // The pre-roll frames that exist (a chunk at the start of a

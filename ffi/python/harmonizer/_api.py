@@ -417,6 +417,96 @@ class Session:
             np.copyto(result, oarr)
         return result
 
+    def run_sequence(
+        self,
+        input: PathLike,
+        output: PathLike,
+        *,
+        frames: tuple[int, int] | str | None = None,
+        preroll: int = 0,
+        layout: str = "auto",
+        channels: list[str] | None = None,
+        insert_index: int | None = None,
+        render_hints: bool = False,
+        report: PathLike | None = None,
+        on_frame: Callable[[dict[str, Any]], bool | None] | None = None,
+    ) -> list[dict[str, Any]]:
+        """Runs this session over an EXR sequence on disk, read and written
+        by the library itself (``hz_run_sequence``): what ``harmonize run
+        INPUT -o OUTPUT --frames A-B --preroll N`` does with this session's
+        parameters, byte for byte.
+
+        ``input``/``output``: frame patterns (``####``, ``%04d``, ``$F4``,
+        ``${F4}``, ``<F4>``). ``frames``: ``(A, B)`` or ``"A-B"``, the frames
+        written (all must exist; default every existing frame). ``preroll``:
+        the frames before A processed first and not written, so a chunk
+        starts with the temporal state of a sequential run (needs
+        ``frames``). ``layout``: ``auto``, ``generic`` or ``blender``;
+        ``channels``: ``harmonize run --channel`` entries (``"color=R,G,B"``);
+        ``insert_index``: the Blender layout's Object Index of the insert.
+        ``render_hints``: when this session's ``denoise`` and ``samples``
+        are the defaults, take what the first file's headers say (as
+        ``harmonize run`` does). ``report``: a JSON report file (the CLI's
+        ``--report``). ``on_frame(frame_report)`` sees each frame (pre-roll
+        frames too, ``"preroll": True``); returning False stops the run
+        (:class:`CancelledError`). Outputs are written atomically (a
+        temporary file renamed): complete or absent. On an error the frames
+        before it stay written. Returns every frame's report (dicts).
+        """
+        fn = N.optional("hz_run_sequence")
+        opts = N.hz_run_options()
+        opts.struct_size = ctypes.sizeof(N.hz_run_options)
+        opts.input = os.fsencode(input)
+        opts.output = os.fsencode(output)
+        opts.layout = layout.encode("utf-8")
+        if channels:
+            opts.channels = ";".join(channels).encode("utf-8")
+        flags = 0
+        if frames is not None:
+            if isinstance(frames, str):
+                a, sep, b = frames.partition("-")
+                try:
+                    first, last = int(a), int(b) if sep else int(a)
+                except ValueError:
+                    raise InvalidArgumentError(f"run_sequence: frames {frames!r} is not A-B") from None
+            else:
+                first, last = (int(x) for x in frames)
+            opts.frame_first, opts.frame_last = first, last
+            flags |= N.HZ_RUN_HAS_FRAMES
+        if not isinstance(preroll, (int, np.integer)) or isinstance(preroll, bool) or preroll < 0:
+            raise InvalidArgumentError(f"run_sequence: preroll must be an integer >= 0, got {preroll!r}")
+        opts.preroll = int(preroll)
+        if insert_index is not None:
+            opts.insert_index = int(insert_index)
+            flags |= N.HZ_RUN_HAS_INSERT_INDEX
+        if render_hints:
+            flags |= N.HZ_RUN_RENDER_HINTS
+        opts.flags = flags
+        if report is not None:
+            opts.report = os.fsencode(report)
+        seen: list[dict[str, Any]] = []
+        raised: list[BaseException] = []
+
+        def frame_cb(_user: int | None, text: bytes) -> bool:
+            r = json.loads(text.decode("utf-8"))
+            seen.append(r)
+            if on_frame is None:
+                return True
+            try:
+                return on_frame(r) is not False
+            except BaseException as e:  # noqa: BLE001 (re-raised after the call)
+                raised.append(e)
+                return False
+
+        cb = N.RUN_FRAME_FN(frame_cb)
+        with self._lock:
+            status = fn(self.handle, byref(opts), cb, None)
+            self._report = None
+        if raised:
+            raise raised[0]
+        N.check(status)
+        return seen
+
     # -- queries ----------------------------------------------------------
     @property
     def last_report(self) -> dict[str, Any] | None:

@@ -100,7 +100,29 @@ class hz_device_options(Structure):  # noqa: N801
     ]
 
 
+HZ_RUN_HAS_FRAMES = 1
+HZ_RUN_HAS_INSERT_INDEX = 2
+HZ_RUN_RENDER_HINTS = 4
+
+
+class hz_run_options(Structure):  # noqa: N801
+    _fields_ = [
+        ("struct_size", c_size_t),
+        ("input", c_char_p),
+        ("output", c_char_p),
+        ("layout", c_char_p),
+        ("channels", c_char_p),
+        ("flags", c_uint32),
+        ("frame_first", c_int64),
+        ("frame_last", c_int64),
+        ("preroll", c_size_t),
+        ("insert_index", c_int64),
+        ("report", c_char_p),
+    ]
+
+
 PROGRESS_FN = CFUNCTYPE(c_bool, c_void_p, c_double)
+RUN_FRAME_FN = CFUNCTYPE(c_bool, c_void_p, c_char_p)
 MESSAGE_FN = CFUNCTYPE(None, c_void_p, c_uint32, c_char_p)
 
 _STR_OUT = [c_void_p, c_char_p, c_size_t, POINTER(c_size_t)]
@@ -137,6 +159,11 @@ _PROTOTYPES: dict[str, list] = {
     "hz_session_get_model_name": _STR_OUT,
     "hz_session_get_model_version": _STR_OUT,
     "hz_session_get_report_json": _STR_OUT,
+}
+# Added after 0.2.0's first release (issue 22): looked up when used, so this
+# binding still loads a library without them.
+_OPTIONAL: dict[str, list] = {
+    "hz_run_sequence": [c_void_p, POINTER(hz_run_options), RUN_FRAME_FN, c_void_p],
 }
 _RESTYPE = {"hz_version": c_char_p, "hz_last_error_message": c_char_p, "hz_status_name": c_char_p}
 
@@ -238,10 +265,26 @@ def _load() -> ctypes.CDLL:
             raise LibraryNotFoundError(f"{path} has no symbol {name}: the library is too old for this binding") from e
         fn.argtypes = args
         fn.restype = _RESTYPE.get(name, c_uint32)
+    for name, args in _OPTIONAL.items():
+        fn = getattr(cdll, name, None)
+        if fn is not None:
+            fn.argtypes = args
+            fn.restype = c_uint32
     st = cdll.hz_check_version(ABI_MAJOR, ABI_MINOR)
     if st != 0:
         raise error_for(st, f"{path}: " + cdll.hz_last_error_message().decode("utf-8", "replace"))
     return cdll
+
+
+def optional(name: str):
+    """An optional function of the library (see ``_OPTIONAL``), or raises
+    :class:`NotSupportedError` naming it when the library predates it."""
+    fn = getattr(lib(), name, None)
+    if fn is None:
+        from .errors import NotSupportedError
+
+        raise NotSupportedError(f"{lib()._name} has no {name}: the library is older than this binding")
+    return fn
 
 
 def check(status: int) -> None:

@@ -9,6 +9,7 @@ use std::ptr::{null, null_mut};
 use harmonizer::device::{hz_device, hz_device_options};
 use harmonizer::hz_status::{self, *};
 use harmonizer::image::{hz_format, hz_image};
+use harmonizer::run::{hz_run_options, HZ_RUN_HAS_FRAMES};
 use harmonizer::session::{
     hz_frame, hz_report, hz_reset_reason, hz_session, HZ_FRAME_HAS_INDEX, HZ_FRAME_RESET,
 };
@@ -978,5 +979,211 @@ fn denoise_on_with_albedo() {
     );
     // SAFETY: a live handle.
     assert_eq!(unsafe { fs(auto) }, HZ_OK);
+    api.free(s, d);
+}
+
+type RunFrameFn = Option<unsafe extern "C" fn(*mut c_void, *const c_char) -> bool>;
+
+/// The frames' JSON the run callback received; stops the run (returns
+/// false) once `stop_after` frames were seen.
+struct Seen {
+    frames: Vec<serde_json::Value>,
+    stop_after: usize,
+}
+
+unsafe extern "C" fn on_run_frame(user: *mut c_void, json: *const c_char) -> bool {
+    // SAFETY: `user` is the `Seen` the test passed; `json` a NUL-terminated string.
+    let seen = unsafe { &mut *user.cast::<Seen>() };
+    let text = unsafe { CStr::from_ptr(json) }.to_str().unwrap();
+    seen.frames.push(serde_json::from_str(text).unwrap());
+    seen.frames.len() < seen.stop_after
+}
+
+/// A fresh directory under the system's temporary one (removed at the end
+/// of the test that made it).
+struct TempDir(PathBuf);
+
+impl TempDir {
+    fn new(name: &str) -> TempDir {
+        let d = std::env::temp_dir().join(format!("hz-abi-{name}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&d);
+        std::fs::create_dir_all(&d).unwrap();
+        TempDir(d)
+    }
+}
+
+impl Drop for TempDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+/// Issue 22: `hz_run_sequence` runs a chunk with its pre-roll from files,
+/// writes only the chunk's frames, the same bytes as the library's own
+/// runner (what `harmonize run --frames A-B --preroll N` calls) gives, and
+/// reports each frame; the callback can stop it; a pre-roll without a
+/// frame range is refused.
+#[test]
+fn run_sequence_writes_a_chunk_with_its_preroll() {
+    use harmonizer_core::io::pattern::FramePattern;
+    use harmonizer_core::io::run::{plan, run_sequence, RunOptions};
+    use harmonizer_core::synth::{Sequence, SynthConfig};
+
+    let dir = TempDir::new("run");
+    let seq = Sequence::generate(SynthConfig {
+        width: 48,
+        height: 32,
+        frames: 12,
+        ..Default::default()
+    })
+    .unwrap();
+    let (input, _) = seq.write_generic(&dir.0, "shot.####.exr").unwrap();
+    let out = dir.0.join("abi").join("o.####.exr");
+    let report = dir.0.join("report.json");
+    let cstr = |s: &str| std::ffi::CString::new(s).unwrap();
+    let (c_in, c_out, c_report) = (
+        cstr(&input),
+        cstr(out.to_str().unwrap()),
+        cstr(report.to_str().unwrap()),
+    );
+
+    let api = Api::load();
+    let run = sym!(
+        api,
+        "hz_run_sequence",
+        unsafe extern "C" fn(
+            *mut hz_session,
+            *const hz_run_options,
+            RunFrameFn,
+            *mut c_void,
+        ) -> hz_status
+    );
+    let d = api.device(2);
+    let s = api.session(d, c"classical");
+    let mut opts = hz_run_options {
+        struct_size: std::mem::size_of::<hz_run_options>(),
+        input: c_in.as_ptr(),
+        output: c_out.as_ptr(),
+        layout: null(),
+        channels: null(),
+        flags: HZ_RUN_HAS_FRAMES,
+        frame_first: 8,
+        frame_last: 12,
+        preroll: 4,
+        insert_index: 0,
+        report: c_report.as_ptr(),
+    };
+    let mut seen = Seen {
+        frames: Vec::new(),
+        stop_after: usize::MAX,
+    };
+    // SAFETY: valid options and callback; `seen` outlives the call.
+    let st = unsafe {
+        run(
+            s,
+            &opts,
+            Some(on_run_frame),
+            (&mut seen as *mut Seen).cast(),
+        )
+    };
+    assert_eq!(st, HZ_OK, "{}", api.last_error());
+    let pre: Vec<i64> = seen
+        .frames
+        .iter()
+        .filter(|f| f["preroll"] == true)
+        .map(|f| f["frame"].as_i64().unwrap())
+        .collect();
+    let written: Vec<i64> = seen
+        .frames
+        .iter()
+        .filter(|f| f["preroll"] == false)
+        .map(|f| f["frame"].as_i64().unwrap())
+        .collect();
+    assert_eq!(pre, [4, 5, 6, 7]);
+    assert_eq!(written, [8, 9, 10, 11, 12]);
+    let op = FramePattern::parse(out.to_str().unwrap()).unwrap();
+    assert!(
+        (1..=7).all(|n| !op.path(n).exists()),
+        "pre-roll frames written"
+    );
+    let r: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+    assert_eq!(r["summary"]["frames"], 5);
+    assert_eq!(r["summary"]["preroll_frames"], 4);
+    // The session's report is the last frame's.
+    assert_eq!(api.report(s).frame_index, 12);
+
+    // The same chunk through the library's runner directly: the same bytes.
+    let direct = dir.0.join("direct").join("o.####.exr");
+    let options = RunOptions {
+        input: input.clone(),
+        output: direct.to_string_lossy().to_string(),
+        layout: Default::default(),
+        frames: Some(harmonizer_core::io::pattern::FrameRange::parse("8-12").unwrap()),
+        preroll: 4,
+    };
+    let device = harmonizer_core::Device::new(harmonizer_core::DeviceOptions {
+        threads: 2,
+        ..Default::default()
+    })
+    .unwrap();
+    let mut params = harmonizer_core::Params::default();
+    params
+        .set(
+            "backend",
+            &harmonizer_core::ParamValue::Str("classical".into()),
+        )
+        .unwrap();
+    let mut session = harmonizer_core::Session::new(device, params).unwrap();
+    let planned = plan(&options).unwrap();
+    run_sequence(&mut session, &options, &planned, false, &mut |_| Ok(())).unwrap();
+    let dp = FramePattern::parse(&options.output).unwrap();
+    for n in 8..=12 {
+        assert_eq!(
+            std::fs::read(op.path(n)).unwrap(),
+            std::fs::read(dp.path(n)).unwrap(),
+            "frame {n}"
+        );
+    }
+
+    // The callback stops the run after the 2nd frame: cancelled, the
+    // frames after it not written.
+    let stopped = dir.0.join("stopped").join("o.####.exr");
+    let c_stopped = cstr(stopped.to_str().unwrap());
+    opts.output = c_stopped.as_ptr();
+    opts.report = null();
+    opts.preroll = 0;
+    let mut seen = Seen {
+        frames: Vec::new(),
+        stop_after: 2,
+    };
+    // SAFETY: as above.
+    let st = unsafe {
+        run(
+            s,
+            &opts,
+            Some(on_run_frame),
+            (&mut seen as *mut Seen).cast(),
+        )
+    };
+    assert_eq!(st, HZ_ERROR_CANCELLED, "{}", api.last_error());
+    assert!(
+        api.last_error().contains("after frame 9"),
+        "{}",
+        api.last_error()
+    );
+    let sp = FramePattern::parse(stopped.to_str().unwrap()).unwrap();
+    assert!(sp.path(9).exists() && !sp.path(10).exists());
+
+    // A pre-roll needs a frame range; a NULL input is named.
+    opts.flags = 0;
+    opts.preroll = 2;
+    // SAFETY: as above, no callback.
+    let st = unsafe { run(s, &opts, None, null_mut()) };
+    expect_error(&api, st, "--preroll needs --frames");
+    opts.input = null();
+    // SAFETY: as above.
+    let st = unsafe { run(s, &opts, None, null_mut()) };
+    expect_error(&api, st, "options.input is NULL");
     api.free(s, d);
 }
