@@ -1,6 +1,6 @@
 """``usd-harmonize``: enhance the render products of a USD stage.
 
-usd-harmonize STAGE [--settings PRIM] [--product NAME] [--frames 1001-1024]
+usd-harmonize STAGE [--settings PRIM] [--product NAME] [--frames 1001-1024 [--preroll N]]
               [--out-dir DIR] [--layer FILE | --in-place | --no-layer]
               [--backend auto|neural|classical|bypass] [--param NAME=VALUE]
               [--denoise auto|on|off|temporal] [--denoise-quality high|balanced|fast]
@@ -63,6 +63,15 @@ def add_cmdline_args(parser: argparse.ArgumentParser) -> None:
         "--frames",
         metavar="RANGE",
         help="frames, e.g. 1001-1024, 1001-1024x2, 1001,1005 (default: the stage's range)",
+    )
+    parser.add_argument(
+        "--preroll",
+        type=int,
+        default=0,
+        metavar="N",
+        help="process the N frames before the first of --frames first, without writing "
+        "them, so a chunk of a shot starts with the temporal state of a sequential run "
+        "(needs --frames; fewer at the start of the shot)",
     )
     parser.add_argument(
         "--out-dir",
@@ -236,6 +245,7 @@ def main(argv: list[str] | None = None) -> int:
             write_layer_file=not args.no_layer,
             base_dir=args.base_dir,
             on_frame=_Progress(not args.quiet and sys.stderr.isatty()),
+            preroll=args.preroll,
         )
     except UsdHarmonizerError as e:
         print(f"usd-harmonize: error: {e}", file=sys.stderr)
@@ -259,6 +269,11 @@ def main(argv: list[str] | None = None) -> int:
                 f"resets: {resets}, warnings: {warns}, denoised: {denoised}"
                 + (f" ({decisions[-1]})" if decisions else "")
                 + f"\n  -> {res[0].output.parent}"
+            )
+        if summary.preroll_frames:
+            print(
+                f"pre-roll: {summary.preroll_frames} frame(s) before the first, "
+                "processed and not written"
             )
         if summary.layer:
             print(f"layer: {summary.layer}")

@@ -89,6 +89,9 @@ class FrameResult:
     denoise_decision: str | None = None
     #: The measured noise level (``denoise auto`` without ``samples``), else None.
     noise_level: float | None = None
+    #: A pre-roll frame (``--preroll``): processed to warm the temporal
+    #: state, not written (``output`` is where it would have gone).
+    preroll: bool = False
 
 
 def make_device(options: Options) -> Any:
@@ -271,8 +274,12 @@ class ProductRunner:
         frame: int,
         reset: bool = False,
         progress: Callable[[float], bool] | None = None,
+        write: bool = True,
     ) -> FrameResult:
-        """Enhances ``frame`` and writes its output; returns what happened."""
+        """Enhances ``frame`` and writes its output; returns what happened.
+        With ``write`` False (a pre-roll frame) the frame only warms the
+        session's temporal state: nothing is written and the result is not
+        added to :attr:`results`."""
         prod = self.product
         src = self.product.file_for(frame)
         where = f"render product {prod.path} frame {frame} ({src})"
@@ -375,6 +382,29 @@ class ProductRunner:
             raise FrameError(f"{where}: {e}") from e
         report = self.session.last_report or {}
         t_l1 = time.perf_counter()
+        reset_reason = report.get("reset")
+        backend = str(report.get("backend") or self.session.backend_name)
+        if not write:
+            self.last_frame = frame
+            return FrameResult(
+                product=prod.path,
+                frame=frame,
+                source=src,
+                output=out_path,
+                reset=str(reset_reason) if reset_reason else None,
+                backend=backend,
+                total_ms=float(report.get("total_ms") or 0.0),
+                history_used=int(report.get("history_used") or 0),
+                color_space=conv.source_name,
+                inputs=inputs,
+                warnings=list(report.get("warnings") or []),
+                timings={"read": (t_read - t0) * 1e3, "library": (t_l1 - t_l0) * 1e3},
+                usd_color_space=conv.usd_name,
+                denoised=bool(report.get("denoised")),
+                denoise_decision=report.get("denoise_decision"),
+                noise_level=report.get("noise_level"),
+                preroll=True,
+            )
         back = conv.from_linear(
             out[..., :3], out[..., 3] if coverage is not None else None
         )
@@ -382,8 +412,6 @@ class ProductRunner:
             img.set_channel(c, back[..., i])
         for c in cov_channels:
             img.set_channel(c, out[..., 3])
-        reset_reason = report.get("reset")
-        backend = str(report.get("backend") or self.session.backend_name)
         extra = {
             "harmonizer:version": hz.version(),
             "harmonizer:backend": backend,
