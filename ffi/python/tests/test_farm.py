@@ -1,0 +1,125 @@
+"""harmonizer.farm on a real dask.distributed LocalCluster (issue 22).
+
+Two shots of the synthetic sequence (written by ``harmonize synth``) run in
+chunks with a pre-roll on 2 worker processes of 1 thread each. Every output
+must be written, by exactly one chunk, with the bytes ``harmonize run
+--frames A-B --preroll N`` writes for that chunk; a worker killed in the
+middle of a chunk (its process ends after writing 2 frames, on the chunk's
+first attempt) has its chunk run again with complete outputs and no
+temporary file left. Needs ``dask[distributed]`` (scripts/setup-venv.sh
+installs it) and the release build of ``harmonize`` beside the library.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+from pathlib import Path
+
+import pytest
+
+distributed = pytest.importorskip(
+    "distributed", reason="dask[distributed] is not installed: run scripts/setup-venv.sh (the farm test cannot run)"
+)
+
+from harmonizer import _native, farm  # noqa: E402
+
+CHUNK, PREROLL = 6, 4
+
+
+def harmonize_cli() -> Path:
+    """The ``harmonize`` binary built with the library this test loads."""
+    lib = Path(_native.lib()._name)
+    exe = lib.parent / "harmonize"
+    if not exe.is_file():
+        pytest.fail(f"{exe} not found: build it with `cargo build --release -p harmonizer-cli`")
+    return exe
+
+
+@pytest.fixture(scope="module")
+def shots(tmp_path_factory: pytest.TempPathFactory) -> dict[str, tuple[str, int, int]]:
+    """Two shots: ``a`` frames 1-20 (seed 1), ``b`` frames 5-18 (seed 2)."""
+    root = tmp_path_factory.mktemp("shots")
+    exe = harmonize_cli()
+    out = {}
+    for name, first, n, seed in (("a", 1, 20, 1), ("b", 5, 14, 2)):
+        subprocess.run(
+            [exe, "synth", "--out", root / name, "--frames", str(n), "--first", str(first), "--seed", str(seed), "--size", "64x36"],
+            check=True,
+            capture_output=True,
+        )
+        out[name] = (str(root / name / "input" / "shot.####.exr"), first, first + n - 1)
+    return out
+
+
+def cli_chunks(pattern: str, first: int, last: int, out: Path) -> dict[int, bytes]:
+    """Every frame of the shot as the CLI writes it chunk by chunk."""
+    exe = harmonize_cli()
+    o = str(out / "shot.####.exr")
+    for a in range(first, last + 1, CHUNK):
+        b = min(a + CHUNK - 1, last)
+        args = [exe, "run", pattern, "-o", o, "--backend", "classical", "--threads", "2", "--frames", f"{a}-{b}"]
+        subprocess.run([*args, "--preroll", str(PREROLL)], check=True, capture_output=True)
+    return {f: Path(farm.frame_path(o, f)).read_bytes() for f in range(first, last + 1)}
+
+
+def test_two_shots_on_a_local_cluster_with_a_killed_worker(shots: dict, tmp_path: Path) -> None:
+    out = tmp_path / "farm"
+    job = [farm.shot_from_arg(f"{n}={p}", out, None) for n, (p, _, _) in shots.items()]
+    settings = farm.Settings(backend="classical", library_threads=1, kill_first_attempt={"a#1": 2})
+    seen: list[dict] = []
+    result = farm.run_job(
+        job,
+        chunk=CHUNK,
+        preroll=PREROLL,
+        settings=settings,
+        workers=2,
+        threads_per_worker=1,
+        summary=out / "summary.json",
+        on_chunk=seen.append,
+    )
+    assert result["failed"] == [], result["failed"]
+    assert result["workers"] == 2
+    assert json.loads((out / "summary.json").read_text()) == result
+    # a: 1-6, 7-12, 13-18, 19-20; b: 5-10, 11-16, 17-18.
+    chunks = {(e["shot"], e["chunk"]): e for e in result["chunks"]}
+    assert sorted(chunks) == [("a", 0), ("a", 1), ("a", 2), ("a", 3), ("b", 0), ("b", 1), ("b", 2)]
+    # Each frame of each shot belongs to one chunk, written once in the summary.
+    for name, (_, first, last) in shots.items():
+        listed = [o for e in result["chunks"] if e["shot"] == name for o in e["outputs"]]
+        want = [farm.frame_path(str(out / name / "shot.####.exr"), f) for f in range(first, last + 1)]
+        assert sorted(listed) == want
+    # The killed chunk ran twice (its first worker process ended after 2
+    # frames), the others once; the pre-roll is fewer frames at a shot's start.
+    assert chunks[("a", 1)]["attempts"] == 2, chunks[("a", 1)]
+    assert all(e["attempts"] == 1 for k, e in chunks.items() if k != ("a", 1))
+    assert chunks[("a", 0)]["preroll_frames"] == 0 and chunks[("a", 1)]["preroll_frames"] == PREROLL
+    for e in result["chunks"]:
+        assert e["worker"].startswith("tcp://") and e["seconds"] > 0 and e["pid"] != os.getpid()
+        assert e["resets"] == ([{"frame": e["frames"][0] - min(PREROLL, e["frames"][0] - shots[e["shot"]][1]), "reason": "first_frame"}])
+    # Outputs: exactly the chunks' frames, complete, no temporary left, and
+    # the bytes of the CLI's chunked run.
+    for name, (pattern, first, last) in shots.items():
+        files = sorted(p.name for p in (out / name).iterdir())
+        assert files == [f"shot.{f:04d}.exr" for f in range(first, last + 1)], files
+        want = cli_chunks(pattern, first, last, tmp_path / f"cli-{name}")
+        for f in range(first, last + 1):
+            got = Path(farm.frame_path(str(out / name / "shot.####.exr"), f)).read_bytes()
+            assert got == want[f], f"shot {name} frame {f} differs from harmonize run's chunk"
+    assert result["stale_temporaries_removed"] >= 0
+
+
+def test_the_command_line(shots: dict, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    pattern, first, last = shots["b"]
+    out = tmp_path / "cli"
+    rc = farm.main([pattern, "-o", str(out), "--backend", "classical", "--chunk", "7", "--preroll", "2", "--workers", "1"])
+    text = capsys.readouterr().out
+    assert rc == 0, text
+    assert f"{last - first + 1} frame(s) of 1 shot(s) in 2 chunk(s) on 1 worker(s)" in text, text
+    summary = json.loads((out / "farm-summary.json").read_text())
+    assert [e["frames"] for e in summary["chunks"]] == [[5, 11], [12, 18]]
+    assert [e["preroll_frames"] for e in summary["chunks"]] == [0, 2]
+    # Two shots of one name are refused before anything runs.
+    rc = farm.main([pattern, pattern, "-o", str(tmp_path / "dup")])
+    assert rc == 2 and "named ['shot'] twice" in capsys.readouterr().err
