@@ -498,11 +498,26 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--harmonize", type=Path, default=REPO / "target" / "release" / "harmonize")
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument(
+        "--variant",
+        action="append",
+        default=[],
+        metavar="NAME=ARGS",
+        help="one more method: harmonize run with these arguments (e.g. 'noshadow=--backend classical "
+        "--set contact_shadows=false'); repeatable",
+    )
     args = ap.parse_args(argv)
+    for v in args.variant:
+        name, sep, rest = v.partition("=")
+        if not sep or not name or name in METHODS:
+            print(f"quality: --variant wants NAME=ARGS with a new name, got '{v}'", file=sys.stderr)
+            return 2
+        OURS[name] = rest.split()
+    METHODS_ALL = PEERS + tuple(OURS)
     methods = tuple(m for m in args.methods.split(",") if m)
-    bad = [m for m in methods if m not in METHODS]
+    bad = [m for m in methods if m not in METHODS_ALL]
     if bad:
-        print(f"quality: unknown method(s) {bad}; have {', '.join(METHODS)}", file=sys.stderr)
+        print(f"quality: unknown method(s) {bad}; have {', '.join(METHODS_ALL)}", file=sys.stderr)
         return 2
     if any(m in OURS for m in methods) and not args.harmonize.exists():
         print(f"quality: {args.harmonize} not found (cargo build --release -p harmonize-cli)", file=sys.stderr)

@@ -130,6 +130,15 @@ fn quality_name(q: Quality) -> &'static str {
 /// The most samples per pixel `samples` accepts.
 pub const MAX_SAMPLES: i64 = 1 << 30;
 
+/// The space `light_direction` is given in.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LightSpace {
+    /// World space (the camera matrices' world).
+    World,
+    /// OpenEXR camera space: +x right, +y up, +z forward.
+    Camera,
+}
+
 /// What to do when a frame number is not the previous one plus one.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum GapPolicy {
@@ -154,14 +163,28 @@ pub struct Params {
     pub harmonize: bool,
     /// Add contact shadows under inserted objects (`contact_shadows`).
     pub contact_shadows: bool,
-    /// Shadow darkness, 0..=1 (`shadow_strength`).
+    /// Shadow darkness, 0..=1 (`shadow_strength`): the share of the light
+    /// the shadow takes away (a sun's share of the light on the ground).
     pub shadow_strength: f32,
+    /// Direction toward the scene's dominant light (`light_direction`:
+    /// "x, y, z", empty when unknown), in world space or the camera's (see
+    /// `light_space`). With it (and a camera) inserts cast shadows away
+    /// from it; hosts fill it from the scene's sun or brightest light.
+    pub light_direction: Option<[f32; 3]>,
+    /// Space of `light_direction` (`light_space`: "world", the default, or
+    /// "camera": OpenEXR camera space, +x right, +y up, +z forward).
+    pub light_space: LightSpace,
     /// Blend with the reprojected history to remove flicker (`stabilize`):
     /// the classical pipeline's last step, also run on the output of neural
     /// models whose manifest asks for it (`stabilize: true`).
     pub stabilize: bool,
     /// Weight of the history in stabilization, 0..=0.98 (`temporal_blend`).
     pub temporal_blend: f32,
+    /// Stabilize every pixel of every frame (`stabilize_all`). Off by
+    /// default: a frame with holes is stabilized whole, any other only where
+    /// the enhancer changed it (the insert, its shadow), so a clean render
+    /// comes out as it went in.
+    pub stabilize_all: bool,
     /// Frame-number gap policy (`gap_policy`: "reset" or "keep").
     pub gap_policy: GapPolicy,
     /// Reset automatically on a scene cut (`scene_cut_detection`).
@@ -190,9 +213,9 @@ pub struct Params {
     /// (`denoise_prefilter`), as OIDN recommends for noisy auxiliary
     /// images: three filter runs a frame instead of one. Off by default.
     pub denoise_prefilter: bool,
-    /// Run the neural network on frames with nothing it repairs (no hole,
-    /// no insert) too (`neural_clean_frames`); off by default: such frames
-    /// get the classical operations (their temporal stabilization alone).
+    /// Run the neural network on frames without holes too
+    /// (`neural_clean_frames`); off by default: such frames (clean, or with
+    /// an insert alone) get the classical operations.
     pub neural_clean_frames: bool,
 }
 
@@ -206,8 +229,11 @@ impl Default for Params {
             harmonize: true,
             contact_shadows: true,
             shadow_strength: 0.6,
+            light_direction: None,
+            light_space: LightSpace::World,
             stabilize: true,
             temporal_blend: 0.6,
+            stabilize_all: false,
             gap_policy: GapPolicy::Reset,
             scene_cut_detection: true,
             scene_cut_threshold: 0.6,
@@ -233,8 +259,11 @@ pub const PARAM_NAMES: &[&str] = &[
     "harmonize",
     "contact_shadows",
     "shadow_strength",
+    "light_direction",
+    "light_space",
     "stabilize",
     "temporal_blend",
+    "stabilize_all",
     "gap_policy",
     "scene_cut_detection",
     "scene_cut_threshold",
@@ -305,6 +334,22 @@ fn want_str<'a>(name: &str, v: &'a ParamValue) -> Result<&'a str> {
 }
 
 impl Params {
+    /// `light_direction` in world space for a frame seen by `camera`
+    /// (`None` without a direction, or in camera space without a camera).
+    pub fn light_direction_world(
+        &self,
+        camera: Option<&crate::frame::Camera>,
+    ) -> Option<glam::DVec3> {
+        let d = glam::DVec3::from(self.light_direction?.map(f64::from));
+        match self.light_space {
+            LightSpace::World => Some(d),
+            LightSpace::Camera => {
+                let c2w = camera?.world_to_camera.as_dmat4().inverse();
+                Some(c2w.transform_vector3(d))
+            }
+        }
+    }
+
     /// Sets one parameter by name; unknown names and out-of-range values are errors.
     pub fn set(&mut self, name: &str, v: &ParamValue) -> Result<()> {
         match name {
@@ -315,8 +360,24 @@ impl Params {
             "harmonize" => self.harmonize = want_bool(name, v)?,
             "contact_shadows" => self.contact_shadows = want_bool(name, v)?,
             "shadow_strength" => self.shadow_strength = want_float(name, v, 0.0, 1.0)?,
+            "light_direction" => {
+                self.light_direction = crate::ops::cast_shadow::parse_direction(want_str(name, v)?)
+                    .map_err(|e| Error::invalid(format!("parameter light_direction: {e}")))?
+            }
+            "light_space" => {
+                self.light_space = match want_str(name, v)? {
+                    "world" => LightSpace::World,
+                    "camera" => LightSpace::Camera,
+                    s => {
+                        return Err(Error::invalid(format!(
+                            "parameter light_space: unknown value {s:?} (expected world or camera)"
+                        )))
+                    }
+                }
+            }
             "stabilize" => self.stabilize = want_bool(name, v)?,
             "temporal_blend" => self.temporal_blend = want_float(name, v, 0.0, 0.98)?,
+            "stabilize_all" => self.stabilize_all = want_bool(name, v)?,
             "gap_policy" => {
                 self.gap_policy = match want_str(name, v)? {
                     "reset" => GapPolicy::Reset,
@@ -369,8 +430,21 @@ impl Params {
             "harmonize" => ParamValue::Bool(self.harmonize),
             "contact_shadows" => ParamValue::Bool(self.contact_shadows),
             "shadow_strength" => ParamValue::Float(self.shadow_strength as f64),
+            "light_direction" => ParamValue::Str(
+                self.light_direction
+                    .map(|[x, y, z]| format!("{x}, {y}, {z}"))
+                    .unwrap_or_default(),
+            ),
+            "light_space" => ParamValue::Str(
+                match self.light_space {
+                    LightSpace::World => "world",
+                    LightSpace::Camera => "camera",
+                }
+                .into(),
+            ),
             "stabilize" => ParamValue::Bool(self.stabilize),
             "temporal_blend" => ParamValue::Float(self.temporal_blend as f64),
+            "stabilize_all" => ParamValue::Bool(self.stabilize_all),
             "gap_policy" => ParamValue::Str(
                 match self.gap_policy {
                     GapPolicy::Reset => "reset",

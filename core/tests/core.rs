@@ -11,6 +11,8 @@ mod denoise_session;
 mod gamut;
 #[path = "core/hostile.rs"]
 mod hostile;
+#[path = "core/inserts.rs"]
+mod inserts;
 #[path = "core/io.rs"]
 mod io;
 #[path = "core/neural.rs"]

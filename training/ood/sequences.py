@@ -229,5 +229,11 @@ def build(name: str, data: Path = DATA, cache: dict | None = None, frames: int =
         # What the renderer knows and a host passes on (the Blender extension
         # does): its sample count, or that it denoised each frame itself.
         s["host_params"] = {"samples": "4"} if name == "noisy_raw" else {"denoise": "temporal"}
+    if scene_name == "courtyard" and "light" in sc["meta"]:
+        # What a host knows of its scene and passes on (the Blender
+        # extension reads the sun): the direction toward the sun, world space.
+        e, a = np.radians(sc["meta"]["light"]["sun_elev"]), np.radians(sc["meta"]["light"]["sun_azim"])
+        sun = (np.cos(e) * np.sin(a), np.cos(e) * np.cos(a), np.sin(e))
+        s.setdefault("host_params", {})["light_direction"] = ", ".join(f"{c:.6f}" for c in sun)
     s["frames"] = T
     return s

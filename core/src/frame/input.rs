@@ -485,6 +485,33 @@ impl PreparedFrame {
         }
     }
 
+    /// Whether the frame has a hole (coverage below
+    /// [`crate::ops::inpaint::FULL`]), from the scan made while preparing it
+    /// when there is one.
+    pub fn has_holes(&self) -> bool {
+        match self.scan {
+            Some(s) => s.holes.is_some(),
+            None => {
+                let full = crate::ops::inpaint::FULL;
+                self.coverage
+                    .as_ref()
+                    .is_some_and(|c| c.iter().any(|&v| v < full))
+            }
+        }
+    }
+
+    /// Whether the frame has an insert (mask above 0), from the scan made
+    /// while preparing it when there is one.
+    pub fn has_insert(&self) -> bool {
+        match self.scan {
+            Some(s) => s.insert.is_some(),
+            None => self
+                .insert_mask
+                .as_ref()
+                .is_some_and(|m| m.iter().any(|&v| v > 0.0)),
+        }
+    }
+
     /// Width in pixels.
     pub fn width(&self) -> usize {
         self.color.width

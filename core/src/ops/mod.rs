@@ -1,5 +1,5 @@
 //! Image operations of the classical pipeline: inpainting, insert
-//! harmonization, contact shadows, temporal stabilization.
+//! harmonization, contact and cast shadows, temporal stabilization.
 //!
 //! Every operation works in place on a 4-plane [`Image`] (RGB premultiplied by
 //! A, A the coverage) and runs its parallel loops on the current rayon pool:
@@ -7,6 +7,7 @@
 //! into bands of [`BAND_ROWS`] rows, a constant, and reductions are summed per
 //! band and then sequentially, so results do not depend on the thread count.
 
+pub mod cast_shadow;
 pub mod harmonize;
 pub mod inpaint;
 pub mod shadow;

@@ -17,6 +17,16 @@ use rayon::prelude::*;
 use super::{fast_exp2, fmax, fmin, par_bands_mut, Rect, EMPTY_DEPTH};
 use crate::frame::Image;
 
+/// Distance (share of the shadow map's larger edge) at which
+/// [`existing_darkening`] looks for unshadowed background.
+pub const PRESENCE_REACH: f32 = 0.08;
+/// Darkening (stops) from which a shadow starts to count as already
+/// rendered ([`missing_share`]); fully from twice this. Sunlit ground under
+/// a bright sky darkens by about half a stop in shadow.
+pub const PRESENT_FROM: f32 = 0.15;
+/// Fewest shadowed/unshadowed pairs [`existing_darkening`] decides on.
+pub const PRESENCE_MIN_PAIRS: usize = 16;
+
 /// Relative depth difference at which the shadow falls to 1/e.
 pub const DEPTH_TOLERANCE: f32 = 0.1;
 /// Horizontal blur sigma as a share of the footprint size.
@@ -242,6 +252,105 @@ pub fn contact_shadow(
     }
     let (w, h) = (img.width, img.height);
     let map = shadow_map(mask, depth, insert, w, h)?;
+    Some(apply(img, mask, depth, &map, strength))
+}
+
+/// Stops by which the background where `map` says "shadow" (occlusion at
+/// least 0.5) is already darker than the unshadowed background around it at
+/// the same depth (within 10 %): each shadowed cell is compared with the
+/// cells [`PRESENCE_REACH`] of the map's size away in eight directions that
+/// are unshadowed (occlusion below 0.1), off the insert and not sky, on a
+/// 3x3 mean of luminance. `None` with fewer than [`PRESENCE_MIN_PAIRS`] such
+/// pairs.
+pub fn existing_darkening(
+    img: &Image,
+    mask: &[f32],
+    depth: &[f32],
+    map: &ShadowMap,
+) -> Option<f32> {
+    let (w, h) = (img.width, img.height);
+    let (r, g, b) = (img.plane(0), img.plane(1), img.plane(2));
+    let lum = |x: usize, y: usize| -> f32 {
+        let mut s = 0.0;
+        for yy in y.saturating_sub(1)..(y + 2).min(h) {
+            for xx in x.saturating_sub(1)..(x + 2).min(w) {
+                let i = yy * w + xx;
+                s += super::LUMA[0] * r[i] + super::LUMA[1] * g[i] + super::LUMA[2] * b[i];
+            }
+        }
+        s
+    };
+    let occ_at = |x: usize, y: usize| -> f32 {
+        let a = map.area;
+        if x < a.x0 || x >= a.x1 || y < a.y0 || y >= a.y1 {
+            0.0
+        } else {
+            map.sample(x, y).0
+        }
+    };
+    let ground = |i: usize| mask[i] < 0.5 && depth[i] > 0.0 && depth[i] < EMPTY_DEPTH;
+    let reach = (PRESENCE_REACH * map.area.width().max(map.area.height()) as f32).max(3.0) as isize;
+    let (mut sum, mut pairs) = (0.0f64, 0usize);
+    for j in 0..map.grid_height {
+        for i in 0..map.grid_width {
+            if map.occlusion[j * map.grid_width + i] < 0.5 {
+                continue;
+            }
+            let x = (map.area.x0 + i * map.cell + map.cell / 2).min(map.area.x1 - 1);
+            let y = (map.area.y0 + j * map.cell + map.cell / 2).min(map.area.y1 - 1);
+            let c = y * w + x;
+            if !ground(c) {
+                continue;
+            }
+            let lc = lum(x, y);
+            for (dx, dy) in [
+                (1, 0),
+                (-1, 0),
+                (0, 1),
+                (0, -1),
+                (1, 1),
+                (1, -1),
+                (-1, 1),
+                (-1, -1),
+            ] {
+                let (nx, ny) = (x as isize + dx * reach, y as isize + dy * reach);
+                if nx < 0 || ny < 0 || nx >= w as isize || ny >= h as isize {
+                    continue;
+                }
+                let (nx, ny) = (nx as usize, ny as usize);
+                let n = ny * w + nx;
+                if !ground(n)
+                    || occ_at(nx, ny) >= 0.1
+                    || (depth[n] - depth[c]).abs() > 0.1 * depth[c]
+                {
+                    continue;
+                }
+                let ln = lum(nx, ny);
+                if lc > 0.0 && ln > 0.0 {
+                    sum += (ln / lc).log2() as f64;
+                    pairs += 1;
+                }
+            }
+        }
+    }
+    (pairs >= PRESENCE_MIN_PAIRS).then(|| (sum / pairs as f64) as f32)
+}
+
+/// Share of a shadow still to add when the background there is already
+/// `existing` stops darker than around it ([`existing_darkening`]): 1 up to
+/// [`PRESENT_FROM`] stops, 0 from twice that, linear between. A render that
+/// already has the shadow keeps it as it is; texture alone moves the
+/// measure by about a tenth of a stop where no shadow is.
+pub fn missing_share(existing: Option<f32>) -> f32 {
+    let Some(e) = existing else { return 1.0 };
+    (1.0 - (e - PRESENT_FROM) / PRESENT_FROM).clamp(0.0, 1.0)
+}
+
+/// Darkens the background of a 4-plane image by `strength` times the
+/// occlusion of `map`: only where its depth is near the map's depth there,
+/// never on the insert nor the sky. Returns the area touched.
+pub fn apply(img: &mut Image, mask: &[f32], depth: &[f32], map: &ShadowMap, strength: f32) -> Rect {
+    let w = img.width;
     let area = map.area;
     let gw = map.grid_width;
     let f = map.cell as f32;
@@ -306,7 +415,7 @@ pub fn contact_shadow(
             }
         }
     });
-    Some(area)
+    area
 }
 
 #[cfg(test)]

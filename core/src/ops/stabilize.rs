@@ -11,7 +11,7 @@
 
 use rayon::prelude::*;
 
-use super::{fmax, fmin, par_bands_mut, row_max, simd, BAND_ROWS};
+use super::{fmax, fmin, par_bands_mut, row_max, simd, Rect, BAND_ROWS};
 use crate::frame::{Image, RgbaImage};
 use crate::temporal::{HistoryView, LatticeRows, ReprojectedFrame};
 
@@ -92,6 +92,14 @@ pub trait HistoryRows: Sync {
     /// Writes row `y` of the reprojected history's RGBA (interleaved) and
     /// validity into the row-long slices `rgba` and `valid`.
     fn row(&self, y: usize, rgba: &mut [[f32; 4]], valid: &mut [f32]);
+
+    /// Whether row `y` must still be read when nothing on it is blended
+    /// (outside the area of [`stabilize_rows_in`]): true when reading it
+    /// records something besides the blend (the scene probe's rows).
+    #[inline(always)]
+    fn needed(&self, _y: usize) -> bool {
+        false
+    }
 }
 
 /// A whole reprojected frame, row by row.
@@ -122,6 +130,11 @@ pub struct ViewRows<'v, 'a> {
 }
 
 impl HistoryRows for ViewRows<'_, '_> {
+    #[inline(always)]
+    fn needed(&self, y: usize) -> bool {
+        self.probe.is_some_and(|p| p.lattice().row_of(y).is_some())
+    }
+
     #[inline(always)]
     fn row(&self, y: usize, rgba: &mut [[f32; 4]], valid: &mut [f32]) {
         self.view.reproject_row_rgba(self.k, y, rgba, valid);
@@ -168,7 +181,21 @@ pub fn stabilize_rows<H: HistoryRows>(
     kept: Option<&mut [f32]>,
     history: &H,
 ) {
-    stabilize_rows_on(img, blend, kept, history, true)
+    stabilize_rows_on(img, blend, kept, history, None, true)
+}
+
+/// [`stabilize_rows`] blending only the pixels inside `area`; the others
+/// keep their color (and are still written to `kept`). History rows outside
+/// it are read only when [`HistoryRows::needed`] says so. An empty `area`
+/// blends nothing.
+pub fn stabilize_rows_in<H: HistoryRows>(
+    img: &mut Image,
+    blend: f32,
+    kept: Option<&mut [f32]>,
+    history: &H,
+    area: Rect,
+) {
+    stabilize_rows_on(img, blend, kept, history, Some(area), true)
 }
 
 /// [`stabilize_rows`], its bands through [`simd`] when `vectorized` (else
@@ -178,9 +205,16 @@ fn stabilize_rows_on<H: HistoryRows>(
     blend: f32,
     kept: Option<&mut [f32]>,
     history: &H,
+    area: Option<Rect>,
     vectorized: bool,
 ) {
     let (w, h) = (img.width, img.height);
+    let area = area.map_or(Rect::full(w, h), |a| Rect {
+        x0: a.x0.min(w),
+        y0: a.y0.min(h),
+        x1: a.x1.min(w),
+        y1: a.y1.min(h),
+    });
     if w * h == 0 {
         return;
     }
@@ -240,6 +274,7 @@ fn stabilize_rows_on<H: HistoryRows>(
                 planes: [r, g, b, a],
                 kept,
                 history,
+                area,
             };
             if vectorized {
                 simd(job)
@@ -262,6 +297,7 @@ struct BandJob<'e, 'p, H> {
     planes: [&'p mut [f32]; 4],
     kept: Option<&'p mut [[f32; 4]]>,
     history: &'e H,
+    area: Rect,
 }
 
 impl<H: HistoryRows> pulp::WithSimd for BandJob<'_, '_, H> {
@@ -278,7 +314,9 @@ impl<H: HistoryRows> pulp::WithSimd for BandJob<'_, '_, H> {
             planes: [r, g, b, a],
             mut kept,
             history,
+            area,
         } = self;
+        let (ax0, ax1) = (area.x0, area.x1.max(area.x0));
         let bi = y0 / BAND_ROWS;
         let rows = a.len() / w;
         // Sliding window of YCoCg rows of the unmodified image.
@@ -304,8 +342,11 @@ impl<H: HistoryRows> pulp::WithSimd for BandJob<'_, '_, H> {
             } else {
                 below.copy_from_slice(&centre);
             }
-            history.row(y, &mut hrgba, &mut vv);
-            if row_max(&vv) > 0.0 {
+            let inside = y >= area.y0 && y < area.y1 && ax1 > ax0;
+            if inside || history.needed(y) {
+                history.row(y, &mut hrgba, &mut vv);
+            }
+            if inside && row_max(&vv[ax0..ax1]) > 0.0 {
                 vertical_min_max([&above, &centre, &below], w, &mut lo, &mut hi);
                 let row = dy * w..(dy + 1) * w;
                 let (rr, gr, br, ar) = (
@@ -317,7 +358,7 @@ impl<H: HistoryRows> pulp::WithSimd for BandJob<'_, '_, H> {
                 let (ly, lco, lcg) = (shifted(&lo, 0, w), shifted(&lo, 1, w), shifted(&lo, 2, w));
                 let (hy, hco, hcg) = (shifted(&hi, 0, w), shifted(&hi, 1, w), shifted(&hi, 2, w));
                 let (hrgba, vv) = (&hrgba[..w], &vv[..w]);
-                for x in 0..w {
+                for x in ax0..ax1 {
                     let [hr, hg, hb, hav] = hrgba[x];
                     let (cov, v) = (ar[x], vv[x]);
                     let ok = (cov > 0.0) & (v > 0.0) & (hav > MIN_HISTORY_ALPHA);
@@ -459,7 +500,7 @@ mod tests {
         let run = |vectorized| {
             let mut img = cur.clone();
             let mut kept = vec![f32::NAN; 4 * n];
-            stabilize_rows_on(&mut img, 0.8, Some(&mut kept), &rows, vectorized);
+            stabilize_rows_on(&mut img, 0.8, Some(&mut kept), &rows, None, vectorized);
             let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
             (bits(&img.data), bits(&kept))
         };

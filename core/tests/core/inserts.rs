@@ -1,0 +1,285 @@
+//! Inserts through a `Session`, with a camera: the shadow an insert casts
+//! away from the host's light (`light_direction`) falls where the geometry
+//! says, is not added again where the render already has it, and without a
+//! light no cast shadow is made; frames without holes keep every pixel the
+//! enhancer did not change (do no harm).
+//!
+//! The scene is ray cast here: a textured ground plane y = 0 (+y up), a
+//! 1 x 1 x 1 box standing at the origin (the insert), a camera looking down
+//! at it from the front.
+
+use glam::{DVec2, DVec3, DVec4, Vec3};
+use harmonizer_core::frame::{Camera, FrameInput, ImageView};
+use harmonizer_core::{Device, DeviceOptions, Image, ParamValue, Session};
+
+const W: usize = 192;
+const H: usize = 128;
+/// Toward the light: from +x, 45 degrees up.
+const LIGHT: [f64; 3] = [1.0, 1.0, 0.0];
+
+struct Scene {
+    camera: Camera,
+    rgb: Vec<f32>,
+    depth: Vec<f32>,
+    mask: Vec<f32>,
+    /// The ground point each pixel sees (None on the box or the sky).
+    ground: Vec<Option<DVec3>>,
+}
+
+fn hash(i: u64) -> f32 {
+    let mut z = i.wrapping_mul(0x9E37_79B9_7F4A_7C15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    ((z ^ (z >> 31)) >> 40) as f32 / (1u64 << 24) as f32
+}
+
+/// Whether the box stands between ground point `p` and the light.
+fn box_shadows(p: DVec3) -> bool {
+    let l = DVec3::from(LIGHT).normalize();
+    let (mut t0, mut t1) = (1e-6f64, f64::MAX);
+    for (o, d, lo, hi) in [
+        (p.x, l.x, -0.5, 0.5),
+        (p.y, l.y, 0.0, 1.0),
+        (p.z, l.z, -0.5, 0.5),
+    ] {
+        if d.abs() < 1e-12 {
+            if o < lo || o > hi {
+                return false;
+            }
+            continue;
+        }
+        let (a, b) = ((lo - o) / d, (hi - o) / d);
+        t0 = t0.max(a.min(b));
+        t1 = t1.min(a.max(b));
+    }
+    t0 <= t1
+}
+
+/// The scene seen from `eye_x` (the camera slides sideways between frames);
+/// with `shadowed`, the ground in the box's true shadow is darkened to
+/// `shadowed` of its light, as a render with the object in it has it.
+fn scene(eye_x: f32, shadowed: Option<f32>) -> Scene {
+    let camera = Camera::look_at(
+        Vec3::new(eye_x, 3.0, -6.0),
+        Vec3::new(0.0, 0.5, 0.0),
+        0.8,
+        W as f32 / H as f32,
+    );
+    let un = camera.unprojector(W, H);
+    let eye =
+        (camera.world_to_camera.as_dmat4().inverse() * DVec4::new(0.0, 0.0, 0.0, 1.0)).truncate();
+    let n = W * H;
+    let (mut rgb, mut depth, mut mask) = (vec![0.0; 3 * n], vec![1e10; n], vec![0.0; n]);
+    let mut ground = vec![None; n];
+    for y in 0..H {
+        for x in 0..W {
+            let i = y * W + x;
+            let dir =
+                (un.world_point(DVec2::new(x as f64 + 0.5, y as f64 + 0.5), 1.0) - eye).normalize();
+            let (mut t0, mut t1) = (0.0f64, f64::MAX);
+            for (o, d, lo, hi) in [
+                (eye.x, dir.x, -0.5, 0.5),
+                (eye.y, dir.y, 0.0, 1.0),
+                (eye.z, dir.z, -0.5, 0.5),
+            ] {
+                let (a, b) = ((lo - o) / d, (hi - o) / d);
+                t0 = t0.max(a.min(b));
+                t1 = t1.min(a.max(b));
+            }
+            let (p, c) = if t0 <= t1 {
+                mask[i] = 1.0;
+                (eye + dir * t0, [0.7, 0.45, 0.3])
+            } else if dir.y < 0.0 {
+                let p = eye + dir * (-eye.y / dir.y);
+                ground[i] = Some(p);
+                // A tiled texture fixed to the ground.
+                let cell = ((p.x * 4.0).floor() as i64 * 7919 + (p.z * 4.0).floor() as i64) as u64;
+                let v = 0.35 + 0.15 * hash(cell);
+                let k = match shadowed {
+                    Some(s) if box_shadows(p) => s,
+                    _ => 1.0,
+                };
+                (p, [v * k, v * 0.95 * k, v * 0.9 * k])
+            } else {
+                rgb[3 * i..3 * i + 3].copy_from_slice(&[0.6, 0.7, 0.9]);
+                continue;
+            };
+            rgb[3 * i..3 * i + 3].copy_from_slice(&c);
+            depth[i] = camera.project(p, W, H).unwrap().1 as f32;
+        }
+    }
+    Scene {
+        camera,
+        rgb,
+        depth,
+        mask,
+        ground,
+    }
+}
+
+fn session(extra: &[(&str, ParamValue)]) -> Session {
+    let dev = Device::new(DeviceOptions {
+        threads: 2,
+        ..DeviceOptions::default()
+    })
+    .unwrap();
+    let mut s = Session::new(dev, harmonizer_core::Params::default()).unwrap();
+    s.set("backend", ParamValue::Str("classical".into()))
+        .unwrap();
+    for (k, v) in extra {
+        s.set(k, v.clone()).unwrap();
+    }
+    s.commit().unwrap();
+    s
+}
+
+fn process(s: &mut Session, sc: &Scene, index: i64, with_mask: bool) -> Image {
+    let mut input = FrameInput::new(ImageView::from_f32("color", &sc.rgb, W, H, 3).unwrap());
+    input.depth = Some(ImageView::from_f32("depth", &sc.depth, W, H, 1).unwrap());
+    if with_mask {
+        input.insert_mask = Some(ImageView::from_f32("insert", &sc.mask, W, H, 1).unwrap());
+    }
+    input.camera = Some(sc.camera);
+    input.frame_index = Some(index);
+    s.process(&input, None).unwrap().0
+}
+
+/// Mean output/input luminance ratio over ground pixels that `pick` selects.
+fn ratio(out: &Image, sc: &Scene, pick: impl Fn(DVec3) -> bool) -> (f64, usize) {
+    let n = W * H;
+    let (mut sum, mut count) = (0.0, 0);
+    for i in 0..n {
+        let Some(p) = sc.ground[i] else { continue };
+        if !pick(p) {
+            continue;
+        }
+        let o: f32 = (0..3).map(|c| out.data[c * n + i]).sum();
+        let v: f32 = (0..3).map(|c| sc.rgb[3 * i + c]).sum();
+        sum += (o / v) as f64;
+        count += 1;
+    }
+    (sum / count.max(1) as f64, count)
+}
+
+fn light() -> (&'static str, ParamValue) {
+    (
+        "light_direction",
+        ParamValue::Str(format!("{}, {}, {}", LIGHT[0], LIGHT[1], LIGHT[2])),
+    )
+}
+
+#[test]
+fn the_insert_casts_its_shadow_away_from_the_light() {
+    let sc = scene(0.0, None);
+    let mut s = session(&[light()]);
+    let out = process(&mut s, &sc, 0, true);
+    // Well inside the true shadow (not its edge), beside the box, and on
+    // the lit side.
+    let core = |p: DVec3| {
+        box_shadows(p)
+            && [(0.08, 0.0), (-0.08, 0.0), (0.0, 0.08), (0.0, -0.08)]
+                .iter()
+                .all(|(dx, dz)| box_shadows(p + DVec3::new(*dx, 0.0, *dz)))
+    };
+    let (shadow, n_shadow) = ratio(&out, &sc, core);
+    let (lit, n_lit) = ratio(&out, &sc, |p| p.x > 0.9 || p.z.abs() > 1.2);
+    assert!(n_shadow > 100 && n_lit > 1000, "{n_shadow} {n_lit}");
+    eprintln!("shadow {shadow:.3} over {n_shadow}, lit {lit:.4} over {n_lit}");
+    let strength = 0.6; // the default shadow_strength
+    assert!(
+        (shadow - (1.0 - strength)).abs() < 0.08,
+        "ground in the shadow kept {shadow:.3} of its light, want about {:.2}",
+        1.0 - strength
+    );
+    assert!(lit > 0.995, "lit ground darkened to {lit:.4}");
+    // The box itself is not darkened by its own shadow.
+    let n = W * H;
+    let on_box = (0..n)
+        .filter(|&i| sc.mask[i] > 0.5)
+        .all(|i| (0..3).all(|c| out.data[c * n + i] >= sc.rgb[3 * i + c] * 0.98));
+    assert!(on_box);
+    // The report's shadow stage ran; without a light there is no cast shadow.
+    let mut plain = session(&[]);
+    let out = process(&mut plain, &sc, 0, true);
+    let (shadow, _) = ratio(&out, &sc, core);
+    assert!(
+        shadow > 0.9,
+        "without a light the cast shadow is {shadow:.3}"
+    );
+}
+
+#[test]
+fn a_shadow_the_render_already_has_is_not_added_again() {
+    let sc = scene(0.0, Some(0.55));
+    let mut s = session(&[light()]);
+    let out = process(&mut s, &sc, 0, true);
+    let (shadow, n) = ratio(&out, &sc, box_shadows);
+    eprintln!("already shadowed: kept {shadow:.3} over {n}");
+    assert!(n > 100);
+    assert!(
+        shadow > 0.97,
+        "the rendered shadow was darkened again to {shadow:.3}"
+    );
+}
+
+#[test]
+fn light_in_camera_space_gives_the_same_shadow() {
+    let sc = scene(0.0, None);
+    let mut world = session(&[light()]);
+    let a = process(&mut world, &sc, 0, true);
+    let w2c = sc.camera.world_to_camera.as_dmat4();
+    let l = w2c.transform_vector3(DVec3::from(LIGHT));
+    let mut cam = session(&[
+        (
+            "light_direction",
+            ParamValue::Str(format!("{} {} {}", l.x, l.y, l.z)),
+        ),
+        ("light_space", ParamValue::Str("camera".into())),
+    ]);
+    let b = process(&mut cam, &sc, 0, true);
+    let worst = a
+        .data
+        .iter()
+        .zip(&b.data)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0f32, f32::max);
+    assert!(worst < 1e-4, "world and camera space differ by {worst}");
+}
+
+#[test]
+fn frames_without_holes_keep_what_was_not_changed() {
+    // A clean render (no mask) comes out as it went in, frame after frame,
+    // with history; with `stabilize_all` the history softens it.
+    let mut s = session(&[]);
+    let mut all = session(&[("stabilize_all", ParamValue::Bool(true))]);
+    let mut softened = false;
+    for t in 0..4 {
+        let sc = scene(0.05 * t as f32, None);
+        let out = process(&mut s, &sc, t, false);
+        let n = W * H;
+        for i in 0..n {
+            for c in 0..3 {
+                assert_eq!(
+                    out.data[c * n + i],
+                    sc.rgb[3 * i + c],
+                    "frame {t}: pixel {i} changed"
+                );
+            }
+        }
+        let o = process(&mut all, &sc, t, false);
+        softened |= (0..n).any(|i| o.data[i] != sc.rgb[3 * i]);
+    }
+    assert!(
+        softened,
+        "stabilize_all changed nothing (the test could not fail)"
+    );
+    // With an insert, the ground far from it and its shadow is left as is.
+    let mut s = session(&[light()]);
+    for t in 0..3 {
+        let sc = scene(0.05 * t as f32, None);
+        let out = process(&mut s, &sc, t, true);
+        let (far, n) = ratio(&out, &sc, |p| p.x > 2.5 || p.z < -2.0);
+        assert!(n > 100);
+        assert_eq!(far, 1.0, "frame {t}: ground far from the insert changed");
+    }
+}
