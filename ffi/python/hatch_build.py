@@ -1,5 +1,7 @@
 """Build hook (hatchling): puts libharmonizer into the wheel as
-``harmonizer/lib/libharmonizer.so`` and tags the wheel for this platform.
+``harmonizer/lib/libharmonizer.so`` and tags the wheel for this platform
+(``py3-none-linux_x86_64``; ``scripts/wheels.sh`` then gives the wheel it
+distributes its manylinux tag with ``auditwheel repair``).
 
 From the source tree (``ffi/python`` of the workspace) the library is built
 with ``cargo build --release --locked -p harmonizer-ffi`` into
