@@ -1039,6 +1039,88 @@ mod preroll {
         assert!(stderr.contains("--preroll needs --frames"), "{stderr}");
     }
 
+    /// Issue 22's seam measurement: the 96-frame synthetic sequence with
+    /// the sway camera (it stays in the scene; the default camera leaves
+    /// it after about 50 frames) in chunks of 24 (1-24, 25-48, 49-72,
+    /// 73-96) against one sequential run, for pre-rolls 0, 4, 8 and 16,
+    /// classical and neural (set `HARMONIZER_ORT_LIB`). Prints per
+    /// pre-roll: the mean PSNR of the chunked frames 25-96 against the
+    /// sequential ones and the lowest (a seam's first frame), and the
+    /// warping error (exact motion, the truth's temporal mask) of the frame
+    /// pairs across the seams (24|25, 48|49, 72|73) against the other
+    /// pairs, beside the sequential run's. A measurement: run it alone,
+    /// `cargo test -p harmonizer-cli --release --test cli preroll::seams --
+    /// --ignored --nocapture` (HZ_SEAMS_BACKENDS=classical to skip neural).
+    #[test]
+    #[ignore = "a measurement: run it alone, see the doc comment"]
+    fn seams() {
+        use harmonizer_core::synth::CameraPath;
+        let dir = tempfile::tempdir().unwrap();
+        let seq = Sequence::generate_with(
+            SynthConfig {
+                width: 320,
+                height: 180,
+                frames: 96,
+                ..Default::default()
+            },
+            CameraPath::Sway,
+        )
+        .unwrap();
+        let (input, _) = seq.write_generic(dir.path(), "shot.####.exr").unwrap();
+        let backends = std::env::var("HZ_SEAMS_BACKENDS").unwrap_or("classical,neural".into());
+        let seams = [25usize, 49, 73];
+        // Warping error of the pair (t-1, t), frames numbered from 1.
+        let warp = |imgs: &[Vec<f32>], t: usize| {
+            let f = &seq.frames[t - 1];
+            harmonizer_core::synth::warping_error(
+                &imgs[t - 1],
+                &imgs[t - 2],
+                3,
+                320,
+                180,
+                &f.truth_motion,
+                Some(&f.temporal_mask),
+            )
+        };
+        let pairs = |imgs: &[Vec<f32>]| {
+            let at: Vec<f64> = seams.iter().map(|&t| warp(imgs, t)).collect();
+            let rest: Vec<f64> = (2..=96)
+                .filter(|t| !seams.contains(t))
+                .map(|t| warp(imgs, t))
+                .collect();
+            (at, rest.iter().sum::<f64>() / rest.len() as f64)
+        };
+        for backend in backends.split(',') {
+            let seq_out = out(dir.path(), &format!("{backend}-all"));
+            run(&input, &seq_out, backend, "", 0);
+            let want = read(&seq_out, 1..=96);
+            let (s_at, s_rest) = pairs(&want);
+            println!(
+                "{backend} sequential: warping error at the seams' frames {:.5} {:.5} {:.5}, elsewhere {s_rest:.5}",
+                s_at[0], s_at[1], s_at[2]
+            );
+            for n in [0usize, 4, 8, 16] {
+                let o = out(dir.path(), &format!("{backend}-{n}"));
+                for start in [1i64, 25, 49, 73] {
+                    run(&input, &o, backend, &format!("{start}-{}", start + 23), n);
+                }
+                let got = read(&o, 1..=96);
+                let p: Vec<f64> = (24..96)
+                    .map(|i| harmonizer_core::synth::psnr(&got[i], 3, &want[i], 3, None).min(99.0))
+                    .collect();
+                let mean = p.iter().sum::<f64>() / p.len() as f64;
+                let low = p.iter().cloned().fold(f64::INFINITY, f64::min);
+                let (at, rest) = pairs(&got);
+                let ratio = at.iter().sum::<f64>() / at.len() as f64 / rest;
+                println!(
+                    "{backend} pre-roll {n:2}: PSNR vs sequential, frames 25-96 mean {mean:.2} dB, lowest {low:.2} dB; \
+                     warping error across the seams {:.5} {:.5} {:.5}, elsewhere {rest:.5}, ratio {ratio:.3}",
+                    at[0], at[1], at[2]
+                );
+            }
+        }
+    }
+
     /// PSNR of 12-frame chunks (13-24, 25-36, 37-48) of the 48-frame
     /// synthetic sequence (its camera leaves the scene after about 50
     /// frames) against one sequential run, for pre-rolls 0, 4, 8 and 12,

@@ -34,7 +34,7 @@ pre-roll frames, worker, host and process, seconds, attempts, resets and
 warnings.
 
     harmonize-farm in/a/shot.####.exr in/b/shot.####.exr -o out/ \\
-        --chunk 24 --preroll 8 --workers 2 --threads-per-worker 1
+        --chunk 24 --preroll 4 --workers 2 --threads-per-worker 1
 """
 
 from __future__ import annotations
@@ -55,7 +55,7 @@ from typing import Any
 #: The pre-roll a chunk gets by default: the smallest of 0, 4, 8, 16 whose
 #: chunks of 24 frames reach 40 dB against the sequential run on the
 #: 96-frame synthetic sequence with the classical backend (docs/farm.md).
-DEFAULT_PREROLL = 8
+DEFAULT_PREROLL = 4
 #: Frames per chunk by default.
 DEFAULT_CHUNK = 24
 
