@@ -26,6 +26,10 @@ if ! "$VENV/bin/python" -c "import pxr.UsdRender, OpenImageIO, PyOpenColorIO, nu
     "$PY" -m venv "$VENV"
     "$VENV/bin/python" -m pip install --quiet usd-core OpenImageIO opencolorio numpy pytest
 fi
+# harmonize-farm over a stage (issue 22).
+if ! "$VENV/bin/python" -c "import distributed" >/dev/null 2>&1; then
+    "$VENV/bin/python" -m pip install --quiet "dask[distributed]==2026.*"
+fi
 if ! "$VENV/bin/python" -c "import usd_harmonizer" >/dev/null 2>&1 || [[ ! -x "$VENV/bin/usd-harmonize" ]]; then
     echo "installing usd_plugin (editable) into $VENV"
     "$VENV/bin/python" -m pip install --quiet --no-deps -e usd_plugin

@@ -26,8 +26,9 @@ Retries, without partial or duplicate outputs:
   again with the same bytes (the run is deterministic), so the outputs an
   earlier attempt finished are overwritten identically and the ones it did
   not reach are written;
-- the temporary files of a killed attempt (``<output>.tmp-<pid>``) are
-  removed when the job ends (counted in the summary).
+- the temporary files of a killed attempt (``<output>.tmp-<pid>``;
+  usd_harmonizer's ``.<name>.tmp<pid>.exr``) are removed when the job ends
+  (counted in the summary).
 
 The job summary (``--summary``, JSON) has, per chunk: shot, frames,
 pre-roll frames, worker, host and process, seconds, attempts, resets and
@@ -272,14 +273,16 @@ def run_chunk(chunk: Chunk, settings: Settings) -> dict[str, Any]:
         "shot": s.name,
         "chunk": chunk.index,
         "frames": [chunk.first, chunk.last],
-        "written": len(written),
-        "preroll_frames": len(frames) - len(written),
+        # Frames, not files: a USD stage writes one file per product and frame.
+        "written": len({f["frame"] for f in written}),
+        "preroll_frames": len({f["frame"] for f in frames if f["preroll"]}),
         "worker": _worker_name(),
         "host": socket.gethostname(),
         "pid": os.getpid(),
         "attempt": attempt,
         "seconds": round(time.perf_counter() - t0, 3),
         "resets": [{"frame": f["frame"], "reason": f["reset"]} for f in frames if f.get("reset")],
+        # Every file written (USD: each product's).
         "warnings": [f"frame {f['frame']}: {w}" for f in frames for w in f.get("warnings", [])],
         "outputs": [f["output"] for f in written],
     }
@@ -307,7 +310,9 @@ def _run_usd_chunk(chunk: Chunk, settings: Settings, kill_after: int | None) -> 
         seen[0] = done
 
     summary = run_stage(s.input, frames=frames, options=options, write_layer_file=False, on_frame=on_frame, preroll=chunk.preroll)
-    out: list[dict[str, Any]] = [{"frame": None, "preroll": True, "reset": None} for _ in range(summary.preroll_frames)]
+    # Pre-roll frames per product (every product warms the same frames).
+    per_product = summary.preroll_frames // max(len(summary.results), 1)
+    out: list[dict[str, Any]] = [{"frame": chunk.first - per_product + i, "preroll": True, "reset": None} for i in range(per_product)]
     for _prod, results in summary.results.values():
         for r in results:
             out.append({"frame": r.frame, "preroll": False, "reset": r.reset, "warnings": r.warnings, "output": str(r.output)})
@@ -315,17 +320,17 @@ def _run_usd_chunk(chunk: Chunk, settings: Settings, kill_after: int | None) -> 
 
 
 def _remove_stale_temporaries(shots: list[Shot]) -> int:
-    """Removes the ``<output>.tmp-<pid>`` files a killed attempt left."""
+    """Removes the temporary files a killed attempt left: the library's
+    ``<output>.tmp-<pid>``, usd_harmonizer's ``.<name>.tmp<pid>.exr``."""
     n = 0
     for s in shots:
         if s.kind == "exr":
-            outs = [frame_path(s.output, f) for f in range(s.first, s.last + 1)]
+            stale = [t for f in range(s.first, s.last + 1) for t in glob.glob(glob.escape(frame_path(s.output, f)) + ".tmp-*")]
         else:
-            outs = [str(p) for p in Path(s.output).rglob("*") if p.is_file() and ".tmp-" not in p.name]
-        for o in outs:
-            for t in glob.glob(glob.escape(o) + ".tmp-*"):
-                os.remove(t)
-                n += 1
+            stale = [str(p) for p in Path(s.output).rglob(".*.tmp*") if p.is_file()]
+        for t in stale:
+            os.remove(t)
+            n += 1
     return n
 
 
