@@ -123,3 +123,29 @@ def test_the_command_line(shots: dict, tmp_path: Path, capsys: pytest.CaptureFix
     # Two shots of one name are refused before anything runs.
     rc = farm.main([pattern, pattern, "-o", str(tmp_path / "dup")])
     assert rc == 2 and "named ['shot'] twice" in capsys.readouterr().err
+
+
+def test_run_sequence_reports_stops_and_reraises(shots: dict, tmp_path: Path, device) -> None:
+    """Session.run_sequence: the frames' reports (pre-roll marked), a
+    callback returning False cancels, one that raises has its exception
+    re-raised; a pre-roll without frames is refused."""
+    import harmonizer as hz
+
+    pattern = shots["a"][0]
+    out = str(tmp_path / "o.####.exr")
+    with hz.Session(device, backend="classical") as s:
+        reports = s.run_sequence(pattern, out, frames=(5, 7), preroll=3, report=tmp_path / "r.json")
+        assert [(r["frame"], r["preroll"]) for r in reports] == [(2, True), (3, True), (4, True), (5, False), (6, False), (7, False)]
+        assert json.loads((tmp_path / "r.json").read_text())["summary"]["preroll_frames"] == 3
+        assert s.last_report["frame_index"] == 7
+        with pytest.raises(hz.CancelledError, match="after frame 8"):
+            s.run_sequence(pattern, out, frames="8-10", on_frame=lambda r: False)
+        assert Path(farm.frame_path(out, 8)).exists() and not Path(farm.frame_path(out, 9)).exists()
+
+        def boom(r: dict) -> None:
+            raise KeyError("from the callback")
+
+        with pytest.raises(KeyError, match="from the callback"):
+            s.run_sequence(pattern, out, frames="11-12", on_frame=boom)
+        with pytest.raises(hz.InvalidArgumentError, match="--preroll needs --frames"):
+            s.run_sequence(pattern, out, preroll=2)
