@@ -5,6 +5,7 @@ usd-harmonize STAGE [--settings PRIM] [--product NAME] [--frames 1001-1024 [--pr
               [--backend auto|neural|classical|bypass] [--param NAME=VALUE]
               [--denoise auto|on|off|temporal] [--denoise-quality high|balanced|fast]
               [--samples N] [--map VAR=ROLE] [--motion-scale SX,SY] [--ocio CONFIG]
+              [--light-direction X,Y,Z | --no-light]
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from typing import Any
 
 from .errors import UsdHarmonizerError
 from .frames import parse_frame_range
+from .light import parse_direction
 from .process import Options
 from .run import run_stage
 from .settings import ProductInfo, check_denoise_param
@@ -126,6 +128,19 @@ def add_cmdline_args(parser: argparse.ArgumentParser) -> None:
         help="samples per pixel the frames were rendered with (default: the stage's "
         "harmonizer:samples, else 0 = unknown); 0 for frames the renderer already denoised",
     )
+    light = parser.add_mutually_exclusive_group()
+    light.add_argument(
+        "--light-direction",
+        metavar="X,Y,Z",
+        help="direction toward the light (stage world space) for every frame, for inserts' "
+        "cast shadows (default: harmonizer:lightDirection on the product or settings prim, "
+        "else the stage's brightest DistantLight at each frame)",
+    )
+    light.add_argument(
+        "--no-light",
+        action="store_true",
+        help="pass no light direction: inserts cast no directional shadow",
+    )
     parser.add_argument(
         "--param",
         action="append",
@@ -188,7 +203,13 @@ def _options(args: argparse.Namespace) -> Options:
                 f"--motion-scale {args.motion_scale!r}: expected SX,SY (e.g. 1,-1)"
             ) from None
         ms = (sx, sy)
+    light: Any = "auto"
+    if args.no_light:
+        light = "none"
+    elif args.light_direction is not None:
+        light = parse_direction(args.light_direction, "--light-direction")
     return Options(
+        light=light,
         backend=args.backend,
         params=params,
         out_dir=args.out_dir,
@@ -268,6 +289,7 @@ def main(argv: list[str] | None = None) -> int:
                 f"{ms:.1f} ms/frame in the library, {wall:.1f} ms/frame in all, "
                 f"resets: {resets}, warnings: {warns}, denoised: {denoised}"
                 + (f" ({decisions[-1]})" if decisions else "")
+                + f", light: {res[-1].light_source}"
                 + f"\n  -> {res[0].output.parent}"
             )
         if summary.preroll_frames:

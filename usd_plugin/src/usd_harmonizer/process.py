@@ -4,12 +4,14 @@ camera), frames in increasing order, outputs written atomically.
 For each frame: read the product's file, find each var's channels by name,
 convert color to Linear Rec.709 (PyOpenColorIO), pass depth, motion
 (scaled into the library's convention), normals, coverage, the insert mask,
-the denoise stage's albedo (converted like the color) and normal, and the
+the denoise stage's albedo (converted like the color) and normal, the
 frame's camera matrices (so a product without motion vectors is
-reprojected from depth), enhance, convert back, and write a copy of the file
-with the color (and coverage) channels replaced and ``harmonizer:*``
-attributes added. A failed frame raises :class:`FrameError` naming the
-product, frame and file, and leaves the session's temporal state unchanged.
+reprojected from depth) and the direction toward the frame's dominant
+light (:mod:`usd_harmonizer.light`, for inserts' cast shadows), enhance,
+convert back, and write a copy of the file with the color (and coverage)
+channels replaced and ``harmonizer:*`` attributes added. A failed frame
+raises :class:`FrameError` naming the product, frame and file, and leaves
+the session's temporal state unchanged.
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ from .camera import exr_matrices
 from .color import ColorConverter, converter_for
 from .errors import FrameError, ProductFileError, SettingsError, UsdHarmonizerError
 from .exrio import read_exr, write_exr_atomic
+from .light import NO_LIGHT, Light, light_at, normalized
 from .settings import ProductInfo, SettingsInfo
 from .varmap import Binding, find_channels, map_vars
 
@@ -59,6 +62,14 @@ class Options:
     ort_library: str | None = None
     #: Pass the per-frame camera matrices even when motion vectors exist.
     always_cameras: bool = True
+    #: The light inserts cast shadows away from (session parameter
+    #: ``light_direction``, world space): ``"auto"`` (at each frame,
+    #: ``harmonizer:lightDirection`` on the product or the settings prim,
+    #: else the stage's brightest DistantLight; see
+    #: :mod:`usd_harmonizer.light`), ``"none"`` (no cast shadows), or a
+    #: direction (x, y, z) toward the light in the stage's world space for
+    #: every frame. A ``light_direction`` in :attr:`params` wins over all.
+    light: str | tuple[float, float, float] = "auto"
 
 
 @dataclass
@@ -92,6 +103,10 @@ class FrameResult:
     #: A pre-roll frame (``--preroll``): processed to warm the temporal
     #: state, not written (``output`` is where it would have gone).
     preroll: bool = False
+    #: The direction toward the light passed for this frame (unit, world
+    #: space), or None; :attr:`light_source` says where it came from.
+    light_direction: tuple[float, float, float] | None = None
+    light_source: str = "none"
 
 
 def make_device(options: Options) -> Any:
@@ -227,6 +242,13 @@ class ProductRunner:
         depth_var = self.roles.get("depth")
         if depth_var is not None and depth_var.depth_kind:
             params.setdefault("depth_kind", depth_var.depth_kind)
+        self._fixed_light = self._options_light(options, params)
+        #: The ``light_direction`` the session holds, None while the
+        #: session holds the user's own (``params``) or nothing set yet.
+        self._light_param: str | None = None
+        if "light_direction" not in params:
+            # The stage's and the CLI's directions are in the stage's world.
+            params["light_space"] = "world"
         try:
             self.session = hz.Session(device, **params)
         except hz.HarmonizerError as e:
@@ -234,9 +256,52 @@ class ProductRunner:
                 f"render product {product.path}: cannot create a session: {e}"
             ) from e
         self.camera = product.camera_prim()
+        self._light_prims = [
+            p
+            for p in (
+                product.stage.GetPrimAtPath(product.path),
+                settings.stage.GetPrimAtPath(settings.path),
+            )
+            if p and p.IsValid()
+        ]
         self.last_frame: int | None = None
         self.results: list[FrameResult] = []
         self._converters: dict[tuple[Any, ...], ColorConverter] = {}
+
+    @staticmethod
+    def _options_light(options: Options, params: dict[str, Any]) -> Light | None:
+        """The light every frame gets (``light_direction`` in the params, a
+        direction or ``"none"`` in :attr:`Options.light`), or None for the
+        stage's light at each frame."""
+        if "light_direction" in params:
+            text = str(params["light_direction"]).strip()
+            d = None
+            if text:
+                parts = text.replace(",", " ").split()
+                d = normalized(parts, f"parameter light_direction {text!r}")
+            space = params.get("light_space", "world")
+            return Light(d, f"parameter light_direction ({space} space)")
+        light = options.light
+        if isinstance(light, str):
+            if light == "auto":
+                return None
+            if light == "none":
+                return NO_LIGHT
+            raise SettingsError(
+                f"light {light!r}: expected 'auto', 'none' or a direction (x, y, z)"
+            )
+        d = normalized(light, "light direction")
+        if d is None:
+            raise SettingsError(
+                "light direction (0, 0, 0): the zero vector has no direction; use 'none'"
+            )
+        return Light(d, "--light-direction")
+
+    def light_for(self, frame: int) -> Light:
+        """The light of ``frame`` (see :attr:`Options.light`)."""
+        if self._fixed_light is not None:
+            return self._fixed_light
+        return light_at(self.product.stage, self._light_prims, frame)
 
     # -- paths ---------------------------------------------------------------
     def output_for(self, frame: int) -> Path:
@@ -373,6 +438,18 @@ class ProductRunner:
                 kw["world_to_ndc"] = w2n.astype(np.float32)
                 inputs.append("camera")
         hz = self.hz
+        light = self.light_for(frame)
+        own = "light_direction" in self.options.params
+        if not own and light.param != self._light_param:
+            # Not a reset: the library keeps the temporal state across it.
+            try:
+                self.session.set("light_direction", light.param)
+                self.session.commit()
+            except hz.HarmonizerError as e:
+                raise FrameError(
+                    f"{where}: light direction from {light.source}: {e}"
+                ) from e
+            self._light_param = light.param
         try:
             t_l0 = time.perf_counter()
             out = self.session.process(
@@ -404,6 +481,8 @@ class ProductRunner:
                 denoise_decision=report.get("denoise_decision"),
                 noise_level=report.get("noise_level"),
                 preroll=True,
+                light_direction=light.direction,
+                light_source=light.source,
             )
         back = conv.from_linear(
             out[..., :3], out[..., 3] if coverage is not None else None
@@ -423,6 +502,8 @@ class ProductRunner:
             "harmonizer:source": os.fspath(src),
             "harmonizer:denoised": bool(report.get("denoised")),
         }
+        if light.direction is not None:
+            extra["harmonizer:lightDirection"] = light.param
         t_w0 = time.perf_counter()
         write_exr_atomic(img, out_path, extra, where)
         t_w1 = time.perf_counter()
@@ -450,6 +531,8 @@ class ProductRunner:
             denoised=bool(report.get("denoised")),
             denoise_decision=report.get("denoise_decision"),
             noise_level=report.get("noise_level"),
+            light_direction=light.direction,
+            light_source=light.source,
         )
         self.results.append(result)
         return result

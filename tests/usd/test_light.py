@@ -1,0 +1,237 @@
+"""The light direction the hook passes for inserts' cast shadows (issue 19):
+``harmonizer:lightDirection`` on the product or settings prim, else the
+stage's brightest DistantLight at each frame (its +Z axis in world space),
+else none; ``--light-direction`` / ``--no-light``; the value reaching the
+session."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
+from usd_harmonizer import ProductRunner, SettingsError, resolve
+from usd_harmonizer.cli import main
+from usd_harmonizer.exrio import read_exr
+from usd_harmonizer.light import (
+    ATTR_LIGHT_DIRECTION,
+    dominant_distant_light,
+    light_at,
+    parse_direction,
+)
+from usd_harmonizer.process import Options, make_device
+
+import handmade
+
+FRAMES = [1, 2, 3]
+
+
+def _stage(tmp_path: Path, up_axis: str = "Y") -> Usd.Stage:
+    """A hand-made stage (one product, frames 1-3) opened for editing."""
+    rgb = {f: np.full((handmade.H, handmade.W, 3), 0.25, np.float32) for f in FRAMES}
+    path = handmade.author(
+        tmp_path, [handmade.Product("/Render/Products/beauty", "img.####.exr", rgb)], FRAMES
+    )
+    stage = Usd.Stage.Open(str(path))
+    UsdGeom.SetStageUpAxis(stage, up_axis)
+    return stage
+
+
+def _plus_z(prim: Usd.Prim, frame: float) -> np.ndarray:
+    """The prim's local +Z axis in world space, normalized (computed here
+    with numpy from the local-to-world matrix, row-vector)."""
+    m = UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(Usd.TimeCode(frame))
+    z = np.array([m[2][0], m[2][1], m[2][2]], dtype=np.float64)
+    return z / np.linalg.norm(z)
+
+
+def _distant(stage, path: str, intensity: float, rotate=(0.0, 0.0, 0.0), exposure=None):
+    light = UsdLux.DistantLight.Define(stage, path)
+    light.CreateIntensityAttr(intensity)
+    if exposure is not None:
+        light.CreateExposureAttr(exposure)
+    UsdGeom.XformCommonAPI(light).SetRotate(Gf.Vec3f(*rotate))
+    return light
+
+
+def _rot_x_then_z(ax: float, az: float) -> np.ndarray:
+    """+Z after rotating by ``ax`` degrees about X, then ``az`` about Z (XYZ order)."""
+    a, c = math.radians(ax), math.radians(az)
+    z = np.array([0.0, -math.sin(a), math.cos(a)])
+    return np.array([z[0] * math.cos(c) - z[1] * math.sin(c), z[0] * math.sin(c) + z[1] * math.cos(c), z[2]])
+
+
+def test_direction_is_the_brightest_distant_lights_plus_z(tmp_path: Path) -> None:
+    stage = _stage(tmp_path, up_axis="Z")
+    # Under a rotated, scaled parent: the world transform counts, not the local one.
+    rig = UsdGeom.Xform.Define(stage, "/World/Rig")
+    UsdGeom.XformCommonAPI(rig).SetRotate(Gf.Vec3f(0.0, 0.0, 90.0))
+    UsdGeom.XformCommonAPI(rig).SetScale(Gf.Vec3f(2.0, 2.0, 2.0))
+    sun = _distant(stage, "/World/Rig/Sun", 3.0, rotate=(40.0, 0.0, 30.0))
+    # Brighter by intensity alone, dimmer by intensity * 2^exposure (2^-2 * 8 = 2 < 3).
+    _distant(stage, "/World/Fill", 8.0, rotate=(-60.0, 0.0, 0.0), exposure=-2.0)
+    # Not directional, and brighter: never used.
+    UsdLux.SphereLight.Define(stage, "/World/Bulb").CreateIntensityAttr(1000.0)
+    light = dominant_distant_light(stage, 1)
+    assert light.source == "DistantLight /World/Rig/Sun"
+    want = _plus_z(sun.GetPrim(), 1)
+    np.testing.assert_allclose(light.direction, want, atol=1e-9)
+    # The same by hand: the light's own +Z (rotate X 40 then Z 30), then the rig's 90 about Z.
+    local = _rot_x_then_z(40.0, 30.0)
+    np.testing.assert_allclose(light.direction, [-local[1], local[0], local[2]], atol=1e-6)
+    assert abs(np.linalg.norm(light.direction) - 1.0) < 1e-12
+    # No conversion for upAxis Z: the stage's world, as the camera matrices are.
+    assert UsdGeom.GetStageUpAxis(stage) == UsdGeom.Tokens.z
+    # Exposure decides: the fill at exposure 0 (8 > 3) wins.
+    UsdLux.DistantLight(stage.GetPrimAtPath("/World/Fill")).GetExposureAttr().Set(0.0)
+    assert dominant_distant_light(stage, 1).source == "DistantLight /World/Fill"
+    # An invisible or inactive light is not a light of the render.
+    UsdGeom.Imageable(stage.GetPrimAtPath("/World/Fill")).MakeInvisible()
+    assert dominant_distant_light(stage, 1).source == "DistantLight /World/Rig/Sun"
+    stage.GetPrimAtPath("/World/Rig").SetActive(False)
+    assert dominant_distant_light(stage, 1).direction is None
+
+
+def test_animated_rotation_is_read_at_each_frame(tmp_path: Path) -> None:
+    stage = _stage(tmp_path)
+    sun = _distant(stage, "/World/Sun", 5.0)
+    xf = UsdGeom.XformCommonAPI(sun)
+    xf.SetRotate(Gf.Vec3f(-30.0, 10.0, 0.0), time=Usd.TimeCode(1))
+    xf.SetRotate(Gf.Vec3f(-70.0, 50.0, 0.0), time=Usd.TimeCode(3))
+    dirs = [dominant_distant_light(stage, f).direction for f in FRAMES]
+    for f, d in zip(FRAMES, dirs, strict=True):
+        np.testing.assert_allclose(d, _plus_z(sun.GetPrim(), f), atol=1e-9, err_msg=f"frame {f}")
+    # It moves: a direction read once would be wrong by degrees on later frames.
+    angle = math.degrees(math.acos(float(np.clip(np.dot(dirs[0], dirs[2]), -1, 1))))
+    assert angle > 30.0, angle
+    assert not np.allclose(dirs[1], dirs[0]) and not np.allclose(dirs[1], dirs[2])
+
+
+def test_override_attribute_on_product_then_settings(tmp_path: Path) -> None:
+    stage = _stage(tmp_path)
+    _distant(stage, "/World/Sun", 5.0, rotate=(-45.0, 0.0, 0.0))
+    product = stage.GetPrimAtPath("/Render/Products/beauty")
+    settings = stage.GetPrimAtPath("/Render/Settings")
+    prims = [product, settings]
+    assert light_at(stage, prims, 1).source == "DistantLight /World/Sun"
+    settings.CreateAttribute(ATTR_LIGHT_DIRECTION, Sdf.ValueTypeNames.Float3, custom=True).Set(
+        Gf.Vec3f(0.0, 2.0, 0.0)
+    )
+    light = light_at(stage, prims, 1)
+    assert light.source == "/Render/Settings.harmonizer:lightDirection"
+    np.testing.assert_allclose(light.direction, [0.0, 1.0, 0.0])
+    attr = product.CreateAttribute(ATTR_LIGHT_DIRECTION, Sdf.ValueTypeNames.Float3, custom=True)
+    attr.Set(Gf.Vec3f(1.0, 1.0, 0.0), Usd.TimeCode(1))
+    attr.Set(Gf.Vec3f(-1.0, 1.0, 0.0), Usd.TimeCode(3))
+    first, last = light_at(stage, prims, 1), light_at(stage, prims, 3)
+    assert first.source == "/Render/Products/beauty.harmonizer:lightDirection"
+    s = 1.0 / math.sqrt(2.0)
+    np.testing.assert_allclose(first.direction, [s, s, 0.0], atol=1e-7)
+    np.testing.assert_allclose(last.direction, [-s, s, 0.0], atol=1e-7)
+    # (0, 0, 0): no light, though the stage has a sun.
+    attr.Clear()
+    attr.Set(Gf.Vec3f(0.0, 0.0, 0.0))
+    none = light_at(stage, prims, 2)
+    assert none.direction is None and none.param == ""
+
+
+def test_no_lights_no_direction(tmp_path: Path) -> None:
+    stage = _stage(tmp_path)
+    UsdLux.DomeLight.Define(stage, "/World/Sky").CreateIntensityAttr(2.0)
+    _distant(stage, "/World/Off", 0.0)  # zero intensity: not a light
+    light = light_at(stage, [stage.GetPrimAtPath("/Render/Products/beauty")], 1)
+    assert light.direction is None and light.source == "none"
+
+
+def test_parse_direction() -> None:
+    assert parse_direction("0,0,2", "--light-direction") == (0.0, 0.0, 1.0)
+    assert parse_direction(" 3 4 0 ", "--light-direction") == pytest.approx((0.6, 0.8, 0.0))
+    for bad in ("1,2", "0,0,0", "a,b,c", "1,nan,0"):
+        with pytest.raises(SettingsError, match="--light-direction"):
+            parse_direction(bad, "--light-direction")
+
+
+def _session_values(stage_path: Path, options: Options) -> list[tuple[str, object]]:
+    """(session light_direction, FrameResult) for frames 1-3 of the product."""
+    stage = Usd.Stage.Open(str(stage_path))
+    info = resolve(stage)
+    device = make_device(options)
+    out = []
+    try:
+        runner = ProductRunner(info.products[0], info, device, options)
+        try:
+            assert runner.session.get("light_space") == "world"
+            for f in FRAMES:
+                r = runner.process_frame(f)
+                out.append((runner.session.get("light_direction"), r))
+        finally:
+            runner.close()
+    finally:
+        device.close()
+    return out
+
+
+def _floats(text: str) -> list[float]:
+    return [float(t) for t in text.split(",")]
+
+
+def test_direction_reaches_the_session_every_frame(tmp_path: Path) -> None:
+    stage = _stage(tmp_path)
+    sun = _distant(stage, "/World/Sun", 5.0)
+    xf = UsdGeom.XformCommonAPI(sun)
+    xf.SetRotate(Gf.Vec3f(-20.0, 0.0, 0.0), time=Usd.TimeCode(1))
+    xf.SetRotate(Gf.Vec3f(-80.0, 0.0, 40.0), time=Usd.TimeCode(3))
+    stage.GetRootLayer().Save()
+    path = tmp_path / "stage.usda"
+    got = _session_values(path, Options(backend="bypass", out_dir=tmp_path / "a"))
+    for f, (param, r) in zip(FRAMES, got, strict=True):
+        want = _plus_z(sun.GetPrim(), f)
+        np.testing.assert_allclose(_floats(param), want, atol=1e-6, err_msg=f"frame {f}")
+        np.testing.assert_allclose(r.light_direction, want, atol=1e-9)
+        assert r.light_source == "DistantLight /World/Sun"
+        attrs = read_exr(r.output, "out").attributes()
+        np.testing.assert_allclose(_floats(attrs["harmonizer:lightDirection"]), want, atol=1e-6)
+    # "none" and a fixed direction win over the stage's sun.
+    got = _session_values(path, Options(backend="bypass", light="none", out_dir=tmp_path / "b"))
+    assert [p for p, _ in got] == ["", "", ""]
+    assert all(r.light_direction is None and r.light_source == "none" for _, r in got)
+    assert "harmonizer:lightDirection" not in read_exr(got[0][1].output, "out").attributes()
+    got = _session_values(path, Options(backend="bypass", light=(0.0, 3.0, 4.0), out_dir=tmp_path / "c"))
+    for param, r in got:
+        np.testing.assert_allclose(_floats(param), [0.0, 0.6, 0.8], atol=1e-6)
+        assert r.light_source == "--light-direction"
+
+
+def test_cli_light_flags(tmp_path: Path, capsys) -> None:
+    stage = _stage(tmp_path)
+    _distant(stage, "/World/Sun", 5.0, rotate=(-45.0, 0.0, 0.0))
+    stage.GetRootLayer().Save()
+    path = str(tmp_path / "stage.usda")
+    common = [path, "--backend", "bypass", "--no-layer", "--frames", "1-2"]
+
+    def run(out: str, *flags: str) -> tuple[dict, str]:
+        capsys.readouterr()
+        assert main([*common, "--out-dir", str(tmp_path / out), *flags]) == 0
+        printed = capsys.readouterr().out
+        return read_exr(tmp_path / out / "beauty" / "img.0002.exr", "out").attributes(), printed
+
+    attrs, printed = run("auto")
+    np.testing.assert_allclose(
+        _floats(attrs["harmonizer:lightDirection"]), [0.0, math.sqrt(0.5), math.sqrt(0.5)], atol=1e-6
+    )
+    assert "light: DistantLight /World/Sun" in printed, printed
+    # A negative first component needs the = form (argparse takes "-1,..." for an option).
+    attrs, printed = run("flag", "--light-direction=-1,0,1")
+    np.testing.assert_allclose(
+        _floats(attrs["harmonizer:lightDirection"]), [-math.sqrt(0.5), 0.0, math.sqrt(0.5)], atol=1e-6
+    )
+    assert "light: --light-direction" in printed
+    attrs, printed = run("off", "--no-light")
+    assert "harmonizer:lightDirection" not in attrs
+    assert "light: none" in printed
+    assert main([*common, "--light-direction", "1,2"]) == 1
+    assert "--light-direction '1,2': expected three numbers" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main([*common, "--light-direction", "0,0,1", "--no-light"])

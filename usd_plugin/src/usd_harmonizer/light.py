@@ -1,0 +1,146 @@
+"""The direction toward a stage's dominant light, per frame: what the
+library's ``light_direction`` parameter needs for inserts' cast shadows.
+
+Where it comes from, first found wins:
+
+1. ``harmonizer:lightDirection`` (float3, world space, toward the light) on
+   the render product, else on the RenderSettings prim; time samples are
+   honoured. An authored ``(0, 0, 0)`` means "no light" (no cast shadows).
+2. The stage's ``UsdLux.DistantLight`` with the largest
+   ``intensity * 2^exposure`` at the frame's time code (active, not
+   invisible, above 0; a tie goes to the first in namespace order). A
+   DistantLight emits along its local -Z, so the direction toward it is its
+   local-to-world transform's +Z axis, normalized.
+3. None: the library casts no directional shadow (the contact shadow
+   under an insert stays).
+
+The direction is in the stage's world space, whatever its ``upAxis``: the
+camera matrices the hook passes (:mod:`usd_harmonizer.camera`) are in that
+same space, and the library only needs the two to agree. Point, sphere,
+rect, disk and dome lights are not used: a point light's direction depends
+on where the insert stands, and a dome's dominant direction on its texture.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from pxr import Gf, Usd, UsdGeom, UsdLux
+
+from .errors import SettingsError
+
+#: Override attribute on a RenderProduct or the RenderSettings prim.
+ATTR_LIGHT_DIRECTION = "harmonizer:lightDirection"
+
+
+@dataclass(frozen=True)
+class Light:
+    """A light direction and where it came from."""
+
+    #: Unit vector toward the light, world space; None: no light.
+    direction: tuple[float, float, float] | None
+    #: Where it came from, for reports: ``"/Render/Products/beauty.harmonizer:lightDirection"``,
+    #: ``"DistantLight /World/Sun"``, ``"--light-direction"``, ``"none"``.
+    source: str
+
+    @property
+    def param(self) -> str:
+        """The ``light_direction`` session parameter ("x, y, z", empty for none)."""
+        if self.direction is None:
+            return ""
+        return ", ".join(repr(float(c)) for c in self.direction)
+
+
+NO_LIGHT = Light(None, "none")
+
+
+def normalized(v, where: str) -> tuple[float, float, float] | None:
+    """``v`` (three numbers) as a unit vector; None for the zero vector.
+    Anything else than three finite numbers is a :class:`SettingsError`
+    naming ``where``."""
+    try:
+        x, y, z = (float(c) for c in v)
+    except (TypeError, ValueError):
+        raise SettingsError(
+            f"{where}: {v!r} is not a direction (three numbers x, y, z toward the light)"
+        ) from None
+    if not all(math.isfinite(c) for c in (x, y, z)):
+        raise SettingsError(f"{where}: {v!r} is not a finite direction")
+    n = math.sqrt(x * x + y * y + z * z)
+    if n == 0.0:
+        return None
+    return (x / n, y / n, z / n)
+
+
+def parse_direction(text: str, where: str) -> tuple[float, float, float]:
+    """A direction from ``"x,y,z"`` (commas and/or spaces), normalized; the
+    zero vector and anything but three finite numbers are errors."""
+    parts = [p for p in text.replace(",", " ").split() if p]
+    if len(parts) != 3:
+        raise SettingsError(
+            f"{where} {text!r}: expected three numbers x,y,z (the direction toward the light, world space)"
+        )
+    d = normalized(parts, f"{where} {text!r}")
+    if d is None:
+        raise SettingsError(
+            f"{where} {text!r}: the zero vector has no direction (use --no-light for none)"
+        )
+    return d
+
+
+def override(prims: list[Usd.Prim], frame: float) -> Light | None:
+    """``harmonizer:lightDirection`` at ``frame`` on the first of ``prims``
+    that authors it (a zero vector: no light), else None."""
+    for prim in prims:
+        attr = prim.GetAttribute(ATTR_LIGHT_DIRECTION)
+        if not attr or not attr.HasAuthoredValue():
+            continue
+        where = f"{prim.GetPath()}.{ATTR_LIGHT_DIRECTION}"
+        v = attr.Get(Usd.TimeCode(frame))
+        if v is None:
+            raise SettingsError(f"{where}: no value at frame {frame:g}")
+        return Light(normalized(v, where), where)
+    return None
+
+
+def _distant_lights(stage: Usd.Stage) -> list[Usd.Prim]:
+    pred = Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)
+    return [p for p in Usd.PrimRange.Stage(stage, pred) if p.IsA(UsdLux.DistantLight)]
+
+
+def _value(attr: Usd.Attribute, time: Usd.TimeCode, fallback: float) -> float:
+    v = attr.Get(time) if attr else None
+    return fallback if v is None else float(v)
+
+
+def dominant_distant_light(stage: Usd.Stage, frame: float) -> Light:
+    """The direction toward the stage's brightest DistantLight at ``frame``
+    (see the module's notes), or :data:`NO_LIGHT`."""
+    time = Usd.TimeCode(frame)
+    best: tuple[float, Usd.Prim] | None = None
+    for prim in _distant_lights(stage):
+        light = UsdLux.DistantLight(prim)
+        if UsdGeom.Imageable(prim).ComputeVisibility(time) == UsdGeom.Tokens.invisible:
+            continue
+        power = _value(light.GetIntensityAttr(), time, 1.0) * 2.0 ** _value(
+            light.GetExposureAttr(), time, 0.0
+        )
+        if math.isfinite(power) and power > 0 and (best is None or power > best[0]):
+            best = (power, prim)
+    if best is None:
+        return NO_LIGHT
+    prim = best[1]
+    m = UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(time)
+    # Gf matrices are row-vector: the local +Z axis in world is (0, 0, 1) * M.
+    z = m.TransformDir(Gf.Vec3d(0.0, 0.0, 1.0))
+    d = normalized(z, f"DistantLight {prim.GetPath()} at frame {frame:g}")
+    if d is None:  # a transform that scales the light to nothing
+        return NO_LIGHT
+    return Light(d, f"DistantLight {prim.GetPath()}")
+
+
+def light_at(stage: Usd.Stage, prims: list[Usd.Prim], frame: float) -> Light:
+    """The light of ``frame``: the override on ``prims`` (the product, then
+    the settings prim), else the stage's brightest DistantLight, else none."""
+    return override(prims, frame) or dominant_distant_light(stage, frame)
