@@ -1,9 +1,9 @@
 """Render handlers: one harmonizer session per render (an animation or a written still).
 
 - ``render_init``: check (and set) the passes, open the session.
-- ``frame_change_post``: while rendering, keep the camera evaluated at each
-  frame (in ``render_write`` the scene camera is still the one of the frame the
-  render started from).
+- ``frame_change_post``: while rendering, keep the camera and the direction
+  toward the strongest Sun evaluated at each frame (in ``render_write`` the
+  scene's objects are still those of the frame the render started from).
 - ``render_write``: after Blender saved a frame, enhance it and write the
   enhanced EXR (beside the raw one unless configured otherwise). A written
   still (``render(write_still=True)``) is enhanced as a frame on its own.
@@ -51,6 +51,9 @@ class _Render:
     #: Frame number -> (worldToCamera, worldToNDC) of the camera evaluated at that
     #: frame (frame_change_post), or None for a camera the library cannot use.
     cameras: dict[int, tuple | None] = field(default_factory=dict)
+    #: Frame number -> the direction toward the light at that frame
+    #: (``Runner.light_at`` with the frame's depsgraph), or None for none.
+    lights: dict[int, tuple | None] = field(default_factory=dict)
     #: The file a still render writes and its state at render start (None: absent).
     still_path: str = ""
     still_before: tuple | None = None
@@ -112,7 +115,7 @@ def on_render_init(scene, *_args):
 
 @persistent
 def on_frame_change_post(scene, depsgraph=None, *_args):
-    """A frame was evaluated for rendering: keep its camera for ``render_write``."""
+    """A frame was evaluated for rendering: keep its camera and light for ``render_write``."""
     render = _RENDERS.get(scene.name)
     if render is None or depsgraph is None or scene.frame_subframe != 0.0:
         return
@@ -120,6 +123,10 @@ def on_frame_change_post(scene, depsgraph=None, *_args):
         render.cameras[scene.frame_current] = runtime.camera_matrices(scene, depsgraph)
     except Exception as exc:  # render_write falls back to the scene camera
         reports.post("WARNING", f"Harmonizer: frame {scene.frame_current}: cannot read the camera: {exc}")
+    try:
+        render.lights[scene.frame_current] = render.runner.light_at(scene, depsgraph)
+    except Exception as exc:  # render_write falls back to the scene as it is
+        reports.post("WARNING", f"Harmonizer: frame {scene.frame_current}: cannot read the light: {exc}")
 
 
 @persistent
@@ -142,6 +149,10 @@ def on_render_write(scene, *_args):
         camera = render.cameras.pop(frame)
     else:  # no evaluation seen for this frame: the scene camera as it is
         camera = runtime.camera_matrices(scene)
+    if frame in render.lights:
+        light = render.lights.pop(frame)
+    else:  # a still, or no evaluation seen: the scene's Sun as it is
+        light = runner.light_at(scene)
     start = time.perf_counter()
     try:
         result = runner.processor.process(
@@ -151,6 +162,7 @@ def on_render_write(scene, *_args):
             frame_index=index,
             camera=camera,
             allow_overwrite=scene.harmonizer.overwrite_raw,
+            light_direction=light,
         )
     except Exception as exc:  # one failed frame never aborts the user's render
         runner.drop_messages()
@@ -178,6 +190,7 @@ def on_render_write(scene, *_args):
         else None,
         "noise_level": report.get("noise_level"),
         "inputs": result.inputs,
+        "light_direction": result.light_direction,
         "ms": (time.perf_counter() - start) * 1000.0,
         "warnings": runner.post_messages(frame, frame_of),
     }

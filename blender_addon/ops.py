@@ -4,6 +4,9 @@ From the UI it runs modally, one frame per step, with a progress bar and Esc to
 cancel; headless (or via ``execute``) it runs to the end printing progress to
 the terminal. Frames are processed in increasing order with one session, so a
 missing frame number resets the temporal state (the Frame Jump setting).
+With the Light on Scene Sun, the light of each file is the open scene's
+strongest Sun at the file's frame number: the scene is moved to that frame
+(when it has a Sun) and back to its own frame at the end.
 """
 
 from __future__ import annotations
@@ -29,6 +32,9 @@ class _Job:
             if not view_layer:
                 raise processor.FrameError(f"{frames[0][1]}: no view layer with a Combined pass")
         self.frames = frames
+        self.scene = scene
+        #: The scene's frame before the job (the Scene Sun light moves it).
+        self.start_frame = scene.frame_current
         self.output = output
         self.index = 0
         self.done = 0
@@ -55,7 +61,8 @@ class _Job:
         self.index += 1
         out = os.path.join(self.output, os.path.basename(raw))
         try:
-            result = self.runner.processor.process(raw, out, frame=frame, frame_index=frame)
+            light = self.runner.light_at_frame(self.scene, frame)
+            result = self.runner.processor.process(raw, out, frame=frame, frame_index=frame, light_direction=light)
         except Exception as exc:
             self.runner.drop_messages()
             msg = f"Harmonizer: frame {frame} not enhanced ({raw}): {exc}"
@@ -74,6 +81,8 @@ class _Job:
 
     def close(self) -> None:
         self.runner.close()
+        if self.scene.frame_current != self.start_frame:
+            self.scene.frame_set(self.start_frame)
 
     def summary(self) -> str:
         dt = time.perf_counter() - self.started

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import bpy
 
-from . import denoise, handlers, passes, reports
+from . import denoise, handlers, light, passes, reports
 
 
 class HARMONIZER_OT_setup_passes(bpy.types.Operator):
@@ -70,6 +70,15 @@ class RENDER_PT_harmonizer(bpy.types.Panel):
         elif s.mask_source == "CRYPTOMATTE":
             col.prop(s, "mask_crypto_layer")
             col.prop(s, "mask_names")
+        col.prop(s, "light_source")
+        if s.light_source == "MANUAL":
+            col.prop(s, "light_direction")
+        elif s.light_source == "AUTO" and vl is not None:
+            best = light.dominant_sun(vl)
+            if best is None:
+                col.label(text="No Sun light: no cast shadows", icon="INFO")
+            else:
+                col.label(text=f"{best[0].name} (strength {best[1]:g})", icon="LIGHT_SUN")
 
         col.separator()
         col.prop_search(s, "view_layer", scene, "view_layers")

@@ -271,6 +271,9 @@ class FrameResult:
     report: dict
     #: The inputs passed to the library besides color ("depth", "albedo", ...).
     inputs: list = field(default_factory=list)
+    #: The session's ``light_direction`` for this frame, read back from the
+    #: library (world space, toward the light), or None.
+    light_direction: tuple | None = None
 
 
 class FrameProcessor:
@@ -287,6 +290,8 @@ class FrameProcessor:
         self.ocio_config = ocio_config
         self.options = options
         self._converters: dict[str, colorspace.Converter] = {}
+        #: The ``light_direction`` parameter the session holds.
+        self._light_param = ""
 
     def converter(self, space: str) -> colorspace.Converter:
         """The (cached) converter for ``space``."""
@@ -312,8 +317,13 @@ class FrameProcessor:
         camera: tuple[np.ndarray, np.ndarray] | None = None,
         progress=None,
         allow_overwrite: bool = False,
+        light_direction: tuple[float, float, float] | None = None,
     ) -> FrameResult:
         """Enhance the frame in ``raw_path`` and write it to ``output_path``.
+
+        ``light_direction``: toward the scene's dominant light, world space
+        (the session's ``light_direction``, for inserts' cast shadows), or
+        None for none; changing it between frames keeps the temporal state.
 
         Raises FrameError (or the binding's HarmonizerError) on failure; nothing
         is written then. The raw file is read whole before anything is written,
@@ -370,6 +380,7 @@ class FrameProcessor:
             kwargs["world_to_camera"], kwargs["world_to_ndc"] = camera
         if progress is not None:
             kwargs["progress"] = progress
+        self._set_light(light_direction)
 
         out = self.session.process(color, frame_index=frame if frame_index is None else frame_index, **kwargs)
         out = np.array(out, dtype=np.float32, copy=True)
@@ -392,8 +403,26 @@ class FrameProcessor:
             "harmonizer/colorspace": space,
             "harmonizer/denoised": "1" if report.get("denoised") else "0",
         }
+        light = self.session.get("light_direction")
+        if light:
+            attrs["harmonizer/lightDirection"] = light
         try:
             exrio.write(self.oiio, exr, output_path, extra_attributes=attrs)
         except exrio.ExrError as exc:
             raise FrameError(f"frame {frame}: {exc}") from exc
-        return FrameResult(frame, raw_path, output_path, report, inputs)
+        return FrameResult(
+            frame,
+            raw_path,
+            output_path,
+            report,
+            inputs,
+            tuple(float(c) for c in light.split(",")) if light else None,
+        )
+
+    def _set_light(self, direction: tuple[float, float, float] | None) -> None:
+        """Stage and commit ``light_direction`` when it changed (world space)."""
+        param = "" if direction is None else ", ".join(repr(float(c)) for c in direction)
+        if param != self._light_param:
+            self.session.set("light_direction", param)
+            self.session.commit()
+            self._light_param = param

@@ -7,6 +7,7 @@ from bpy.props import (
     BoolProperty,
     EnumProperty,
     FloatProperty,
+    FloatVectorProperty,
     IntProperty,
     PointerProperty,
     StringProperty,
@@ -48,6 +49,17 @@ DENOISE_QUALITIES = [
     ("high", "High", "Open Image Denoise's best quality (slowest)"),
     ("balanced", "Balanced", "Faster, with slightly less detail"),
     ("fast", "Fast", "Fastest, for previews"),
+]
+
+LIGHT_SOURCES = [
+    (
+        "AUTO",
+        "Scene Sun",
+        "The strongest Sun light that renders, evaluated at each frame (animated suns follow); "
+        "without a Sun, inserts cast no directional shadow",
+    ),
+    ("MANUAL", "Manual", "A fixed direction toward the light, in world space"),
+    ("OFF", "Off", "No light direction: inserts get only the contact shadow under them"),
 ]
 
 COVERAGE = [
@@ -94,6 +106,19 @@ class HarmonizerSceneSettings(bpy.types.PropertyGroup):
     mask_index: IntProperty(name="Pass Index", default=1, min=0, max=32767)
     mask_names: StringProperty(name="Mattes", description="Cryptomatte names, comma separated")
     mask_crypto_layer: EnumProperty(name="Cryptomatte Layer", items=CRYPTO_LAYERS, default="CryptoObject")
+    light_source: EnumProperty(
+        name="Light",
+        description="Where the direction toward the light comes from: inserts cast their shadow away from it",
+        items=LIGHT_SOURCES,
+        default="AUTO",
+    )
+    light_direction: FloatVectorProperty(
+        name="Direction",
+        description="Direction toward the light, in world space (Z up); normalized when used",
+        size=3,
+        default=(0.0, 0.0, 1.0),
+        subtype="DIRECTION",
+    )
     view_layer: StringProperty(
         name="View Layer", description="View layer to enhance (empty: the first one that renders)", default=""
     )

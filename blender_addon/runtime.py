@@ -7,7 +7,7 @@ from collections.abc import Callable
 
 import bpy
 
-from . import denoise, deps, passes, processor, reports
+from . import denoise, deps, light, passes, processor, reports
 
 
 #: A frame number in a library message ("frame 12", "frame -3").
@@ -91,6 +91,12 @@ class Runner:
             replace_composite=s.replace_composite,
         )
         self.scene_name = scene.name
+        #: The panel's Light at the start: 'AUTO', 'MANUAL' or 'OFF', and the
+        #: manual direction (see ``light_at``).
+        self.light_source = s.light_source
+        self.manual_light = light.manual_direction(s.light_direction)
+        if self.light_source == "MANUAL" and self.manual_light is None:
+            self.notes.append(("WARNING", "Harmonizer: the manual light direction is (0, 0, 0): no cast shadows"))
         self._messages: list[tuple[str, str]] = []
         self.device = hz.Device(threads=s.threads, ort_library=deps.onnxruntime_library())
         try:
@@ -101,6 +107,7 @@ class Runner:
                 strength=s.strength,
                 gap_policy=s.gap_policy,
                 depth_kind="planar",
+                light_space="world",  # Blender's world: the camera matrices' and the Sun's
                 denoise=self.denoise,
                 denoise_quality=s.denoise_quality,
                 samples=self.samples,
@@ -117,6 +124,27 @@ class Runner:
             options=self.options,
         )
         self.error_type = hz.HarmonizerError
+
+    def light_at(self, scene: bpy.types.Scene, depsgraph=None) -> tuple[float, float, float] | None:
+        """The direction toward the light for the frame ``scene`` (or
+        ``depsgraph``) is evaluated at: the panel's manual one, none, or the
+        strongest Sun's (``light.scene_direction``)."""
+        if self.light_source == "OFF":
+            return None
+        if self.light_source == "MANUAL":
+            return self.manual_light
+        vl = scene.view_layers.get(self.options.view_layer) or passes.render_view_layer(scene, "")
+        return None if vl is None else light.scene_direction(vl, depsgraph)
+
+    def light_at_frame(self, scene: bpy.types.Scene, frame: int) -> tuple[float, float, float] | None:
+        """``light_at`` for ``frame`` of the open scene, moving the scene to
+        that frame (``frame_set``) when a Sun may be animated; the caller
+        puts the frame back when done."""
+        if self.light_source == "AUTO" and scene.frame_current != frame:
+            vl = scene.view_layers.get(self.options.view_layer) or passes.render_view_layer(scene, "")
+            if vl is not None and light.suns(vl):
+                scene.frame_set(frame)
+        return self.light_at(scene)
 
     def _on_message(self, level: str, text: str) -> None:
         # Kept until the frame is done: post_messages reports each once, with

@@ -1,0 +1,249 @@
+"""The light direction the extension passes for inserts' cast shadows (issue 19).
+
+Scene Sun (the default): the strongest Sun light that renders, at each frame,
+its world +Z axis (a Sun shines along its local -Z); Manual; Off. Checked
+against Blender's own evaluation of the Sun at each frame, through a real
+animation render, the sequence operator, and end to end: the classical
+backend darkens the floor on the side of the inserted sphere away from the
+Sun (the sphere is rendered without its shadow, as an inserted element often is).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+
+import bpy
+import numpy as np
+import pytest
+from mathutils import Vector
+
+import scene as fixture
+from test_extension import configure, read_exr, render
+
+
+def _sun_z(name: str = "Sun") -> np.ndarray:
+    """The Sun's world +Z, normalized, as Blender has it now (main thread, after frame_set)."""
+    m = bpy.data.objects[name].matrix_world
+    z = np.array([m[0][2], m[1][2], m[2][2]], dtype=np.float64)
+    return z / np.linalg.norm(z)
+
+
+def _angle(a, b) -> float:
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    c = np.dot(a, b) / (np.linalg.norm(a) * np.linalg.norm(b))
+    return math.degrees(math.acos(float(np.clip(c, -1.0, 1.0))))
+
+
+def _small(scene) -> None:
+    scene.render.resolution_x, scene.render.resolution_y = 32, 18
+    scene.cycles.samples = 1
+
+
+def _animated_sun_scene(out: str):
+    """The fixture over frames 1-3, its Sun turning 50 degrees, plus lights that must not win."""
+    scene = fixture.build(os.path.join(out, "raw", "frame_####.exr"), frames=(1, 3))
+    _small(scene)
+    sun = bpy.data.objects["Sun"]
+    sun.rotation_euler = (math.radians(30), math.radians(10), math.radians(20))
+    sun.keyframe_insert("rotation_euler", frame=1)
+    sun.rotation_euler = (math.radians(60), math.radians(-20), math.radians(60))
+    sun.keyframe_insert("rotation_euler", frame=3)
+    # A weaker Sun, a stronger Sun disabled for renders, a stronger one in an
+    # excluded collection, and a much stronger point light: none of them is the light.
+    for name, energy, rot in (("WeakSun", 1.0, (0, 0, 0)), ("OffSun", 50.0, (1.0, 0, 0)), ("HiddenSun", 50.0, (0, 1.0, 0))):
+        data = bpy.data.lights.new(name, type="SUN")
+        data.energy = energy
+        obj = bpy.data.objects.new(name, data)
+        obj.rotation_euler = rot
+        if name == "HiddenSun":
+            coll = bpy.data.collections.new("Excluded")
+            scene.collection.children.link(coll)
+            coll.objects.link(obj)
+            scene.view_layers[0].layer_collection.children["Excluded"].exclude = True
+        else:
+            scene.collection.objects.link(obj)
+        obj.hide_render = name == "OffSun"
+    lamp = bpy.data.lights.new("Lamp", type="POINT")
+    lamp.energy = 5000.0
+    lamp_obj = bpy.data.objects.new("Lamp", lamp)
+    lamp_obj.location = (1.0, -1.0, 3.0)
+    scene.collection.objects.link(lamp_obj)
+    return scene
+
+
+def test_scene_sun_is_passed_per_frame_of_an_animation_render(addon, tmp_root):
+    out = os.path.join(tmp_root, "light_anim")
+    scene = _animated_sun_scene(out)
+    configure(scene, backend="bypass", output_path=os.path.join(out, "enhanced", "frame_####.exr"))
+    assert scene.harmonizer.light_source == "AUTO"  # the default
+    scene.frame_set(2)  # the render starts elsewhere than frame 1
+    render(scene)
+    log = addon.handlers.last_run(scene.name)
+    assert not log.errors, log.errors
+    assert [f["frame"] for f in log.frames] == [1, 2, 3]
+    want = {}
+    for f in (1, 2, 3):
+        scene.frame_set(f)
+        want[f] = _sun_z()
+    assert _angle(want[1], want[3]) > 20.0, "the Sun does not turn: the test would not see a stale direction"
+    for entry in log.frames:
+        f = entry["frame"]
+        got = entry["light_direction"]  # read back from the session after the frame
+        assert got is not None, entry
+        np.testing.assert_allclose(got, want[f], atol=1e-5, err_msg=f"frame {f}")
+        _, attrs = read_exr(os.path.join(out, "enhanced", f"frame_{f:04d}.exr"))
+        np.testing.assert_allclose(
+            [float(c) for c in attrs["harmonizer/lightDirection"].split(",")], want[f], atol=1e-5
+        )
+    # The temporal state is kept across the changing light.
+    assert [f["reset"] for f in log.frames] == ["first_frame", None, None]
+
+
+def test_manual_and_off(addon, tmp_root):
+    out = os.path.join(tmp_root, "light_manual")
+    scene = fixture.build(os.path.join(out, "raw", "frame_####.exr"), frames=(1, 2))
+    _small(scene)
+    configure(
+        scene,
+        backend="bypass",
+        output_path=os.path.join(out, "enhanced", "frame_####.exr"),
+        light_source="MANUAL",
+        light_direction=(0.0, -3.0, 4.0),
+    )
+    render(scene)
+    log = addon.handlers.last_run(scene.name)
+    assert not log.errors, log.errors
+    for entry in log.frames:
+        np.testing.assert_allclose(entry["light_direction"], [0.0, -0.6, 0.8], atol=1e-6)
+    scene.harmonizer.light_source = "OFF"
+    render(scene)
+    log = addon.handlers.last_run(scene.name)
+    assert [f["light_direction"] for f in log.frames] == [None, None]
+    _, attrs = read_exr(os.path.join(out, "enhanced", "frame_0001.exr"))
+    assert "harmonizer/lightDirection" not in attrs
+    # No Sun at all: Scene Sun passes none.
+    scene.harmonizer.light_source = "AUTO"
+    bpy.data.objects.remove(bpy.data.objects["Sun"])
+    render(scene)
+    assert [f["light_direction"] for f in addon.handlers.last_run(scene.name).frames] == [None, None]
+
+
+def test_sequence_operator_reads_the_sun_at_each_files_frame(addon, tmp_root, monkeypatch):
+    out = os.path.join(tmp_root, "light_seq")
+    scene = _animated_sun_scene(out)
+    configure(scene, backend="bypass", output_path=os.path.join(out, "enhanced", "frame_####.exr"))
+    scene.harmonizer.enabled = False  # only render the raw frames
+    render(scene)
+    seen = {}
+    process = addon.processor.FrameProcessor.process
+
+    def recording(self, raw_path, output_path, *, frame, **kw):
+        result = process(self, raw_path, output_path, frame=frame, **kw)
+        seen[frame] = (kw.get("light_direction"), self.session.get("light_direction"))
+        return result
+
+    monkeypatch.setattr(addon.processor.FrameProcessor, "process", recording)
+    scene.frame_set(2)
+    result = bpy.ops.harmonizer.enhance_sequence(
+        directory=os.path.join(out, "raw"), output_directory=os.path.join(out, "seq")
+    )
+    assert result == {"FINISHED"}
+    assert scene.frame_current == 2, "the operator did not put the scene's frame back"
+    assert sorted(seen) == [1, 2, 3]
+    for f in (1, 2, 3):
+        scene.frame_set(f)
+        passed, in_session = seen[f]
+        np.testing.assert_allclose(passed, _sun_z(), atol=1e-6, err_msg=f"frame {f}")
+        np.testing.assert_allclose([float(c) for c in in_session.split(",")], _sun_z(), atol=1e-5)
+
+
+#: Toward the Sun in the end-to-end scene: from the front right, 30 degrees up.
+SUN_TOWARD = Vector((0.8, -0.3, 0.5)).normalized()
+
+
+def _shadow_scene(out: str, light_source: str):
+    """The fixture's floor, a still inserted sphere (no shadow in the render) and one Sun."""
+    scene = fixture.build(os.path.join(out, "raw", "frame_####.exr"), frames=(1, 2))
+    for name in ("Cube", "Pillar"):
+        bpy.data.objects.remove(bpy.data.objects[name])
+    bpy.data.objects["InsertedSphere"].animation_data_clear()
+    bpy.data.objects["InsertedSphere"].location = (0.3, -0.4, 0.6)
+    cam = scene.camera
+    cam.animation_data_clear()
+    cam.location, cam.rotation_euler = (0.0, -7.5, 3.2), (math.radians(70), 0.0, 0.0)
+    sun = bpy.data.objects["Sun"]
+    sun.rotation_euler = SUN_TOWARD.to_track_quat("Z", "Y").to_euler()
+    scene.view_layers[0].use_pass_object_index = True  # only to keep the windows off the sphere
+    scene.cycles.samples = 16
+    configure(
+        scene,
+        backend="classical",
+        mask_source="COLLECTION",  # the Cryptomatte Object pass, as a user marks an insert
+        mask_collection=bpy.data.collections["Inserted"],
+        light_source=light_source,
+        output_path=os.path.join(out, "enhanced", "frame_####.exr"),
+    )
+    return scene
+
+
+def _ratio(raw, enh, w2n, point, half: int = 3) -> float:
+    """Mean enhanced / raw luminance in a (2 half + 1)^2 window around the pixel of world ``point``."""
+    h, w = raw["ViewLayer.Combined.R"].shape
+    p = np.array([*point, 1.0]) @ w2n.astype(np.float64)
+    x, y = int(p[0] / p[3] * w), int(p[1] / p[3] * h)
+    assert half <= x < w - half and half <= y < h - half, (point, x, y)
+    win = (slice(y - half, y + half + 1), slice(x - half, x + half + 1))
+    assert (raw["ViewLayer.Object Index.X"][win] == 0).all(), f"window at {point} touches the insert"
+
+    def lum(ch):
+        return sum(k * ch[f"ViewLayer.Combined.{c}"][win] for k, c in zip((0.2126, 0.7152, 0.0722), "RGB"))
+
+    return float(lum(enh).mean() / lum(raw).mean())
+
+
+@pytest.fixture(scope="module")
+def shadow_runs(addon, tmp_root):
+    runs = {}
+    for source in ("AUTO", "OFF"):
+        out = os.path.join(tmp_root, "light_shadow", source)
+        scene = _shadow_scene(out, source)
+        render(scene)
+        log = addon.handlers.last_run(scene.name)
+        assert not log.errors, log.errors
+        scene.frame_set(1)
+        runs[source] = (out, log, addon.runtime.camera_matrices(scene)[1])
+    return runs
+
+
+def test_insert_casts_its_shadow_away_from_the_sun(shadow_runs):
+    """Next to the sphere, the floor away from the Sun darkens; toward the Sun it does not.
+
+    The sphere (radius 0.6, centre 0.6 above the floor) would cast an
+    ellipse around G = C - (C.z / d.z) d (d toward the Sun). Windows of 7x7
+    pixels: at G and 0.4 further from the Sun, and at the mirror of G
+    through the sphere's foot (lit side). Off: no light, no cast shadow
+    there (only the contact shadow right under the sphere).
+    """
+    c = Vector((0.3, -0.4, 0.6))
+    g = c - (c.z / SUN_TOWARD.z) * SUN_TOWARD
+    away = Vector((-SUN_TOWARD.x, -SUN_TOWARD.y, 0.0)).normalized()
+    points = {
+        "shadow": tuple(g),
+        "shadow_far": tuple(g + 0.4 * away),
+        "lit_side": (2 * c.x - g.x, 2 * c.y - g.y, 0.0),
+    }
+    ratios = {}
+    for source, (out, log, w2n) in shadow_runs.items():
+        assert [f["light_direction"] is not None for f in log.frames] == [source == "AUTO"] * 2
+        raw, _ = read_exr(os.path.join(out, "raw", "frame_0002.exr"))
+        enh, _ = read_exr(os.path.join(out, "enhanced", "frame_0002.exr"))
+        ratios[source] = {k: _ratio(raw, enh, w2n, p) for k, p in points.items()}
+    print(f"\nenhanced / raw luminance, frame 2: {ratios}")
+    auto, off = ratios["AUTO"], ratios["OFF"]
+    assert auto["shadow"] < 0.8 and auto["shadow_far"] < 0.85, auto
+    assert auto["lit_side"] > 0.95, auto
+    assert off["shadow"] > 0.95 and off["shadow_far"] > 0.95, off
+    for k in points:  # the two runs differ only by the light
+        assert auto[k] <= off[k] + 0.01, (k, auto, off)
+    np.testing.assert_allclose(shadow_runs["AUTO"][1].frames[0]["light_direction"], SUN_TOWARD, atol=1e-5)
