@@ -100,6 +100,10 @@ fn shadows(
     area
 }
 
+/// A harmonization filter within this of the identity (stops, or ratio)
+/// leaves the insert as it came: it is not stabilized either.
+pub const RECOLOR_TOLERANCE: f32 = 0.02;
+
 /// Margin (pixels) around the insert's bounding box that harmonization may
 /// change and a frame without holes stabilizes.
 pub const INSERT_MARGIN: usize = 8;
@@ -236,6 +240,8 @@ fn run_ops_on(
         .map(|rect| (mask, rect)),
         _ => None,
     };
+    // Whether harmonization changed the insert's colors noticeably.
+    let mut recolored = false;
     match insert {
         Some((mask, rect)) if params.harmonize => {
             let estimate = stages.time("harmonize", || {
@@ -262,6 +268,7 @@ fn run_ops_on(
                     pool.install(|| harmonize::apply(img, mask, rect, &tone))
                 });
                 carry.values.insert(TONE_KEY.to_string(), tone.to_vec());
+                recolored = !tone.is_near_identity(RECOLOR_TOLERANCE);
             }
         }
         _ => {
@@ -270,11 +277,14 @@ fn run_ops_on(
     }
     progress.report(0.6)?;
 
-    // What is stabilized in a frame without holes: the insert and a margin
-    // around it (its harmonized edge). Not the shadows: the ground they
-    // darken is the render's own texture, which a resampled history only
-    // softens (0.9 dB overall on the out-of-domain shadow sequence).
-    let changed = insert.map(|(_, rect)| rect.expand(INSERT_MARGIN, w, h));
+    // What is stabilized in a frame without holes: a recolored insert and a
+    // margin around it (its harmonized edge). Not an insert left as it came
+    // (a correctly lit one keeps its detail), nor the shadows: the ground
+    // they darken is the render's own texture, which a resampled history
+    // only softens (0.9 dB overall on the out-of-domain shadow sequence).
+    let changed = insert
+        .filter(|_| recolored)
+        .map(|(_, rect)| rect.expand(INSERT_MARGIN, w, h));
     if params.contact_shadows && params.shadow_strength > 0.0 {
         if let (Some((mask, rect)), Some(depth)) = (insert, &frame.depth) {
             stages.time("shadow", || {

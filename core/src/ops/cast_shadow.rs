@@ -18,13 +18,14 @@
 //! renderer's. Several inserts in one mask cast together.
 
 use glam::{DMat4, DVec2, DVec3, DVec4};
+use rayon::prelude::*;
 
 use super::shadow::ShadowMap;
 use super::{Rect, EMPTY_DEPTH};
 use crate::frame::Camera;
 
 /// March steps per cell.
-pub const STEPS: usize = 32;
+pub const STEPS: usize = 24;
 /// March length, in multiples of the insert's world size (the diagonal of
 /// its bounding box).
 pub const REACH: f64 = 2.5;
@@ -34,7 +35,7 @@ pub const THICKNESS: f64 = 0.75;
 /// Penumbra blur (sigma) as a share of the insert's size on screen.
 pub const SOFTNESS: f32 = 0.02;
 /// Largest grid edge in cells: the cell grows with the area.
-pub const MAX_GRID: usize = 192;
+pub const MAX_GRID: usize = 128;
 /// Insert samples per edge of its bounding box (for its world size).
 const SIZE_SAMPLES: usize = 48;
 
@@ -134,39 +135,55 @@ pub fn cast_shadow_map(
     };
     let cell = area.width().max(area.height()).div_ceil(MAX_GRID).max(1);
     let (gw, gh) = (area.width().div_ceil(cell), area.height().div_ceil(cell));
-    let mut occ = vec![0.0f32; gw * gh];
-    let mut dep = vec![0.0f32; gw * gh];
     let thickness = THICKNESS * size;
-    for j in 0..gh {
-        let y = (area.y0 + j * cell + cell / 2).min(area.y1 - 1);
-        for i in 0..gw {
-            let x = (area.x0 + i * cell + cell / 2).min(area.x1 - 1);
-            let at = y * width + x;
-            let d = depth[at];
-            if !(d.is_finite() && d > 0.0 && d < EMPTY_DEPTH) {
-                continue;
-            }
-            dep[j * gw + i] = d;
-            if mask[at] > 0.5 {
-                continue;
-            }
-            let p = unproject.world_point(DVec2::new(x as f64 + 0.5, y as f64 + 0.5), d as f64);
-            let hit = (1..=STEPS).any(|s| {
-                let q = p + l * (reach * s as f64 / STEPS as f64);
-                let Some((qx, qy, qz)) = project(&w2c, &w2n, q, wf, hf) else {
-                    return false;
-                };
-                if qx < 0.0 || qy < 0.0 || qx >= wf || qy >= hf {
-                    return false;
+    // Row-parallel on the current pool (each cell on its own: the result
+    // does not depend on the thread count).
+    let rows: Vec<(Vec<f32>, Vec<f32>)> = (0..gh)
+        .into_par_iter()
+        .map(|j| {
+            let (mut occ, mut dep) = (vec![0.0f32; gw], vec![0.0f32; gw]);
+            let y = (area.y0 + j * cell + cell / 2).min(area.y1 - 1);
+            for i in 0..gw {
+                let x = (area.x0 + i * cell + cell / 2).min(area.x1 - 1);
+                let at = y * width + x;
+                let d = depth[at];
+                if !(d.is_finite() && d > 0.0 && d < EMPTY_DEPTH) {
+                    continue;
                 }
-                let k = qy as usize * width + qx as usize;
-                let di = depth[k] as f64;
-                mask[k] > 0.5 && di < qz && qz - di < thickness
-            });
-            if hit {
-                occ[j * gw + i] = 1.0;
+                dep[i] = d;
+                if mask[at] > 0.5 {
+                    continue;
+                }
+                let p = unproject.world_point(DVec2::new(x as f64 + 0.5, y as f64 + 0.5), d as f64);
+                // The march point's homogeneous position and depth are
+                // linear in the distance along the light.
+                let (hp, hl) = (w2n * p.extend(1.0), w2n * l.extend(0.0));
+                let (zp, zl) = (w2c.row(2).dot(p.extend(1.0)), w2c.row(2).dot(l.extend(0.0)));
+                let hit = (1..=STEPS).any(|s| {
+                    let t = reach * s as f64 / STEPS as f64;
+                    let (h, qz) = (hp + t * hl, zp + t * zl);
+                    if qz <= 1e-6 || h.w.abs() <= 1e-12 {
+                        return false;
+                    }
+                    let (qx, qy) = (h.x / h.w * wf, h.y / h.w * hf);
+                    if !(qx >= 0.0 && qy >= 0.0 && qx < wf && qy < hf) {
+                        return false;
+                    }
+                    let k = qy as usize * width + qx as usize;
+                    let di = depth[k] as f64;
+                    mask[k] > 0.5 && di < qz && qz - di < thickness
+                });
+                if hit {
+                    occ[i] = 1.0;
+                }
             }
-        }
+            (occ, dep)
+        })
+        .collect();
+    let (mut occ, mut dep) = (Vec::with_capacity(gw * gh), Vec::with_capacity(gw * gh));
+    for (o, d) in rows {
+        occ.extend(o);
+        dep.extend(d);
     }
     if occ.iter().all(|&o| o == 0.0) {
         return None;

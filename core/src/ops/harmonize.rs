@@ -143,6 +143,15 @@ impl Tone {
         }
     }
 
+    /// True when no parameter moves by more than `tol` (stops for exposure
+    /// and white balance, a ratio for contrast and saturation).
+    pub fn is_near_identity(&self, tol: f32) -> bool {
+        self.exposure.abs() <= tol
+            && self.white_balance.iter().all(|w| w.abs() <= tol)
+            && (self.contrast - 1.0).abs() <= tol
+            && (self.saturation - 1.0).abs() <= tol
+    }
+
     /// True when the filter changes nothing.
     pub fn is_identity(&self) -> bool {
         self.exposure == 0.0

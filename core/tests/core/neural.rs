@@ -653,9 +653,14 @@ fn classical_post_runs_the_classical_operations_on_the_network_output() {
         params
             .set("denoise", &ParamValue::Str("off".into()))
             .unwrap();
-        // Nor would the network run on frames without holes.
+        // Nor would the network run on frames without holes, and the
+        // classical operations would stabilize only an insert they
+        // recolored (this one matches its surroundings).
         params
             .set("neural_clean_frames", &ParamValue::Bool(true))
+            .unwrap();
+        params
+            .set("stabilize_all", &ParamValue::Bool(true))
             .unwrap();
         let mut s = Session::new(device_file("identity"), params).unwrap();
         let mut outs = Vec::new();
