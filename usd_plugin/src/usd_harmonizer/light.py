@@ -8,9 +8,10 @@ Where it comes from, first found wins:
    honoured. An authored ``(0, 0, 0)`` means "no light" (no cast shadows).
 2. The stage's ``UsdLux.DistantLight`` with the largest
    ``intensity * 2^exposure`` at the frame's time code (active, not
-   invisible, above 0; a tie goes to the first in namespace order). A
-   DistantLight emits along its local -Z, so the direction toward it is its
-   local-to-world transform's +Z axis, normalized.
+   invisible, above 0; a tie goes to the first in namespace order; lights
+   inside instances are not looked for). A DistantLight emits along its
+   local -Z, so the direction toward it is its local-to-world transform's
+   +Z axis, normalized.
 3. None: the library casts no directional shadow (the contact shadow
    under an insert stays).
 
@@ -104,9 +105,10 @@ def override(prims: list[Usd.Prim], frame: float) -> Light | None:
     return None
 
 
-def _distant_lights(stage: Usd.Stage) -> list[Usd.Prim]:
-    pred = Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)
-    return [p for p in Usd.PrimRange.Stage(stage, pred) if p.IsA(UsdLux.DistantLight)]
+def distant_lights(stage: Usd.Stage) -> list[Usd.Prim]:
+    """The stage's DistantLight prims (active, loaded, defined; not inside
+    instances), in namespace order: one traversal, which a run keeps."""
+    return [p for p in stage.Traverse() if p.IsA(UsdLux.DistantLight)]
 
 
 def _value(attr: Usd.Attribute, time: Usd.TimeCode, fallback: float) -> float:
@@ -114,12 +116,17 @@ def _value(attr: Usd.Attribute, time: Usd.TimeCode, fallback: float) -> float:
     return fallback if v is None else float(v)
 
 
-def dominant_distant_light(stage: Usd.Stage, frame: float) -> Light:
+def dominant_distant_light(
+    stage: Usd.Stage, frame: float, lights: list[Usd.Prim] | None = None
+) -> Light:
     """The direction toward the stage's brightest DistantLight at ``frame``
-    (see the module's notes), or :data:`NO_LIGHT`."""
+    (see the module's notes), or :data:`NO_LIGHT`. ``lights``: the
+    candidates (default: :func:`distant_lights` of the stage)."""
     time = Usd.TimeCode(frame)
     best: tuple[float, Usd.Prim] | None = None
-    for prim in _distant_lights(stage):
+    for prim in distant_lights(stage) if lights is None else lights:
+        if not prim.IsValid() or not prim.IsActive():  # edited since found
+            continue
         light = UsdLux.DistantLight(prim)
         if UsdGeom.Imageable(prim).ComputeVisibility(time) == UsdGeom.Tokens.invisible:
             continue
@@ -140,7 +147,13 @@ def dominant_distant_light(stage: Usd.Stage, frame: float) -> Light:
     return Light(d, f"DistantLight {prim.GetPath()}")
 
 
-def light_at(stage: Usd.Stage, prims: list[Usd.Prim], frame: float) -> Light:
+def light_at(
+    stage: Usd.Stage,
+    prims: list[Usd.Prim],
+    frame: float,
+    lights: list[Usd.Prim] | None = None,
+) -> Light:
     """The light of ``frame``: the override on ``prims`` (the product, then
-    the settings prim), else the stage's brightest DistantLight, else none."""
-    return override(prims, frame) or dominant_distant_light(stage, frame)
+    the settings prim), else the stage's brightest DistantLight (among
+    ``lights`` when given), else none."""
+    return override(prims, frame) or dominant_distant_light(stage, frame, lights)

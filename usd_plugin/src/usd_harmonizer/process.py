@@ -30,7 +30,7 @@ from .camera import exr_matrices
 from .color import ColorConverter, converter_for
 from .errors import FrameError, ProductFileError, SettingsError, UsdHarmonizerError
 from .exrio import read_exr, write_exr_atomic
-from .light import NO_LIGHT, Light, light_at, normalized
+from .light import NO_LIGHT, Light, distant_lights, light_at, normalized
 from .settings import ProductInfo, SettingsInfo
 from .varmap import Binding, find_channels, map_vars
 
@@ -246,6 +246,7 @@ class ProductRunner:
         #: The ``light_direction`` the session holds, None while the
         #: session holds the user's own (``params``) or nothing set yet.
         self._light_param: str | None = None
+        self._distant: list[Any] | None = None
         if "light_direction" not in params:
             # The stage's and the CLI's directions are in the stage's world.
             params["light_space"] = "world"
@@ -301,7 +302,9 @@ class ProductRunner:
         """The light of ``frame`` (see :attr:`Options.light`)."""
         if self._fixed_light is not None:
             return self._fixed_light
-        return light_at(self.product.stage, self._light_prims, frame)
+        if self._distant is None:  # the stage's lights, found once per run
+            self._distant = distant_lights(self.product.stage)
+        return light_at(self.product.stage, self._light_prims, frame, self._distant)
 
     # -- paths ---------------------------------------------------------------
     def output_for(self, frame: int) -> Path:
