@@ -8,10 +8,12 @@
 //!    The history is reprojected at the hole pixels alone
 //!    ([`crate::temporal::HistoryView::sample`]), except for frames reached
 //!    by chained motion vectors (reprojected whole, stage `reproject`).
-//! 2. **harmonize** (`harmonize`, needs the insert mask): the insert's color
-//!    statistics are matched part of the way to a ring of background; the
-//!    filter parameters are smoothed over time in the [`Carry`] (key
-//!    [`TONE_KEY`]) with the weight `temporal_blend` on the past.
+//! 2. **harmonize** (`harmonize`, needs the insert mask): each inserted
+//!    object's (connected part of the mask) color statistics are matched
+//!    part of the way to a ring of background around it; each object's
+//!    filter is smoothed over time in the [`Carry`] (key [`TONE_KEY`], the
+//!    objects followed by their centroids) with the weight `temporal_blend`
+//!    on the past.
 //! 3. **shadow** (`contact_shadows`, needs mask and depth): a soft contact
 //!    shadow of strength `shadow_strength` under the insert.
 //! 4. **stabilize** (`stabilize`): blend with the reprojected previous result
@@ -31,7 +33,8 @@ use crate::frame::{Image, PreparedFrame};
 use crate::ops::{cast_shadow, harmonize, inpaint, par_bands_mut, shadow, stabilize, Rect};
 use crate::temporal::ReprojectionMode;
 
-/// Carry key of the smoothed harmonization filter ([`harmonize::Tone::to_vec`]).
+/// Carry key of the smoothed harmonization filters, one per inserted object
+/// ([`harmonize::tracks_to_vec`]).
 pub const TONE_KEY: &str = "classical.harmonize.tone";
 
 /// Carry key of the smoothed shares of the contact and the cast shadow still
@@ -99,6 +102,10 @@ fn shadows(
     carry.values.insert(SHADOW_KEY.to_string(), shares);
     area
 }
+
+/// An object's filter continues the nearest one of the previous frame within
+/// this share of the frame's larger edge.
+pub const TRACK_REACH: f32 = 0.15;
 
 /// A harmonization filter within this of the identity (stops, or ratio)
 /// leaves the insert as it came: it is not stabilized either.
@@ -244,32 +251,53 @@ fn run_ops_on(
     let mut recolored = false;
     match insert {
         Some((mask, rect)) if params.harmonize => {
-            let estimate = stages.time("harmonize", || {
-                pool.install(|| {
-                    harmonize::estimate(
-                        img,
-                        mask,
-                        rect,
-                        frame.coverage.as_deref(),
-                        frame.depth.as_deref(),
-                    )
-                })
+            // Each inserted object (a connected part of the mask) gets its
+            // own filter, carried from frame to frame by where it is.
+            let parts = stages.time("harmonize", || {
+                pool.install(|| harmonize::components(mask, rect, w, h))
             });
             let previous = carry
                 .values
                 .get(TONE_KEY)
-                .and_then(|v| harmonize::Tone::from_slice(v));
-            let tone = match (previous, estimate) {
-                (Some(p), Some(e)) => Some(p.toward(&e, 1.0 - params.temporal_blend)),
-                (p, e) => e.or(p),
-            };
-            if let Some(tone) = tone {
-                stages.time("harmonize", || {
-                    pool.install(|| harmonize::apply(img, mask, rect, &tone))
+                .and_then(|v| harmonize::tracks_from_slice(v))
+                .unwrap_or_default();
+            let centroids: Vec<[f32; 2]> = parts.iter().map(|p| p.centroid).collect();
+            let seen: Vec<[f32; 2]> = previous.iter().map(|(c, _)| *c).collect();
+            let reach = TRACK_REACH * w.max(h) as f32;
+            let matched = harmonize::match_tracks(&centroids, &seen, reach);
+            let mut tracks = Vec::with_capacity(parts.len());
+            for (part, m) in parts.iter().zip(matched) {
+                let pmask: &[f32] = if part.mask.is_empty() {
+                    mask
+                } else {
+                    &part.mask
+                };
+                let estimate = stages.time("harmonize", || {
+                    pool.install(|| {
+                        harmonize::estimate(
+                            img,
+                            pmask,
+                            part.rect,
+                            frame.coverage.as_deref(),
+                            frame.depth.as_deref(),
+                        )
+                    })
                 });
-                carry.values.insert(TONE_KEY.to_string(), tone.to_vec());
-                recolored = !tone.is_near_identity(RECOLOR_TOLERANCE);
+                let tone = match (m.map(|j| previous[j].1), estimate) {
+                    (Some(p), Some(e)) => Some(p.toward(&e, 1.0 - params.temporal_blend)),
+                    (p, e) => e.or(p),
+                };
+                if let Some(tone) = tone {
+                    stages.time("harmonize", || {
+                        pool.install(|| harmonize::apply(img, pmask, part.rect, &tone))
+                    });
+                    tracks.push((part.centroid, tone));
+                    recolored |= !tone.is_near_identity(RECOLOR_TOLERANCE);
+                }
             }
+            carry
+                .values
+                .insert(TONE_KEY.to_string(), harmonize::tracks_to_vec(&tracks));
         }
         _ => {
             carry.values.remove(TONE_KEY);

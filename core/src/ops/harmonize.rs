@@ -455,6 +455,180 @@ pub fn tone_from_stats(insert: &Stats, ring: &Stats) -> Tone {
     }
 }
 
+/// One inserted object: a connected part of the insert mask (cells of
+/// [`RING_CELL`] pixels with mask above 0.02, 8-connected).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Component {
+    /// Bounding box of its pixels.
+    pub rect: Rect,
+    /// Centre of its cells, pixels.
+    pub centroid: [f32; 2],
+    /// Its mask, frame-sized: the insert mask on its cells, 0 elsewhere
+    /// (only the cells around `rect` are ever written, the rest of the
+    /// zeroed allocation is never touched).
+    pub mask: Vec<f32>,
+}
+
+/// The inserted objects of `mask` (bounding box `insert`), in the order of
+/// their centroid's x then y. A single object is not split off: one
+/// component with an empty `mask` stands for the whole insert mask.
+pub fn components(mask: &[f32], insert: Rect, width: usize, height: usize) -> Vec<Component> {
+    if insert.is_empty() {
+        return Vec::new();
+    }
+    let gw = insert.width().div_ceil(RING_CELL);
+    let gh = insert.height().div_ceil(RING_CELL);
+    let cell_rect = |cx: usize, cy: usize| Rect {
+        x0: insert.x0 + cx * RING_CELL,
+        y0: insert.y0 + cy * RING_CELL,
+        x1: (insert.x0 + (cx + 1) * RING_CELL).min(insert.x1),
+        y1: (insert.y0 + (cy + 1) * RING_CELL).min(insert.y1),
+    };
+    let on: Vec<bool> = (0..gh)
+        .into_par_iter()
+        .flat_map_iter(|cy| {
+            (0..gw).map(move |cx| {
+                let r = cell_rect(cx, cy);
+                (r.y0..r.y1).any(|y| {
+                    mask[y * width + r.x0..y * width + r.x1]
+                        .iter()
+                        .any(|&m| m > 0.02)
+                })
+            })
+        })
+        .collect();
+    let mut label = vec![u32::MAX; gw * gh];
+    let mut parts: Vec<Vec<usize>> = Vec::new();
+    for start in 0..gw * gh {
+        if !on[start] || label[start] != u32::MAX {
+            continue;
+        }
+        let id = parts.len() as u32;
+        let mut cells = vec![start];
+        label[start] = id;
+        let mut k = 0;
+        while k < cells.len() {
+            let c = cells[k];
+            k += 1;
+            let (cx, cy) = ((c % gw) as isize, (c / gw) as isize);
+            for dy in -1..=1 {
+                for dx in -1..=1 {
+                    let (nx, ny) = (cx + dx, cy + dy);
+                    if nx < 0 || ny < 0 || nx >= gw as isize || ny >= gh as isize {
+                        continue;
+                    }
+                    let n = ny as usize * gw + nx as usize;
+                    if on[n] && label[n] == u32::MAX {
+                        label[n] = id;
+                        cells.push(n);
+                    }
+                }
+            }
+        }
+        parts.push(cells);
+    }
+    let centroid = |cells: &[usize]| {
+        let (sx, sy) = cells.iter().fold((0.0f64, 0.0f64), |(sx, sy), &c| {
+            let r = cell_rect(c % gw, c / gw);
+            (
+                sx + (r.x0 + r.x1) as f64 / 2.0,
+                sy + (r.y0 + r.y1) as f64 / 2.0,
+            )
+        });
+        let n = cells.len().max(1) as f64;
+        [(sx / n) as f32, (sy / n) as f32]
+    };
+    if parts.len() <= 1 {
+        return parts
+            .iter()
+            .map(|cells| Component {
+                rect: insert,
+                centroid: centroid(cells),
+                mask: Vec::new(),
+            })
+            .collect();
+    }
+    let mut out: Vec<Component> = parts
+        .iter()
+        .map(|cells| {
+            let mut m = vec![0.0f32; width * height];
+            let mut rect = Rect::default();
+            for &c in cells {
+                let r = cell_rect(c % gw, c / gw);
+                for y in r.y0..r.y1 {
+                    let s = y * width + r.x0..y * width + r.x1;
+                    m[s.clone()].copy_from_slice(&mask[s]);
+                }
+                rect = rect.union(&r);
+            }
+            Component {
+                rect,
+                centroid: centroid(cells),
+                mask: m,
+            }
+        })
+        .collect();
+    out.sort_by(|a, b| {
+        a.centroid
+            .partial_cmp(&b.centroid)
+            .unwrap_or(std::cmp::Ordering::Equal)
+    });
+    out
+}
+
+/// The harmonization filters carried from frame to frame, one per inserted
+/// object, each with the centroid it was last seen at: a flat vector of
+/// `[cx, cy, Tone::to_vec()...]` per object.
+pub fn tracks_to_vec(tracks: &[([f32; 2], Tone)]) -> Vec<f32> {
+    tracks
+        .iter()
+        .flat_map(|(c, t)| c.iter().copied().chain(t.to_vec()))
+        .collect()
+}
+
+/// Reads [`tracks_to_vec`]'s layout; `None` for a malformed vector.
+pub fn tracks_from_slice(v: &[f32]) -> Option<Vec<([f32; 2], Tone)>> {
+    const N: usize = 2 + Tone::LEN;
+    if v.len() % N != 0 {
+        return None;
+    }
+    v.chunks(N)
+        .map(|c| {
+            let t = Tone::from_slice(&c[2..])?;
+            (c[0].is_finite() && c[1].is_finite()).then_some(([c[0], c[1]], t))
+        })
+        .collect()
+}
+
+/// For each of `centroids` (this frame's objects), the index in `previous`
+/// of the track it continues: the nearest unclaimed one within
+/// `max_distance` pixels, nearest pairs first.
+pub fn match_tracks(
+    centroids: &[[f32; 2]],
+    previous: &[[f32; 2]],
+    max_distance: f32,
+) -> Vec<Option<usize>> {
+    let mut pairs: Vec<(f32, usize, usize)> = Vec::new();
+    for (i, c) in centroids.iter().enumerate() {
+        for (j, p) in previous.iter().enumerate() {
+            let d = ((c[0] - p[0]).powi(2) + (c[1] - p[1]).powi(2)).sqrt();
+            if d <= max_distance {
+                pairs.push((d, i, j));
+            }
+        }
+    }
+    pairs.sort_by(|a, b| a.partial_cmp(b).unwrap_or(std::cmp::Ordering::Equal));
+    let mut out = vec![None; centroids.len()];
+    let mut used = vec![false; previous.len()];
+    for (_, i, j) in pairs {
+        if out[i].is_none() && !used[j] {
+            out[i] = Some(j);
+            used[j] = true;
+        }
+    }
+    out
+}
+
 /// Ring, statistics and filter in one call; `None` when there is no insert
 /// or too little of it or of its surroundings is visible.
 pub fn estimate(
@@ -668,5 +842,53 @@ mod tests {
         assert!(insert_rect(&[0.0; 32 * 32], 32, 32).is_none());
         let faint = vec![0.01; 32 * 32];
         assert!(estimate(&img, &faint, Rect::full(32, 32), None, None).is_none());
+    }
+
+    #[test]
+    fn objects_are_found_apart_and_followed_by_where_they_are() {
+        let (w, h) = (120, 80);
+        let mut mask = vec![0.0; w * h];
+        for y in 20..50 {
+            for x in 70..100 {
+                mask[y * w + x] = 1.0;
+            }
+            for x in 10..30 {
+                mask[y * w + x] = 0.5;
+            }
+        }
+        let rect = insert_rect(&mask, w, h).unwrap();
+        let parts = components(&mask, rect, w, h);
+        assert_eq!(parts.len(), 2);
+        // Ordered by x: the left object first, each mask its own pixels only.
+        assert_eq!((parts[0].rect.x0, parts[0].rect.x1), (10, 30));
+        assert_eq!((parts[1].rect.x0, parts[1].rect.x1), (70, 100));
+        assert_eq!(parts[0].mask[25 * w + 15], 0.5);
+        assert_eq!(parts[0].mask[25 * w + 80], 0.0);
+        assert_eq!(parts[1].mask[25 * w + 80], 1.0);
+        // One object: the whole mask stands for it (no copy).
+        let one: Vec<f32> = mask
+            .iter()
+            .enumerate()
+            .map(|(i, &m)| if i % w >= 60 { m } else { 0.0 })
+            .collect();
+        let parts = components(&one, insert_rect(&one, w, h).unwrap(), w, h);
+        assert_eq!(parts.len(), 1);
+        assert!(parts[0].mask.is_empty());
+        // Tracks follow the nearest centroid; a far one starts anew.
+        let m = match_tracks(
+            &[[20.0, 30.0], [85.0, 35.0], [200.0, 0.0]],
+            &[[84.0, 34.0], [21.0, 31.0]],
+            20.0,
+        );
+        assert_eq!(m, vec![Some(1), Some(0), None]);
+        let t = vec![(
+            [1.0, 2.0],
+            Tone {
+                exposure: 0.5,
+                ..Tone::IDENTITY
+            },
+        )];
+        assert_eq!(tracks_from_slice(&tracks_to_vec(&t)), Some(t));
+        assert_eq!(tracks_from_slice(&[1.0, 2.0, 3.0]), None);
     }
 }

@@ -13,7 +13,7 @@ use std::sync::Arc;
 use harmonizer_core::backend::classical::{Classical, TONE_KEY};
 use harmonizer_core::backend::{Backend, BackendInput, Carry, Progress, Stages};
 use harmonizer_core::frame::{FrameInput, ImageView, PreparedFrame};
-use harmonizer_core::ops::harmonize::Tone;
+use harmonizer_core::ops::harmonize;
 use harmonizer_core::temporal::{History, HistoryView};
 use harmonizer_core::{DepthKind, Device, DeviceOptions, Image, ParamValue, Params, Session};
 
@@ -551,9 +551,17 @@ fn harmonization_parameters_are_smoothed_over_time_and_dropped_with_the_insert()
         });
         let mut alone = Carry::default();
         run_backend(&f, &params, &mut alone, &dev);
-        raw.push(Tone::from_slice(&alone.values[TONE_KEY]).unwrap().exposure);
+        raw.push(
+            harmonize::tracks_from_slice(&alone.values[TONE_KEY]).unwrap()[0]
+                .1
+                .exposure,
+        );
         run_backend(&f, &params, &mut carry, &dev);
-        smoothed.push(Tone::from_slice(&carry.values[TONE_KEY]).unwrap().exposure);
+        smoothed.push(
+            harmonize::tracks_from_slice(&carry.values[TONE_KEY]).unwrap()[0]
+                .1
+                .exposure,
+        );
     }
     let swing = |v: &[f32]| {
         v.windows(2)
