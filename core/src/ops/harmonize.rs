@@ -589,7 +589,7 @@ pub fn tracks_to_vec(tracks: &[([f32; 2], Tone)]) -> Vec<f32> {
 /// Reads [`tracks_to_vec`]'s layout; `None` for a malformed vector.
 pub fn tracks_from_slice(v: &[f32]) -> Option<Vec<([f32; 2], Tone)>> {
     const N: usize = 2 + Tone::LEN;
-    if v.len() % N != 0 {
+    if !v.len().is_multiple_of(N) {
         return None;
     }
     v.chunks(N)
