@@ -2,7 +2,8 @@
 ``harmonizer:lightDirection`` on the product or settings prim, else the
 stage's brightest DistantLight at each frame (its +Z axis in world space),
 else none; ``--light-direction`` / ``--no-light``; the value reaching the
-session."""
+session; and end to end on the rendered shot, the insert's shadow landing
+where the stage's Sun and camera put it."""
 
 from __future__ import annotations
 
@@ -12,7 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
-from usd_harmonizer import ProductRunner, SettingsError, resolve
+from usd_harmonizer import ProductRunner, SettingsError, resolve, run_stage
+from usd_harmonizer.camera import exr_matrices, project
 from usd_harmonizer.cli import main
 from usd_harmonizer.exrio import read_exr
 from usd_harmonizer.light import (
@@ -235,3 +237,58 @@ def test_cli_light_flags(tmp_path: Path, capsys) -> None:
     assert "--light-direction '1,2': expected three numbers" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main([*common, "--light-direction", "0,0,1", "--no-light"])
+
+
+def test_cast_shadow_lands_away_from_the_stage_sun(shot: Path) -> None:
+    """End to end on the rendered shot (Z up): the light and the camera
+    matrices the hook passes agree on the stage's world.
+
+    The shot's Sun is turned (in the shot's own layer) to come from the left,
+    low: the Cycles frames were lit from elsewhere, so the floor the insert
+    sphere would shade from this Sun has no shadow in them, and the classical
+    backend adds it. At the ground point G = C - (C.z / d.z) d under the
+    sphere's centre C (d toward the Sun), and 0.3 further from the Sun, the
+    output is darker than the same run with ``light="none"`` (0.40 of it,
+    measured); at the mirror of G through the sphere's foot it is unchanged.
+    """
+    stage = Usd.Stage.Open(str(shot))
+    d = np.array([-0.8, -0.3, 0.5])
+    d /= np.linalg.norm(d)
+    # rotateXYZ (a, 0, c) turns +Z into (sin a sin c, -sin a cos c, cos a).
+    a, c = math.degrees(math.acos(d[2])), math.degrees(math.atan2(d[0], -d[1]))
+    sun = stage.GetPrimAtPath("/World/Sun")
+    UsdGeom.XformCommonAPI(sun).SetRotate(Gf.Vec3f(a, 0.0, c))
+    stage.GetRootLayer().Save()
+    np.testing.assert_allclose(_plus_z(sun, 1003), d, atol=1e-6)
+    frames = [1001, 1002, 1003]
+    out = {}
+    for light in ("auto", "none"):
+        summary = run_stage(
+            shot,
+            products=["beauty"],
+            frames=frames,
+            options=Options(backend="classical", light=light, out_dir=shot.parent / light),
+            write_layer_file=False,
+        )
+        r = summary.results["/Render/Products/beauty"][1][-1]
+        assert r.light_source == ("DistantLight /World/Sun" if light == "auto" else "none")
+        out[light] = read_exr(r.output, "out")
+    src = read_exr(r.source, "in")
+    centre = np.array([0.9, -0.3, 0.55])  # author_scene's insert sphere (radius 0.55)
+    g = centre - centre[2] / d[2] * d
+    away = -np.array([d[0], d[1], 0.0]) / np.hypot(d[0], d[1])
+    points = {"shadow": g, "shadow_far": g + 0.3 * away, "lit_side": np.array([*(2 * centre[:2] - g[:2]), 0.0])}
+    _, w2n = exr_matrices(stage.GetPrimAtPath("/World/Cam"), 1003, (128, 72))
+    ratios = {}
+    for k, p in points.items():
+        x, y = (int(v) for v in project(w2n, p[None], 128, 72)[0])
+        win = (slice(y - 1, y + 2), slice(x - 1, x + 2))
+        assert 1 <= x < 127 and 1 <= y < 71 and src.channel("mask.insert")[win].max() == 0, (k, x, y)
+
+        def lum(img):
+            return sum(w * img.channel(ch)[win] for w, ch in zip((0.2126, 0.7152, 0.0722), "RGB")).mean()
+
+        ratios[k] = float(lum(out["auto"]) / lum(out["none"]))
+    print(f"\nshot, frame 1003, output with the Sun / without: {ratios}")
+    assert ratios["shadow"] < 0.8 and ratios["shadow_far"] < 0.8, ratios
+    assert abs(ratios["lit_side"] - 1.0) < 0.02, ratios
