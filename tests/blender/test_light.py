@@ -247,3 +247,52 @@ def test_insert_casts_its_shadow_away_from_the_sun(shadow_runs):
     for k in points:  # the two runs differ only by the light
         assert auto[k] <= off[k] + 0.01, (k, auto, off)
     np.testing.assert_allclose(shadow_runs["AUTO"][1].frames[0]["light_direction"], SUN_TOWARD, atol=1e-5)
+
+
+class _Layout:
+    """Records what a panel's draw() puts in its layout (no UI headless)."""
+
+    def __init__(self):
+        self.props: list[str] = []
+        self.labels: list[str] = []
+
+    def column(self, **_kw):
+        return self
+
+    box = row = column
+
+    def prop(self, _data, name, **_kw):
+        self.props.append(name)
+
+    def prop_search(self, _data, name, *_a, **_kw):
+        self.props.append(name)
+
+    def label(self, text="", **_kw):
+        self.labels.append(text)
+
+    def separator(self, **_kw):
+        pass
+
+    def operator(self, *_a, **_kw):
+        pass
+
+
+def test_panel_shows_the_light(addon, tmp_root):
+    from types import SimpleNamespace
+
+    scene = fixture.build(os.path.join(tmp_root, "light_panel", "frame_####.exr"))
+    scene.harmonizer.enabled = True
+
+    def draw() -> _Layout:
+        layout = _Layout()
+        addon.panel.RENDER_PT_harmonizer.draw(SimpleNamespace(layout=layout), bpy.context)
+        return layout
+
+    shown = draw()
+    assert "light_source" in shown.props and "light_direction" not in shown.props
+    assert "Sun (strength 3)" in shown.labels, shown.labels
+    scene.harmonizer.light_source = "MANUAL"
+    assert "light_direction" in draw().props
+    scene.harmonizer.light_source = "AUTO"
+    bpy.data.objects["Sun"].hide_render = True
+    assert "No Sun light: no cast shadows" in draw().labels
