@@ -217,14 +217,21 @@ impl Session {
         if self.staged == self.params {
             return Ok(());
         }
-        let (backend, fallback) = make_backend(&self.device, &self.staged)?;
+        if self.staged.backend == self.params.backend {
+            // The same backend: only the new settings need checking (a
+            // rebuilt one would say again why `auto` fell back, every time
+            // a host moves its light).
+            self.backend.check_params(&self.staged)?;
+        } else {
+            let (backend, fallback) = make_backend(&self.device, &self.staged)?;
+            self.backend = backend;
+            self.fallback = fallback;
+        }
         let reset = self.staged.backend != self.params.backend
             || self.staged.context_frames != self.params.context_frames
             || self.staged.depth_kind != self.params.depth_kind
             || self.staged.denoise != self.params.denoise
             || self.staged.samples != self.params.samples;
-        self.backend = backend;
-        self.fallback = fallback;
         self.params = self.staged.clone();
         if reset {
             self.drop_state(ResetReason::ParamsChanged);
