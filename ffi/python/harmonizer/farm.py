@@ -53,9 +53,10 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-#: The pre-roll a chunk gets by default: the smallest of 0, 4, 8, 16 whose
-#: chunks of 24 frames reach 40 dB against the sequential run on the
-#: 96-frame synthetic sequence with the classical backend (docs/farm.md).
+#: The pre-roll a chunk gets by default: the smallest of 0, 4, 8, 16 with
+#: which every frame of chunks of 24 is at least 40 dB from the sequential
+#: run's, on the 96-frame synthetic sequence with the classical backend
+#: (docs/farm.md, cli/tests/cli.rs preroll::seams).
 DEFAULT_PREROLL = 4
 #: Frames per chunk by default.
 DEFAULT_CHUNK = 24
