@@ -38,15 +38,20 @@ use crate::temporal::ReprojectionMode;
 pub const TONE_KEY: &str = "classical.harmonize.tone";
 
 /// Carry key of the smoothed shares of the contact and the cast shadow still
-/// missing from the render ([`shadow::missing_share`]).
+/// missing from the render ([`shadow::missing_share`]) and of the cast
+/// shadow's strength.
 pub const SHADOW_KEY: &str = "classical.shadow.missing";
 
 /// The insert's shadows: the contact shadow under it and, with a light
 /// direction and a camera, the shadow it casts away from the light
 /// ([`cast_shadow::cast_shadow_map`]). Each is darkened by the share of it
 /// the render does not already show ([`shadow::existing_darkening`],
-/// measured on `img` before either is applied), smoothed over time in the
-/// carry. Returns the area touched.
+/// measured on `img` before either is applied). The cast shadow is as dark
+/// as the scene's own shadows ([`cast_shadow::scene_shadow_darkening`]) when
+/// some are in view, else `shadow_strength`; the contact shadow (ambient
+/// occlusion, not the light's shadow) takes [`CONTACT_SHARE`] of that. The
+/// shares and the strength are smoothed over time in the carry. Returns
+/// the area touched.
 fn shadows(
     img: &mut Image,
     mask: &[f32],
@@ -58,16 +63,21 @@ fn shadows(
     let (params, frame) = (input.params, input.frame);
     let (w, h) = (img.width, img.height);
     let contact = shadow::shadow_map(mask, depth, rect, w, h);
-    let cast = match (
-        params.light_direction_world(frame.camera.as_ref()),
-        &frame.camera,
-    ) {
-        (Some(light), Some(camera)) => {
-            cast_shadow::cast_shadow_map(mask, depth, rect, camera, light, w, h)
+    let light = params
+        .light_direction_world(frame.camera.as_ref())
+        .zip(frame.camera.as_ref());
+    let cast = light
+        .and_then(|(l, camera)| cast_shadow::cast_shadow_map(mask, depth, rect, camera, l, w, h));
+    // How dark a shadow is here, from the scene's own shadows.
+    let measured_strength = match (&cast, light) {
+        (Some(_), Some((l, camera))) => {
+            cast_shadow::scene_shadow_darkening(img, Some(mask), depth, camera, l).map(|stops| {
+                (1.0 - (-stops).exp2())
+                    .clamp(MIN_STRENGTH, params.shadow_strength.max(MIN_STRENGTH))
+            })
         }
         _ => None,
     };
-    let strength = params.shadow_strength;
     // Whether the render already has the insert's shadows: told by the cast
     // shadow when there is one (the contact shadow lies inside it, where
     // the ground around is as dark), else by the contact shadow.
@@ -76,32 +86,48 @@ fn shadows(
             .map(|m| shadow::missing_share(shadow::existing_darkening(img, mask, depth, m)))
     };
     let measured = match missing(&cast) {
-        Some(c) => [contact.as_ref().map(|_| c), Some(c)],
-        None => [missing(&contact), None],
+        Some(c) => [contact.as_ref().map(|_| c), Some(c), measured_strength],
+        None => [missing(&contact), None, measured_strength],
     };
     let previous = carry
         .values
         .get(SHADOW_KEY)
-        .filter(|v| v.len() == 2 && v.iter().all(|x| x.is_finite()));
+        .filter(|v| v.len() == 3 && v.iter().all(|x| x.is_finite()));
     let keep = params.temporal_blend;
-    let shares: Vec<f32> = (0..2)
+    let fallback = [1.0, 1.0, params.shadow_strength];
+    let smoothed: Vec<f32> = (0..3)
         .map(|k| match (previous.map(|p| p[k]), measured[k]) {
             (Some(p), Some(m)) => p + (1.0 - keep) * (m - p),
-            (p, m) => m.or(p).unwrap_or(1.0),
+            (p, m) => m.or(p).unwrap_or(fallback[k]),
         })
         .collect();
+    let strength = if cast.is_some() {
+        smoothed[2]
+    } else {
+        params.shadow_strength
+    };
     let mut area: Option<Rect> = None;
-    for (map, share) in [&contact, &cast].into_iter().zip(&shares) {
+    let plan = [
+        (&contact, smoothed[0], CONTACT_SHARE * strength),
+        (&cast, smoothed[1], strength),
+    ];
+    for (map, share, s) in plan {
         if let Some(map) = map {
-            if *share > 0.0 {
-                let a = shadow::apply(img, mask, depth, map, strength * share);
+            if share > 0.0 && s > 0.0 {
+                let a = shadow::apply(img, mask, depth, map, s * share);
                 area = Some(area.map_or(a, |b| b.union(&a)));
             }
         }
     }
-    carry.values.insert(SHADOW_KEY.to_string(), shares);
+    carry.values.insert(SHADOW_KEY.to_string(), smoothed);
     area
 }
+
+/// Share of the shadow strength the contact shadow under an insert takes.
+pub const CONTACT_SHARE: f32 = 0.5;
+
+/// Weakest cast shadow the scene's own shadows can set.
+pub const MIN_STRENGTH: f32 = 0.05;
 
 /// An object's filter continues the nearest one of the previous frame within
 /// this share of the frame's larger edge.

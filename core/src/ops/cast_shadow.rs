@@ -201,6 +201,149 @@ pub fn cast_shadow_map(
     })
 }
 
+/// Largest grid edge (cells) of [`scene_shadow_darkening`].
+pub const SCENE_GRID: usize = 96;
+/// March steps of [`scene_shadow_darkening`].
+pub const SCENE_STEPS: usize = 16;
+/// A march point behind the visible surface by less than this share of its
+/// depth is inside the occluder (more: behind it).
+pub const SCENE_THICKNESS: f64 = 0.05;
+/// Fewest lit and fewest shadowed cells [`scene_shadow_darkening`] decides on.
+pub const SCENE_MIN_CELLS: usize = 24;
+
+/// How dark the scene's own shadows are, in stops: the renderer's ground in
+/// the shadow of its own geometry against the same kind of ground in the
+/// light. On a grid over the frame, each background cell facing the light
+/// (its normal from the depth, `n.l` above 0.3) is marched toward the light
+/// against the depth buffer (a point behind the visible surface by less
+/// than [`SCENE_THICKNESS`] of its depth is occluded); the median log luminance of
+/// the lit cells minus that of the shadowed ones, per band of `n.l` (so a
+/// wall and the floor are not compared), weighted by the smaller count.
+/// `None` when too few cells of either kind are seen (no shadow in view):
+/// the caller keeps its own strength. The insert (mask above 0.5) is left
+/// out, so it neither casts nor receives here.
+pub fn scene_shadow_darkening(
+    img: &crate::frame::Image,
+    mask: Option<&[f32]>,
+    depth: &[f32],
+    camera: &Camera,
+    light: DVec3,
+) -> Option<f32> {
+    let l = light.try_normalize()?;
+    let (width, height) = (img.width, img.height);
+    if width < 4 || height < 4 {
+        return None;
+    }
+    let unproject = camera.unprojector(width, height);
+    let (w2c, w2n) = (
+        camera.world_to_camera.as_dmat4(),
+        camera.world_to_ndc.as_dmat4(),
+    );
+    let (wf, hf) = (width as f64, height as f64);
+    let eye = w2c.inverse().w_axis.truncate();
+    let cell = width.max(height).div_ceil(SCENE_GRID).max(2);
+    let (gw, gh) = (width / cell, height / cell);
+    let ok = |x: usize, y: usize| {
+        let i = y * width + x;
+        let d = depth[i];
+        d.is_finite() && d > 0.0 && d < EMPTY_DEPTH && mask.is_none_or(|m| m[i] <= 0.5)
+    };
+    let world = |x: usize, y: usize| {
+        unproject.world_point(
+            DVec2::new(x as f64 + 0.5, y as f64 + 0.5),
+            depth[y * width + x] as f64,
+        )
+    };
+    let lum = |x: usize, y: usize| {
+        let i = y * width + x;
+        let (r, g, b) = (img.plane(0)[i], img.plane(1)[i], img.plane(2)[i]);
+        super::LUMA[0] * r + super::LUMA[1] * g + super::LUMA[2] * b
+    };
+    // Per cell: (band of n.l, shadowed, log2 luminance).
+    let cells: Vec<(usize, bool, f32)> = (0..gh)
+        .into_par_iter()
+        .flat_map_iter(|j| {
+            let y = j * cell + cell / 2;
+            (0..gw).filter_map(move |i| {
+                let x = i * cell + cell / 2;
+                let (x1, y1) = ((x + 1).min(width - 1), (y + 1).min(height - 1));
+                if !(ok(x, y) && ok(x1, y) && ok(x, y1)) {
+                    return None;
+                }
+                // One surface under the three pixels (not an edge), so the
+                // normal is the surface's.
+                let d0 = depth[y * width + x];
+                let smooth = |d: f32| (d - d0).abs() <= 0.02 * d0;
+                if !(smooth(depth[y * width + x1]) && smooth(depth[y1 * width + x])) {
+                    return None;
+                }
+                let p = world(x, y);
+                let n = (world(x1, y) - p).cross(world(x, y1) - p).try_normalize()?;
+                // The normal facing the camera.
+                let n = if n.dot(eye - p) < 0.0 { -n } else { n };
+                let facing = n.dot(l);
+                if facing < 0.3 {
+                    return None;
+                }
+                let band = if facing < 0.6 {
+                    0
+                } else if facing < 0.8 {
+                    1
+                } else {
+                    2
+                };
+                let d = depth[y * width + x] as f64;
+                let reach = 0.35 * (p - eye).length();
+                let start = p + n * (0.01 * d);
+                let (hp, hl) = (w2n * start.extend(1.0), w2n * l.extend(0.0));
+                let (zp, zl) = (
+                    w2c.row(2).dot(start.extend(1.0)),
+                    w2c.row(2).dot(l.extend(0.0)),
+                );
+                let shadowed = (1..=SCENE_STEPS).any(|s| {
+                    let t = reach * s as f64 / SCENE_STEPS as f64;
+                    let (h, qz) = (hp + t * hl, zp + t * zl);
+                    if qz <= 1e-6 || h.w.abs() <= 1e-12 {
+                        return false;
+                    }
+                    let (qx, qy) = (h.x / h.w * wf, h.y / h.w * hf);
+                    if !(qx >= 0.0 && qy >= 0.0 && qx < wf && qy < hf) {
+                        return false;
+                    }
+                    let k = qy as usize * width + qx as usize;
+                    let di = depth[k] as f64;
+                    mask.is_none_or(|m| m[k] <= 0.5)
+                        && di < qz * 0.99
+                        && qz - di < SCENE_THICKNESS * qz
+                });
+                let v = lum(x, y);
+                (v > 0.0).then(|| (band, shadowed, v.log2()))
+            })
+        })
+        .collect();
+    let median = |mut v: Vec<f32>| {
+        v.sort_by(f32::total_cmp);
+        v[v.len() / 2]
+    };
+    let (mut sum, mut weight) = (0.0f64, 0.0f64);
+    for band in 0..3 {
+        let pick = |s: bool| -> Vec<f32> {
+            cells
+                .iter()
+                .filter(|c| c.0 == band && c.1 == s)
+                .map(|c| c.2)
+                .collect()
+        };
+        let (lit, dark) = (pick(false), pick(true));
+        let n = lit.len().min(dark.len());
+        if n >= SCENE_MIN_CELLS {
+            sum += n as f64 * (median(lit) - median(dark)) as f64;
+            weight += n as f64;
+        }
+    }
+    (weight > 0.0).then(|| ((sum / weight) as f32).max(0.0))
+}
+
 /// Separable normalized Gaussian blur of a `gw x gh` grid, edges clamped.
 fn blur(v: &mut [f32], gw: usize, gh: usize, sigma: f32) {
     let r = (3.0 * sigma).ceil() as isize;

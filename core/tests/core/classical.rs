@@ -610,9 +610,10 @@ fn contact_shadow_darkens_below_the_insert_only() {
     let above = ratio(60, 96, 0, BOX_Y.0);
     let far = ratio(0, 30, 60, H);
     eprintln!("shadow ratios: below {below:.3} inside {inside:.3} above {above:.3} far {far:.3}");
-    // Thresholds: >= 25% darker right under the box (default strength 0.6),
-    // exactly unchanged on the box, above it and far to the side.
-    assert!(below < 0.75, "below {below}");
+    // Thresholds: >= 12% darker right under the box (the contact shadow
+    // takes half the default strength 0.6), exactly unchanged on the box,
+    // above it and far to the side.
+    assert!(below < 0.88, "below {below}");
     assert_eq!(inside, 1.0);
     assert_eq!(above, 1.0);
     assert_eq!(far, 1.0);

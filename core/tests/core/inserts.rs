@@ -283,3 +283,38 @@ fn frames_without_holes_keep_what_was_not_changed() {
         assert_eq!(far, 1.0, "frame {t}: ground far from the insert changed");
     }
 }
+
+#[test]
+fn the_scene_s_own_shadows_say_how_dark_a_shadow_is() {
+    use harmonizer_core::ops::cast_shadow::scene_shadow_darkening;
+    // The box as scene geometry (no mask), its shadow rendered at half the
+    // light: one stop. Without it rendered: about none.
+    let light = DVec3::from(LIGHT);
+    let planes = |sc: &Scene| {
+        let n = W * H;
+        let mut img = Image::zeros(W, H, 4);
+        for i in 0..n {
+            for c in 0..3 {
+                img.data[c * n + i] = sc.rgb[3 * i + c];
+            }
+            img.data[3 * n + i] = 1.0;
+        }
+        img
+    };
+    let sc = scene(0.0, Some(0.5));
+    let stops = scene_shadow_darkening(&planes(&sc), None, &sc.depth, &sc.camera, light).unwrap();
+    assert!(
+        (stops - 1.0).abs() < 0.2,
+        "a one-stop shadow measured {stops}"
+    );
+    let sc = scene(0.0, None);
+    if let Some(stops) = scene_shadow_darkening(&planes(&sc), None, &sc.depth, &sc.camera, light) {
+        assert!(stops < 0.15, "no rendered shadow measured {stops}");
+    }
+    // The insert itself is left out: masked, the box casts nothing here.
+    let sc = scene(0.0, Some(0.5));
+    assert_eq!(
+        scene_shadow_darkening(&planes(&sc), Some(&sc.mask), &sc.depth, &sc.camera, light),
+        None
+    );
+}
