@@ -75,6 +75,39 @@ fn project(w2c: &DMat4, w2n: &DMat4, p: DVec3, width: f64, height: f64) -> Optio
     (z > 1e-6 && n.w.abs() > 1e-12).then(|| (n.x / n.w * width, n.y / n.w * height, z))
 }
 
+/// Marches from world point `p` toward `l` in `steps` equal steps up to
+/// `reach`; true when `hit(pixel index, planar depth of the point)` holds at
+/// a step that projects inside the `size` (width, height) frame. The
+/// point's homogeneous position and depth are linear in the distance, so a
+/// step costs a few multiply-adds and a division.
+#[allow(clippy::too_many_arguments)]
+#[inline]
+fn march(
+    w2c: &DMat4,
+    w2n: &DMat4,
+    p: DVec3,
+    l: DVec3,
+    reach: f64,
+    steps: usize,
+    (wf, hf): (f64, f64),
+    hit: impl Fn(usize, f64) -> bool,
+) -> bool {
+    let (hp, hl) = (*w2n * p.extend(1.0), *w2n * l.extend(0.0));
+    let (zp, zl) = (w2c.row(2).dot(p.extend(1.0)), w2c.row(2).dot(l.extend(0.0)));
+    (1..=steps).any(|s| {
+        let t = reach * s as f64 / steps as f64;
+        let (h, qz) = (hp + t * hl, zp + t * zl);
+        if qz <= 1e-6 || h.w.abs() <= 1e-12 {
+            return false;
+        }
+        let (qx, qy) = (h.x / h.w * wf, h.y / h.w * hf);
+        if !(qx >= 0.0 && qy >= 0.0 && qx < wf && qy < hf) {
+            return false;
+        }
+        hit(qy as usize * wf as usize + qx as usize, qz)
+    })
+}
+
 /// The shadow the insert (mask above 0.5, bounding box `insert`) casts
 /// toward `light` (world space, toward the light; need not be unit
 /// length), as occlusion on a grid; `None` without a usable insert, light
@@ -155,21 +188,7 @@ pub fn cast_shadow_map(
                     continue;
                 }
                 let p = unproject.world_point(DVec2::new(x as f64 + 0.5, y as f64 + 0.5), d as f64);
-                // The march point's homogeneous position and depth are
-                // linear in the distance along the light.
-                let (hp, hl) = (w2n * p.extend(1.0), w2n * l.extend(0.0));
-                let (zp, zl) = (w2c.row(2).dot(p.extend(1.0)), w2c.row(2).dot(l.extend(0.0)));
-                let hit = (1..=STEPS).any(|s| {
-                    let t = reach * s as f64 / STEPS as f64;
-                    let (h, qz) = (hp + t * hl, zp + t * zl);
-                    if qz <= 1e-6 || h.w.abs() <= 1e-12 {
-                        return false;
-                    }
-                    let (qx, qy) = (h.x / h.w * wf, h.y / h.w * hf);
-                    if !(qx >= 0.0 && qy >= 0.0 && qx < wf && qy < hf) {
-                        return false;
-                    }
-                    let k = qy as usize * width + qx as usize;
+                let hit = march(&w2c, &w2n, p, l, reach, STEPS, (wf, hf), |k, qz| {
                     let di = depth[k] as f64;
                     mask[k] > 0.5 && di < qz && qz - di < thickness
                 });
@@ -295,27 +314,21 @@ pub fn scene_shadow_darkening(
                 let d = depth[y * width + x] as f64;
                 let reach = 0.35 * (p - eye).length();
                 let start = p + n * (0.01 * d);
-                let (hp, hl) = (w2n * start.extend(1.0), w2n * l.extend(0.0));
-                let (zp, zl) = (
-                    w2c.row(2).dot(start.extend(1.0)),
-                    w2c.row(2).dot(l.extend(0.0)),
+                let shadowed = march(
+                    &w2c,
+                    &w2n,
+                    start,
+                    l,
+                    reach,
+                    SCENE_STEPS,
+                    (wf, hf),
+                    |k, qz| {
+                        let di = depth[k] as f64;
+                        mask.is_none_or(|m| m[k] <= 0.5)
+                            && di < qz * 0.99
+                            && qz - di < SCENE_THICKNESS * qz
+                    },
                 );
-                let shadowed = (1..=SCENE_STEPS).any(|s| {
-                    let t = reach * s as f64 / SCENE_STEPS as f64;
-                    let (h, qz) = (hp + t * hl, zp + t * zl);
-                    if qz <= 1e-6 || h.w.abs() <= 1e-12 {
-                        return false;
-                    }
-                    let (qx, qy) = (h.x / h.w * wf, h.y / h.w * hf);
-                    if !(qx >= 0.0 && qy >= 0.0 && qx < wf && qy < hf) {
-                        return false;
-                    }
-                    let k = qy as usize * width + qx as usize;
-                    let di = depth[k] as f64;
-                    mask.is_none_or(|m| m[k] <= 0.5)
-                        && di < qz * 0.99
-                        && qz - di < SCENE_THICKNESS * qz
-                });
                 let v = lum(x, y);
                 (v > 0.0).then(|| (band, shadowed, v.log2()))
             })
@@ -346,10 +359,8 @@ pub fn scene_shadow_darkening(
 
 /// Separable normalized Gaussian blur of a `gw x gh` grid, edges clamped.
 fn blur(v: &mut [f32], gw: usize, gh: usize, sigma: f32) {
-    let r = (3.0 * sigma).ceil() as isize;
-    let k: Vec<f32> = (-r..=r)
-        .map(|d| (-0.5 * (d * d) as f32 / (sigma * sigma)).exp())
-        .collect();
+    let k = super::shadow::gaussian(sigma);
+    let r = (k.len() / 2) as isize;
     let ks: f32 = k.iter().sum();
     let mut tmp = vec![0.0f32; v.len()];
     for y in 0..gh {

@@ -78,7 +78,8 @@ impl ShadowMap {
     }
 }
 
-fn gaussian(sigma: f32) -> Vec<f32> {
+/// Gaussian taps of `sigma` (not normalized), `2 * ceil(3 sigma) + 1` of them.
+pub(crate) fn gaussian(sigma: f32) -> Vec<f32> {
     let r = (3.0 * sigma).ceil().max(1.0) as usize;
     (0..=2 * r)
         .map(|i| {
