@@ -83,6 +83,32 @@ pub struct FrameReport {
     pub total_ms: f64,
 }
 
+impl FrameReport {
+    /// The report's fields every JSON form shares (`harmonize run`'s
+    /// per-frame entries, the C ABI's report): reset, backend, history,
+    /// sanitizing, denoising, the stages' times; the caller adds its own.
+    pub fn json_fields(&self) -> serde_json::Map<String, serde_json::Value> {
+        use serde_json::json;
+        let stages: serde_json::Map<String, serde_json::Value> = self
+            .stages
+            .0
+            .iter()
+            .map(|(k, v)| (k.clone(), json!(v)))
+            .collect();
+        let mut m = serde_json::Map::new();
+        m.insert("backend".into(), json!(self.backend));
+        m.insert("reset".into(), json!(self.reset.map(|x| x.name())));
+        m.insert("history_used".into(), json!(self.history_used));
+        m.insert("sanitized".into(), json!(self.sanitized));
+        m.insert("out_of_gamut".into(), json!(self.out_of_gamut));
+        m.insert("denoised".into(), json!(self.denoised));
+        m.insert("denoise_decision".into(), json!(self.denoise_decision));
+        m.insert("noise_level".into(), json!(self.noise_level));
+        m.insert("stages".into(), serde_json::Value::Object(stages));
+        m
+    }
+}
+
 /// Which optional inputs a frame had; a change resets the state.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 struct Signature {

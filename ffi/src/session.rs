@@ -1142,25 +1142,9 @@ pub unsafe extern "C" fn hz_session_get_report_json(
 
 /// The JSON form of a report.
 pub fn report_json(r: &FrameReport) -> String {
-    let stages: serde_json::Map<String, serde_json::Value> = r
-        .stages
-        .0
-        .iter()
-        .map(|(n, ms)| (n.clone(), serde_json::json!(ms)))
-        .collect();
-    serde_json::json!({
-        "frame_index": r.frame_index,
-        "reset": r.reset.map(|x| x.name()),
-        "backend": r.backend,
-        "history_used": r.history_used,
-        "sanitized": r.sanitized,
-        "out_of_gamut": r.out_of_gamut,
-        "denoised": r.denoised,
-        "denoise_decision": r.denoise_decision,
-        "noise_level": r.noise_level,
-        "warnings": r.warnings,
-        "stages": stages,
-        "total_ms": r.total_ms,
-    })
-    .to_string()
+    let mut m = r.json_fields();
+    m.insert("frame_index".into(), serde_json::json!(r.frame_index));
+    m.insert("warnings".into(), serde_json::json!(r.warnings));
+    m.insert("total_ms".into(), serde_json::json!(r.total_ms));
+    serde_json::Value::Object(m).to_string()
 }

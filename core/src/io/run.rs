@@ -5,7 +5,7 @@
 
 use std::path::PathBuf;
 
-use serde_json::{json, Map, Value};
+use serde_json::{json, Value};
 
 use super::exr::{refuse_input, LoadedFrame, OutputMeta};
 use super::guard::ReadLimits;
@@ -191,33 +191,21 @@ impl FrameResult {
     pub fn json(&self) -> Value {
         let mut warnings: Vec<String> = self.read_warnings.clone();
         warnings.extend(self.report.warnings.iter().cloned());
-        let stages: Map<String, Value> = self
-            .report
-            .stages
-            .0
-            .iter()
-            .map(|(k, v)| (k.clone(), json!(v)))
-            .collect();
-        let r = &self.report;
-        json!({
+        let mut m = self.report.json_fields();
+        let own = json!({
             "frame": self.planned.frame,
             "preroll": self.planned.preroll,
             "input": self.planned.input.display().to_string(),
             "output": self.planned.output.display().to_string(),
-            "backend": r.backend,
-            "reset": r.reset.map(|x| x.name()),
-            "history_used": r.history_used,
-            "sanitized": r.sanitized,
-            "out_of_gamut": r.out_of_gamut,
-            "denoised": r.denoised,
-            "denoise_decision": r.denoise_decision,
-            "noise_level": r.noise_level,
             "warnings": warnings,
             "read_ms": self.read_ms,
-            "process_ms": r.total_ms,
+            "process_ms": self.report.total_ms,
             "write_ms": self.write_ms,
-            "stages": Value::Object(stages),
-        })
+        });
+        if let Value::Object(own) = own {
+            m.extend(own);
+        }
+        Value::Object(m)
     }
 }
 

@@ -464,28 +464,32 @@ class ProductRunner:
         t_l1 = time.perf_counter()
         reset_reason = report.get("reset")
         backend = str(report.get("backend") or self.session.backend_name)
+        # What the frame's result says whether or not it is written.
+        common = dict(
+            product=prod.path,
+            frame=frame,
+            source=src,
+            output=out_path,
+            reset=str(reset_reason) if reset_reason else None,
+            backend=backend,
+            total_ms=float(report.get("total_ms") or 0.0),
+            history_used=int(report.get("history_used") or 0),
+            color_space=conv.source_name,
+            inputs=inputs,
+            warnings=list(report.get("warnings") or []),
+            usd_color_space=conv.usd_name,
+            denoised=bool(report.get("denoised")),
+            denoise_decision=report.get("denoise_decision"),
+            noise_level=report.get("noise_level"),
+            light_direction=light.direction,
+            light_source=light.source,
+        )
         if not write:
             self.last_frame = frame
             return FrameResult(
-                product=prod.path,
-                frame=frame,
-                source=src,
-                output=out_path,
-                reset=str(reset_reason) if reset_reason else None,
-                backend=backend,
-                total_ms=float(report.get("total_ms") or 0.0),
-                history_used=int(report.get("history_used") or 0),
-                color_space=conv.source_name,
-                inputs=inputs,
-                warnings=list(report.get("warnings") or []),
+                **common,
                 timings={"read": (t_read - t0) * 1e3, "library": (t_l1 - t_l0) * 1e3},
-                usd_color_space=conv.usd_name,
-                denoised=bool(report.get("denoised")),
-                denoise_decision=report.get("denoise_decision"),
-                noise_level=report.get("noise_level"),
                 preroll=True,
-                light_direction=light.direction,
-                light_source=light.source,
             )
         back = conv.from_linear(
             out[..., :3], out[..., 3] if coverage is not None else None
@@ -512,17 +516,7 @@ class ProductRunner:
         t_w1 = time.perf_counter()
         self.last_frame = frame
         result = FrameResult(
-            product=prod.path,
-            frame=frame,
-            source=src,
-            output=out_path,
-            reset=str(reset_reason) if reset_reason else None,
-            backend=backend,
-            total_ms=float(report.get("total_ms") or 0.0),
-            history_used=int(report.get("history_used") or 0),
-            color_space=conv.source_name,
-            inputs=inputs,
-            warnings=list(report.get("warnings") or []),
+            **common,
             timings={
                 "read": (t_read - t0) * 1e3,
                 "color": (t_c1 - t_c0 + t_w0 - t_l1) * 1e3,
@@ -530,12 +524,6 @@ class ProductRunner:
                 "write": (t_w1 - t_w0) * 1e3,
                 "total": (t_w1 - t0) * 1e3,
             },
-            usd_color_space=conv.usd_name,
-            denoised=bool(report.get("denoised")),
-            denoise_decision=report.get("denoise_decision"),
-            noise_level=report.get("noise_level"),
-            light_direction=light.direction,
-            light_source=light.source,
         )
         self.results.append(result)
         return result
