@@ -480,6 +480,11 @@ pub struct OutputMeta {
     pub backend: String,
     /// Why the temporal state was reset before this frame (`""` when it was not).
     pub reset: String,
+    /// Compress on the calling thread alone. Otherwise the exr crate makes
+    /// a pool of one thread per core for each file it writes, whatever the
+    /// device's thread count: a run on one thread (one farm worker of
+    /// several on a machine) would compress on every core.
+    pub single_threaded: bool,
 }
 
 impl LoadedFrame {
@@ -750,10 +755,13 @@ impl LoadedFrame {
             // order, which changes from run to run; sorted, equal images
             // give equal files.
             let mut buf = std::io::Cursor::new(Vec::new());
-            image
-                .write()
-                .to_buffered(&mut buf)
-                .map_err(|e| e.to_string())?;
+            let writer = image.write();
+            let writer = if meta.single_threaded {
+                writer.non_parallel()
+            } else {
+                writer
+            };
+            writer.to_buffered(&mut buf).map_err(|e| e.to_string())?;
             let mut bytes = buf.into_inner();
             sort_header_attributes(&mut bytes)?;
             std::fs::write(tmp, bytes).map_err(|e| e.to_string())

@@ -165,6 +165,7 @@ pub fn run_sequence(
                 .reset
                 .map(|r| r.name().to_string())
                 .unwrap_or_default(),
+            single_threaded: session.device().threads() <= 1,
         };
         if !p.preroll {
             loaded.write_enhanced(&out, &p.output, &meta)?;

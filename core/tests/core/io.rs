@@ -208,6 +208,7 @@ fn generic_round_trip_keeps_every_channel_and_type() {
         &OutputMeta {
             backend: "classical".into(),
             reset: "first_frame".into(),
+            single_threaded: false,
         },
     )
     .unwrap();
@@ -436,20 +437,23 @@ fn blender_multipart_round_trip() {
 
 /// Writing the same enhanced frame twice gives the same bytes (the exr
 /// crate would write the attributes it does not know in hash-map order,
-/// which changes between runs), with every header's attributes sorted by
-/// name, and the file still reads back whole.
+/// which changes between runs), compressed on one thread or on many, with
+/// every header's attributes sorted by name, and the file still reads back
+/// whole.
 #[test]
 fn enhanced_files_are_byte_identical_with_sorted_attributes() {
     let dir = tempfile::tempdir().unwrap();
-    let (w, h) = (8, 6);
+    // Tall enough for several compressed blocks per part.
+    let (w, h) = (8, 70);
     let src = dir.path().join("shot.0001.exr");
     write_blender(&src, "Shot Layer", w, h, &camera());
-    let meta = OutputMeta {
-        backend: "classical".into(),
-        reset: "first_frame".into(),
-    };
     let mut files = Vec::new();
     for k in 0..4 {
+        let meta = OutputMeta {
+            backend: "classical".into(),
+            reset: "first_frame".into(),
+            single_threaded: k % 2 == 1,
+        };
         // A new read each time: new hash maps of attributes.
         let mut f = LoadedFrame::read(&src, Some(1), &LayoutOptions::default()).unwrap();
         let out = dir.path().join(format!("out{k}.0001.exr"));
