@@ -28,6 +28,19 @@ fn sequence(dir: &Path, config: SynthConfig) -> (Sequence, String) {
     (seq, input)
 }
 
+/// [`sequence`] of the default scene at `width` x `height`, `frames` frames.
+fn small_sequence(dir: &Path, width: usize, height: usize, frames: usize) -> (Sequence, String) {
+    sequence(
+        dir,
+        SynthConfig {
+            width,
+            height,
+            frames,
+            ..Default::default()
+        },
+    )
+}
+
 mod run {
     use super::*;
 
@@ -158,15 +171,7 @@ mod run {
     #[test]
     fn frame_range_gap_and_set() {
         let dir = tempfile::tempdir().unwrap();
-        let (_, input) = sequence(
-            dir.path(),
-            SynthConfig {
-                width: 48,
-                height: 27,
-                frames: 6,
-                ..Default::default()
-            },
-        );
+        let (_, input) = small_sequence(dir.path(), 48, 27, 6);
         std::fs::remove_file(FramePattern::parse(&input).unwrap().path(4)).unwrap();
         let out = dir.path().join("o.%04d.exr").to_string_lossy().to_string();
         let report = dir.path().join("r.json");
@@ -225,15 +230,7 @@ mod errors {
     #[test]
     fn bad_inputs_exit_non_zero_naming_file_and_frame() {
         let dir = tempfile::tempdir().unwrap();
-        let (_, input) = sequence(
-            dir.path(),
-            SynthConfig {
-                width: 32,
-                height: 18,
-                frames: 4,
-                ..Default::default()
-            },
-        );
+        let (_, input) = small_sequence(dir.path(), 32, 18, 4);
         let out = dir.path().join("o.####.exr").to_string_lossy().to_string();
 
         // No frame token.
@@ -298,15 +295,7 @@ mod tools {
     #[test]
     fn info_describes_a_file() {
         let dir = tempfile::tempdir().unwrap();
-        let (_, input) = sequence(
-            dir.path(),
-            SynthConfig {
-                width: 32,
-                height: 18,
-                frames: 1,
-                ..Default::default()
-            },
-        );
+        let (_, input) = small_sequence(dir.path(), 32, 18, 1);
         let p = FramePattern::parse(&input).unwrap().path(1);
         let o = harmonize(&["info", p.to_str().unwrap()]);
         let (out, err) = text(&o);
@@ -940,15 +929,7 @@ mod preroll {
     #[test]
     fn a_chunk_with_a_preroll_matches_the_sequential_run_and_writes_only_its_frames() {
         let dir = tempfile::tempdir().unwrap();
-        let (_, input) = sequence(
-            dir.path(),
-            SynthConfig {
-                width: 96,
-                height: 54,
-                frames: 32,
-                ..Default::default()
-            },
-        );
+        let (_, input) = small_sequence(dir.path(), 96, 54, 32);
         let seq_out = out(dir.path(), "sequential");
         run(&input, &seq_out, "classical", "", 0);
         let want = read(&seq_out, 17..=32);
@@ -1024,15 +1005,7 @@ mod preroll {
     #[test]
     fn a_preroll_without_frames_is_refused() {
         let dir = tempfile::tempdir().unwrap();
-        let (_, input) = sequence(
-            dir.path(),
-            SynthConfig {
-                width: 32,
-                height: 18,
-                frames: 3,
-                ..Default::default()
-            },
-        );
+        let (_, input) = small_sequence(dir.path(), 32, 18, 3);
         let o = harmonize(&["run", &input, "-o", &out(dir.path(), "o"), "--preroll", "4"]);
         let (_, stderr) = text(&o);
         assert!(!o.status.success());
@@ -1131,15 +1104,7 @@ mod preroll {
     #[ignore = "a measurement: run it alone, see the doc comment"]
     fn measure() {
         let dir = tempfile::tempdir().unwrap();
-        let (_, input) = sequence(
-            dir.path(),
-            SynthConfig {
-                width: 320,
-                height: 180,
-                frames: 48,
-                ..Default::default()
-            },
-        );
+        let (_, input) = small_sequence(dir.path(), 320, 180, 48);
         for backend in ["classical", "neural"] {
             let seq_out = out(dir.path(), &format!("{backend}-all"));
             run(&input, &seq_out, backend, "", 0);

@@ -360,27 +360,55 @@ pub fn scene_shadow_darkening(
 /// Separable normalized Gaussian blur of a `gw x gh` grid, edges clamped.
 fn blur(v: &mut [f32], gw: usize, gh: usize, sigma: f32) {
     let k = super::shadow::gaussian(sigma);
+    let mut tmp = vec![0.0f32; v.len()];
+    // Along the rows (gh lines of gw cells, neighbours 1 apart), then along
+    // the columns (gw lines of gh cells, neighbours gw apart).
+    blur_lines(
+        v,
+        &mut tmp,
+        &k,
+        Lines {
+            len: gw,
+            count: gh,
+            step: 1,
+            line_step: gw,
+        },
+    );
+    blur_lines(
+        &tmp,
+        v,
+        &k,
+        Lines {
+            len: gh,
+            count: gw,
+            step: gw,
+            line_step: 1,
+        },
+    );
+}
+
+/// `count` lines of `len` cells in a flat grid: cell `i` of line `l` at
+/// `l * line_step + i * step`.
+struct Lines {
+    len: usize,
+    count: usize,
+    step: usize,
+    line_step: usize,
+}
+
+/// A normalized 1-D blur with taps `k` along each line, edges clamped.
+fn blur_lines(src: &[f32], dst: &mut [f32], k: &[f32], lines: Lines) {
     let r = (k.len() / 2) as isize;
     let ks: f32 = k.iter().sum();
-    let mut tmp = vec![0.0f32; v.len()];
-    for y in 0..gh {
-        for x in 0..gw {
+    let at = |l: usize, i: usize| l * lines.line_step + i * lines.step;
+    for l in 0..lines.count {
+        for i in 0..lines.len {
             let mut s = 0.0;
             for (t, &kv) in k.iter().enumerate() {
-                let xs = (x as isize + t as isize - r).clamp(0, gw as isize - 1) as usize;
-                s += kv * v[y * gw + xs];
+                let j = (i as isize + t as isize - r).clamp(0, lines.len as isize - 1) as usize;
+                s += kv * src[at(l, j)];
             }
-            tmp[y * gw + x] = s / ks;
-        }
-    }
-    for y in 0..gh {
-        for x in 0..gw {
-            let mut s = 0.0;
-            for (t, &kv) in k.iter().enumerate() {
-                let ys = (y as isize + t as isize - r).clamp(0, gh as isize - 1) as usize;
-                s += kv * tmp[ys * gw + x];
-            }
-            v[y * gw + x] = s / ks;
+            dst[at(l, i)] = s / ks;
         }
     }
 }
