@@ -11,7 +11,7 @@ surface was in the previous frame, x right, y down; camera matrices are
 OpenEXR row-vector ``worldToCamera`` / ``worldToNDC``.
 """
 
-from ._api import Device, Session, version
+from ._api import Device, Session, parse_param, version
 from .errors import (
     CancelledError,
     HarmonizerError,
@@ -46,5 +46,6 @@ __all__ = [
     "Status",
     "UnknownError",
     "__version__",
+    "parse_param",
     "version",
 ]

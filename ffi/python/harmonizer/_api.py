@@ -28,6 +28,24 @@ def version() -> str:
     return N.lib().hz_version().decode()
 
 
+def parse_param(text: str) -> ParamValue:
+    """A session parameter's value from command-line text: ``true``/``on``/
+    ``yes`` and ``false``/``off``/``no`` (any case) are booleans, then an
+    integer, a number, else the text itself (``"0.4,-0.7,0.6"`` stays a
+    string)."""
+    low = text.lower()
+    if low in ("true", "on", "yes"):
+        return True
+    if low in ("false", "off", "no"):
+        return False
+    for conv in (int, float):
+        try:
+            return conv(text)
+        except ValueError:
+            pass
+    return text
+
+
 class Device:
     """Thread pool, ONNX Runtime location, memory limit and model; shared by sessions.
 

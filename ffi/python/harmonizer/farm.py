@@ -53,6 +53,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+from ._api import parse_param
+
 #: The pre-roll a chunk gets by default: the smallest of 0, 4, 8, 16 with
 #: which every frame of chunks of 24 is at least 40 dB from the sequential
 #: run's, on the 96-frame synthetic sequence with the classical backend
@@ -466,18 +468,6 @@ def _frames(text: str) -> tuple[int, int]:
     return int(m.group(1)), int(m.group(2))
 
 
-def _value(text: str) -> Any:
-    low = text.lower()
-    if low in ("true", "false"):
-        return low == "true"
-    for conv in (int, float):
-        try:
-            return conv(text)
-        except ValueError:
-            pass
-    return text
-
-
 def add_cmdline_args(parser: argparse.ArgumentParser) -> None:
     """The farm's options (shared with tools that wrap it)."""
     parser.add_argument("shots", nargs="+", metavar="SHOT", help="[NAME=]PATTERN (frame files) or [NAME=]STAGE.usd")
@@ -514,7 +504,7 @@ def main(argv: list[str] | None = None) -> int:
         if not sep:
             print(f"harmonize-farm: error: --set {s!r}: expected NAME=VALUE", file=sys.stderr)
             return 2
-        params[k.strip()] = _value(v.strip())
+        params[k.strip()] = parse_param(v.strip())
     try:
         shots = [shot_from_arg(a, args.out_dir, args.frames) for a in args.shots]
         settings = Settings(

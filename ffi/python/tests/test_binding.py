@@ -444,3 +444,10 @@ def test_packaged_library_and_wheel_runtimes_are_found(tmp_path, monkeypatch):
     with hz.Device(threads=1):
         pass
     assert os.environ["HARMONIZER_OIDN_LIB"] == "/given/libOpenImageDenoise.so.2"
+
+
+def test_parse_param_reads_command_line_values():
+    assert hz.parse_param("TRUE") is True and hz.parse_param("off") is False
+    assert hz.parse_param("3") == 3 and isinstance(hz.parse_param("3"), int)
+    assert hz.parse_param("0.25") == 0.25
+    assert hz.parse_param("0.4,-0.7,0.6") == "0.4,-0.7,0.6"

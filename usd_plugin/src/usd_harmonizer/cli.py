@@ -16,26 +16,13 @@ import time
 from pathlib import Path
 from typing import Any
 
+from . import binding
 from .errors import UsdHarmonizerError
 from .frames import parse_frame_range
 from .light import parse_direction
 from .process import Options
 from .run import run_stage
 from .settings import ProductInfo, check_denoise_param
-
-
-def _value(text: str) -> Any:
-    low = text.lower()
-    if low in ("true", "on", "yes"):
-        return True
-    if low in ("false", "off", "no"):
-        return False
-    for conv in (int, float):
-        try:
-            return conv(text)
-        except ValueError:
-            pass
-    return text
 
 
 def _pairs(items: list[str], flag: str) -> dict[str, str]:
@@ -181,7 +168,7 @@ def add_cmdline_args(parser: argparse.ArgumentParser) -> None:
 
 def _options(args: argparse.Namespace) -> Options:
     params: dict[str, Any] = {
-        k: _value(v) for k, v in _pairs(args.param, "--param").items()
+        k: binding.load().parse_param(v) for k, v in _pairs(args.param, "--param").items()
     }
     if args.strength is not None:
         params["strength"] = args.strength
