@@ -334,9 +334,14 @@ impl<H: HistoryRows> pulp::WithSimd for BandJob<'_, '_, H> {
         let mut vv = vec![0.0; w];
         for dy in 0..rows {
             let y = y0 + dy;
+            // The window's rows are needed for the rows of the area and
+            // one on either side; the others only roll on.
+            let windowed = y + 2 >= area.y0 && y < area.y1;
             if dy + 1 < rows {
-                let s = (dy + 1) * w..(dy + 2) * w;
-                row_ycocg(&r[s.clone()], &g[s.clone()], &b[s], &mut below);
+                if windowed {
+                    let s = (dy + 1) * w..(dy + 2) * w;
+                    row_ycocg(&r[s.clone()], &g[s.clone()], &b[s], &mut below);
+                }
             } else if y + 1 < h {
                 below.copy_from_slice(&edges[bi + 1].0);
             } else {
@@ -481,6 +486,53 @@ mod tests {
             })
             .collect();
         check_against_reference(valid);
+    }
+
+    /// Blending only an area gives the whole pass's bits inside it and the
+    /// input outside, in the image and in the kept copy.
+    #[test]
+    fn an_area_is_blended_as_by_the_whole_pass_and_nothing_else() {
+        let (w, h) = (REF_W, REF_H);
+        let n = w * h;
+        let cur = gray(w, h, |i| noise(i, 18) * 3.0);
+        let rows = ReprojectedFrame {
+            color: gray(w, h, |i| noise(i, 20) * 3.0),
+            valid: (0..n).map(|i| noise(i, 19)).collect(),
+        };
+        let mut whole = cur.clone();
+        stabilize_rows(&mut whole, 0.8, None, &rows);
+        // Across a band edge, away from the image's edges.
+        let area = Rect {
+            x0: 5,
+            y0: BAND_ROWS - 3,
+            x1: w - 7,
+            y1: BAND_ROWS + 9,
+        };
+        let mut part = cur.clone();
+        let mut kept = vec![f32::NAN; 4 * n];
+        stabilize_rows_in(&mut part, 0.8, Some(&mut kept), &rows, area);
+        let mut changed = 0;
+        for c in 0..4 {
+            for y in 0..h {
+                for x in 0..w {
+                    let i = c * n + y * w + x;
+                    let inside = (area.x0..area.x1).contains(&x) && (area.y0..area.y1).contains(&y);
+                    let want = if inside { whole.data[i] } else { cur.data[i] };
+                    assert_eq!(
+                        part.data[i].to_bits(),
+                        want.to_bits(),
+                        "plane {c} at ({x}, {y})"
+                    );
+                    assert_eq!(kept[4 * (y * w + x) + c].to_bits(), want.to_bits());
+                    changed += usize::from(inside && want != cur.data[i]);
+                }
+            }
+        }
+        assert!(changed > 100, "the area was blended ({changed} samples)");
+        // An empty area blends nothing.
+        let mut none = cur.clone();
+        stabilize_rows_in(&mut none, 0.8, None, &rows, Rect::default());
+        assert_eq!(none, cur);
     }
 
     /// The pass compiled for the CPU's widest vectors (AVX2 here, where
