@@ -6,15 +6,22 @@ must be written, by exactly one chunk, with the bytes ``harmonize run
 --frames A-B --preroll N`` writes for that chunk; a worker killed in the
 middle of a chunk (its process ends after writing 2 frames, on the chunk's
 first attempt) has its chunk run again with complete outputs and no
-temporary file left. Needs ``dask[distributed]`` (scripts/setup-venv.sh
-installs it) and the release build of ``harmonize`` beside the library.
+temporary file left. The same job also runs as ``python -m harmonizer.farm
+--scheduler tcp://127.0.0.1:PORT`` against a scheduler and two workers started
+separately (``dask scheduler``, ``dask worker``), as on a real cluster. Needs
+``dask[distributed]`` (scripts/setup-venv.sh installs it) and the release
+build of ``harmonize`` beside the library.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
+import sys
+import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -108,6 +115,90 @@ def test_two_shots_on_a_local_cluster_with_a_killed_worker(shots: dict, tmp_path
             got = Path(farm.frame_path(str(out / name / "shot.####.exr"), f)).read_bytes()
             assert got == want[f], f"shot {name} frame {f} differs from harmonize run's chunk"
     assert result["stale_temporaries_removed"] >= 0
+
+
+@pytest.fixture
+def dask_cluster(tmp_path: Path) -> Iterator[tuple[str, list[int]]]:
+    """A ``dask scheduler`` on 127.0.0.1 (a free port) and two ``dask worker``
+    processes of 1 process x 1 thread, each started as its own process in
+    this Python environment; yields the scheduler's address and the
+    workers' process ids. Every process is ended however the test ends."""
+    dask = Path(sys.executable).parent / "dask"
+    if not dask.is_file():
+        pytest.fail(f"{dask} not found: the dask CLI comes with distributed (scripts/setup-venv.sh)")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(Path(farm.__file__).parents[1]), os.environ.get("PYTHONPATH", "")])}
+    env["HARMONIZER_LIB"] = str(_native.lib()._name)  # the workers load the library this test loads
+    logs = tmp_path / "dask-logs"
+    logs.mkdir()
+    procs: list[subprocess.Popen] = []
+
+    def start(name: str, *args: str) -> subprocess.Popen:
+        with open(logs / f"{name}.log", "wb") as log:
+            p = subprocess.Popen([dask, *args], env=env, cwd=tmp_path, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+        procs.append(p)
+        return p
+
+    try:
+        sched_file = tmp_path / "scheduler.json"
+        start("scheduler", "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard", "--scheduler-file", str(sched_file))
+        deadline = time.monotonic() + 30
+        while not sched_file.is_file() or not sched_file.read_text().strip():
+            assert procs[0].poll() is None, (logs / "scheduler.log").read_text()
+            assert time.monotonic() < deadline, "the scheduler did not start in 30 s"
+            time.sleep(0.1)
+        address = json.loads(sched_file.read_text())["address"]
+        for i in range(2):
+            start(f"worker{i}", "worker", address, "--nworkers", "1", "--nthreads", "1", "--no-dashboard",
+                  "--name", f"w{i}", "--local-directory", str(tmp_path / f"dask-w{i}"))
+        with distributed.Client(address, timeout=30) as client:
+            client.wait_for_workers(2, timeout=60)
+            pids = list(client.run(os.getpid).values())
+        yield address, pids
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                os.killpg(p.pid, signal.SIGTERM)
+        for p in procs:
+            try:
+                p.wait(timeout=15)
+            except subprocess.TimeoutExpired:
+                os.killpg(p.pid, signal.SIGKILL)
+                p.wait()
+
+
+def test_two_shots_on_a_separately_started_scheduler(shots: dict, tmp_path: Path, dask_cluster: tuple[str, list[int]]) -> None:
+    """``harmonize-farm --scheduler tcp://HOST:PORT`` (as ``python -m
+    harmonizer.farm``, in its own process) on a scheduler and two workers
+    it did not start."""
+    address, worker_pids = dask_cluster
+    assert address.startswith("tcp://127.0.0.1:")
+    out = tmp_path / "farm"
+    args = [f"{n}={p}" for n, (p, _, _) in shots.items()]
+    cmd = [sys.executable, "-m", "harmonizer.farm", *args, "-o", str(out), "--scheduler", address,
+           "--backend", "classical", "--chunk", str(CHUNK), "--preroll", str(PREROLL)]
+    env = {**os.environ, "PYTHONPATH": str(Path(farm.__file__).parents[1])}
+    r = subprocess.run(cmd, env=env, cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stdout + r.stderr
+    summary = json.loads((out / "farm-summary.json").read_text())
+    assert summary["scheduler"] == address and summary["workers"] == 2, summary
+    assert summary["failed"] == [] and summary["chunk"] == CHUNK and summary["preroll"] == PREROLL
+    chunks = {(e["shot"], e["chunk"]): e for e in summary["chunks"]}
+    assert sorted(chunks) == [("a", 0), ("a", 1), ("a", 2), ("a", 3), ("b", 0), ("b", 1), ("b", 2)]
+    # The tasks ran in the two worker processes (not in the driver), both used.
+    assert {e["pid"] for e in summary["chunks"]} == set(worker_pids), (summary["chunks"], worker_pids)
+    assert all(e["attempts"] == 1 and e["worker"].startswith("tcp://127.0.0.1:") for e in summary["chunks"])
+    assert summary["frames_written"] == sum(last - first + 1 for _, first, last in shots.values())
+    # Every output written once (one chunk lists it), nothing else in the
+    # folders, and the bytes of the CLI's chunked run.
+    for name, (pattern, first, last) in shots.items():
+        listed = sorted(o for e in summary["chunks"] if e["shot"] == name for o in e["outputs"])
+        assert listed == [farm.frame_path(str(out / name / "shot.####.exr"), f) for f in range(first, last + 1)]
+        files = sorted(p.name for p in (out / name).iterdir())
+        assert files == [f"shot.{f:04d}.exr" for f in range(first, last + 1)], files
+        want = cli_chunks(pattern, first, last, tmp_path / f"cli-{name}")
+        for f in range(first, last + 1):
+            got = Path(farm.frame_path(str(out / name / "shot.####.exr"), f)).read_bytes()
+            assert got == want[f], f"shot {name} frame {f} differs from harmonize run's chunk"
 
 
 def test_the_command_line(shots: dict, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
