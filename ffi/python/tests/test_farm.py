@@ -148,8 +148,8 @@ def dask_cluster(tmp_path: Path) -> Iterator[tuple[str, list[int]]]:
             time.sleep(0.1)
         address = json.loads(sched_file.read_text())["address"]
         for i in range(2):
-            start(f"worker{i}", "worker", address, "--nworkers", "1", "--nthreads", "1", "--no-dashboard",
-                  "--name", f"w{i}", "--local-directory", str(tmp_path / f"dask-w{i}"))
+            opts = ["--nworkers", "1", "--nthreads", "1", "--no-dashboard", "--name", f"w{i}", "--local-directory", str(tmp_path / f"dask-w{i}")]
+            start(f"worker{i}", "worker", address, *opts)
         with distributed.Client(address, timeout=30) as client:
             client.wait_for_workers(2, timeout=60)
             pids = list(client.run(os.getpid).values())
@@ -174,10 +174,10 @@ def test_two_shots_on_a_separately_started_scheduler(shots: dict, tmp_path: Path
     assert address.startswith("tcp://127.0.0.1:")
     out = tmp_path / "farm"
     args = [f"{n}={p}" for n, (p, _, _) in shots.items()]
-    cmd = [sys.executable, "-m", "harmonizer.farm", *args, "-o", str(out), "--scheduler", address,
-           "--backend", "classical", "--chunk", str(CHUNK), "--preroll", str(PREROLL)]
+    opts = ["-o", str(out), "--scheduler", address, "--backend", "classical", "--chunk", str(CHUNK), "--preroll", str(PREROLL)]
+    cmd = [sys.executable, "-m", "harmonizer.farm", *args, *opts]
     env = {**os.environ, "PYTHONPATH": str(Path(farm.__file__).parents[1])}
-    r = subprocess.run(cmd, env=env, cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    r = subprocess.run(cmd, check=False, env=env, cwd=tmp_path, capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stdout + r.stderr
     summary = json.loads((out / "farm-summary.json").read_text())
     assert summary["scheduler"] == address and summary["workers"] == 2, summary
