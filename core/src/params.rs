@@ -159,6 +159,11 @@ pub struct Params {
     pub strength: f32,
     /// Fill holes where coverage < 1 (`fill_holes`).
     pub fill_holes: bool,
+    /// Coverage below which the classical fill drops a hole pixel's own
+    /// color and fills the pixel whole, 0..=1 (`coverage_floor`): the faint
+    /// edges of a reconstruction's splats are mostly wrong surfaces. The
+    /// neural backend's network sees the coverage as rendered (as trained).
+    pub coverage_floor: f32,
     /// Harmonize inserted objects with their surroundings (`harmonize`).
     pub harmonize: bool,
     /// Add contact shadows under inserted objects (`contact_shadows`).
@@ -226,6 +231,7 @@ impl Default for Params {
             backend: BackendKind::Auto,
             strength: 1.0,
             fill_holes: true,
+            coverage_floor: 0.95,
             harmonize: true,
             contact_shadows: true,
             shadow_strength: 0.6,
@@ -256,6 +262,7 @@ pub const PARAM_NAMES: &[&str] = &[
     "backend",
     "strength",
     "fill_holes",
+    "coverage_floor",
     "harmonize",
     "contact_shadows",
     "shadow_strength",
@@ -357,6 +364,7 @@ impl Params {
             "backend" => self.backend = BackendKind::parse(want_str(name, v)?)?,
             "strength" => self.strength = want_float(name, v, 0.0, 1.0)?,
             "fill_holes" => self.fill_holes = want_bool(name, v)?,
+            "coverage_floor" => self.coverage_floor = want_float(name, v, 0.0, 1.0)?,
             "harmonize" => self.harmonize = want_bool(name, v)?,
             "contact_shadows" => self.contact_shadows = want_bool(name, v)?,
             "shadow_strength" => self.shadow_strength = want_float(name, v, 0.0, 1.0)?,
@@ -427,6 +435,7 @@ impl Params {
             "backend" => ParamValue::Str(self.backend.name().into()),
             "strength" => ParamValue::Float(self.strength as f64),
             "fill_holes" => ParamValue::Bool(self.fill_holes),
+            "coverage_floor" => ParamValue::Float(self.coverage_floor as f64),
             "harmonize" => ParamValue::Bool(self.harmonize),
             "contact_shadows" => ParamValue::Bool(self.contact_shadows),
             "shadow_strength" => ParamValue::Float(self.shadow_strength as f64),

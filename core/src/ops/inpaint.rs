@@ -33,6 +33,92 @@ pub fn find_holes(img: &Image) -> Option<Holes> {
     bbox_below(img.plane(3), img.width, img.height, FULL).map(|(rect, count)| Holes { rect, count })
 }
 
+/// Drops the color of every pixel of `rect` whose coverage is below
+/// `floor` (the `coverage_floor` parameter): RGB and A become 0, so the
+/// fill completes it whole. A reconstruction's faintly covered pixels
+/// hold the edges of splats, mostly from the wrong surface, and weigh in
+/// the fill with their coverage; the fill from the confidently covered
+/// ones (and the history) is closer.
+/// The set of hole pixels does not change.
+pub fn drop_faint(img: &mut Image, rect: Rect, floor: f32) {
+    if floor <= 0.0 {
+        return;
+    }
+    let w = img.width;
+    par_bands_mut(img, rect.y0, rect.y1).for_each(|(_, [r, g, b, a])| {
+        for row in 0..a.len() / w {
+            for x in row * w + rect.x0..row * w + rect.x1 {
+                if a[x] < floor {
+                    (r[x], g[x], b[x], a[x]) = (0.0, 0.0, 0.0, 0.0);
+                }
+            }
+        }
+    });
+}
+
+/// How many pixels of an image have at least a given coverage, counted
+/// over any square of it in constant time (a summed-area table over a
+/// rectangle grown by the squares' radius).
+pub struct KnownCounts {
+    /// Counts of the pixels above `outer`'s rows and left of its columns:
+    /// `(outer.height() + 1) x (outer.width() + 1)`, row-major.
+    sat: Vec<u32>,
+    outer: Rect,
+    radius: usize,
+    size: (usize, usize),
+}
+
+impl KnownCounts {
+    /// The counts for the squares of `radius` around the pixels of `rect`,
+    /// of the pixels whose coverage (plane 3) is at least `floor`.
+    pub fn new(img: &Image, rect: Rect, radius: usize, floor: f32) -> KnownCounts {
+        let (w, h) = (img.width, img.height);
+        let a = img.plane(3);
+        let outer = rect.expand(radius, w, h);
+        let stride = outer.width() + 1;
+        let mut sat = vec![0u32; stride * (outer.height() + 1)];
+        // Prefix sums along each row (in parallel), then down the columns.
+        sat[stride..]
+            .par_chunks_mut(stride)
+            .enumerate()
+            .for_each(|(y, row)| {
+                let src = &a[(outer.y0 + y) * w + outer.x0..(outer.y0 + y) * w + outer.x1];
+                let mut run = 0u32;
+                for (o, &c) in row[1..].iter_mut().zip(src) {
+                    run += u32::from(c >= floor);
+                    *o = run;
+                }
+            });
+        for y in 1..=outer.height() {
+            let (above, here) = sat.split_at_mut(y * stride);
+            for (o, &u) in here[..stride].iter_mut().zip(&above[(y - 1) * stride..]) {
+                *o += u;
+            }
+        }
+        KnownCounts {
+            sat,
+            outer,
+            radius,
+            size: (w, h),
+        }
+    }
+
+    /// The share of the pixels within the radius of (`x`, `y`) (a square,
+    /// clipped to the image) that are known. (`x`, `y`) must be inside the
+    /// rectangle the counts were made for.
+    pub fn share(&self, x: usize, y: usize) -> f32 {
+        let (w, h) = self.size;
+        let r = self.radius;
+        let o = self.outer;
+        let (ya, yb) = (y.saturating_sub(r) - o.y0, (y + r + 1).min(h) - o.y0);
+        let (xa, xb) = (x.saturating_sub(r) - o.x0, (x + r + 1).min(w) - o.x0);
+        let stride = o.width() + 1;
+        let at = |yy: usize, xx: usize| self.sat[yy * stride + xx];
+        let known = at(yb, xb) + at(ya, xa) - at(ya, xb) - at(yb, xa);
+        known as f32 / ((yb - ya) * (xb - xa)) as f32
+    }
+}
+
 /// Composites a reprojected history frame under the missing part of every
 /// hole pixel inside `rect`: `C += (1 - A) * v * H`, `A += (1 - A) * v * H.a`
 /// with `v` the history's validity. Returns the holes that remain.
@@ -870,6 +956,94 @@ mod tests {
         push_pull(&mut b, Rect::full(w, h));
         for (x, y) in a.data.iter().zip(&b.data) {
             assert!((x - y).abs() < 1e-5);
+        }
+    }
+
+    #[test]
+    fn faint_pixels_lose_their_color_inside_the_rect_only() {
+        let img = holey(53, 31, 5, 300);
+        let rect = Rect {
+            x0: 7,
+            y0: 4,
+            x1: 40,
+            y1: 29,
+        };
+        let mut out = img.clone();
+        drop_faint(&mut out, rect, 0.6);
+        let n = img.len();
+        let mut dropped = 0;
+        for y in 0..31 {
+            for x in 0..53 {
+                let i = y * 53 + x;
+                let a = img.data[3 * n + i];
+                let gone = rect.contains(x, y) && a < 0.6;
+                for c in 0..4 {
+                    let want = if gone { 0.0 } else { img.data[c * n + i] };
+                    assert_eq!(
+                        out.data[c * n + i].to_bits(),
+                        want.to_bits(),
+                        "({x}, {y}) plane {c}"
+                    );
+                }
+                dropped += usize::from(gone && a > 0.0);
+            }
+        }
+        assert!(
+            dropped > 20,
+            "the test image has faint pixels in the rect: {dropped}"
+        );
+        // The same holes remain, and a floor of 0 changes nothing.
+        assert_eq!(find_holes(&out), find_holes(&img));
+        let mut same = img.clone();
+        drop_faint(&mut same, rect, 0.0);
+        assert_eq!(same.data, img.data);
+    }
+
+    #[test]
+    fn known_share_counts_the_covered_pixels_around_each_pixel() {
+        let img = holey(41, 27, 9, 250);
+        let (w, h) = (41, 27);
+        let a = img.plane(3);
+        for (rect, radius, floor) in [
+            (Rect::full(w, h), 3, 0.5),
+            (
+                Rect {
+                    x0: 2,
+                    y0: 20,
+                    x1: 41,
+                    y1: 27,
+                },
+                5,
+                0.95,
+            ),
+            (
+                Rect {
+                    x0: 0,
+                    y0: 0,
+                    x1: 1,
+                    y1: 1,
+                },
+                0,
+                0.5,
+            ),
+        ] {
+            let counts = KnownCounts::new(&img, rect, radius, floor);
+            for y in rect.y0..rect.y1 {
+                for x in rect.x0..rect.x1 {
+                    let (mut k, mut t) = (0, 0);
+                    for yy in y.saturating_sub(radius)..(y + radius + 1).min(h) {
+                        for xx in x.saturating_sub(radius)..(x + radius + 1).min(w) {
+                            t += 1;
+                            k += usize::from(a[yy * w + xx] >= floor);
+                        }
+                    }
+                    let got = counts.share(x, y);
+                    assert!(
+                        (got - k as f32 / t as f32).abs() < 1e-6,
+                        "({x}, {y}) r {radius}: {got} vs {k}/{t}"
+                    );
+                }
+            }
         }
     }
 }
