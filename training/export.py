@@ -2,6 +2,13 @@
 
     .venv-train/bin/python -m training.export --ckpt training/runs/main/ckpt_last.pt --out out/model
 
+or re-exports the weights of an exported model (its checkpoint need not
+exist) with the prior and wiring of the current ``ModelConfig`` defaults, or
+as the flags say (``--prior-floor``, ``--[no-]prior-gate``,
+``--[no-]correction-history``):
+
+    .venv-train/bin/python -m training.export --from-onnx core/models/default.onnx --out out/model
+
 writes ``out/model.onnx`` and ``out/model.json`` (``training/export_contract.md``),
 then checks the file with ONNX Runtime against PyTorch on a random input at two
 sizes and prints parameters, GMAC at 1024x576 and the largest difference.
@@ -151,9 +158,67 @@ def verify(model: Enhancer, onnx_path: Path, sizes=((144, 256), (96, 160))) -> f
     return worst
 
 
+def weights_from_onnx(path: Path, **changes) -> Enhancer:
+    """The model exported at ``path`` (with its manifest ``.json`` beside it) as
+    an ``Enhancer``: architecture read from the weights' shapes, weights from the
+    initializers (the stem's, exported as one strided convolution, reshaped back),
+    prior and wiring from ``ModelConfig``'s defaults with ``changes``."""
+    import onnx
+    from onnx import numpy_helper
+
+    manifest = json.loads(path.with_suffix(".json").read_text())
+    if manifest.get("residual", False):
+        raise ValueError(f"{path}: a residual model (no in-graph prior) cannot be re-exported with a prior")
+    init = {i.name: torch.from_numpy(numpy_helper.to_array(i).copy()) for i in onnx.load(str(path)).graph.initializer}
+    levels = sorted({int(k.split(".")[1]) for k in init if k.startswith("enc.")})
+    widths = tuple(int(init[f"enc.{i}.0.0.weight"].shape[0]) for i in levels)
+    # The stem as one r x r convolution of stride r: [stem, channels, r, r].
+    folded = [v for k, v in init.items() if k.startswith("onnx::Conv") and v.dim() == 4 and v.shape[-1] > 1]
+    if "stem.0.bias" not in init or len(folded) != 1:
+        raise ValueError(f"{path}: no folded stem convolution found (not a model this trainer exported)")
+    stem_w = folded[0]
+    cfg = ModelConfig(
+        context_frames=int(manifest["context_frames"]),
+        widths=widths,
+        unshuffle=int(stem_w.shape[-1]),
+        key=float(manifest["encoding"]["key"]),
+        log_range=float(manifest["encoding"]["log_range"]),
+        stem=int(init["stem.0.bias"].shape[0]),
+        enc_convs=len({k.split(".")[2] for k in init if k.startswith("enc.0.") and k.endswith(".weight")}),
+        dec_convs=len({k.split(".")[2] for k in init if k.startswith("dec.0.") and k.endswith(".weight")}),
+        skip="add" if any(k.startswith("proj.") for k in init) else "cat",
+        premultiplied=bool(manifest.get("premultiplied", False)),
+        **changes,
+    )
+    model = Enhancer(cfg)
+    own = model.state_dict()
+    weights = {k: init[k] for k in own if k in init}
+    weights["stem.0.weight"] = stem_w.reshape(own["stem.0.weight"].shape)
+    missing = sorted(set(own) - set(weights))
+    if missing:
+        # The exporter shares equal initializers (fresh zero biases): only
+        # trained weights, all distinct, come back by name.
+        raise ValueError(f"{path}: weights missing for {missing} (shared or renamed initializers)")
+    model.load_state_dict(weights)
+    return model.eval()
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--ckpt", type=Path, required=True)
+    src = ap.add_mutually_exclusive_group(required=True)
+    src.add_argument("--ckpt", type=Path)
+    src.add_argument("--from-onnx", type=Path, help="re-export the weights of this exported model")
+    defaults = ModelConfig()
+    ap.add_argument("--prior-floor", type=float, default=defaults.prior_floor, help="with --from-onnx")
+    ap.add_argument(
+        "--prior-gate", action=argparse.BooleanOptionalAction, default=defaults.prior_gate, help="with --from-onnx"
+    )
+    ap.add_argument(
+        "--correction-history",
+        action=argparse.BooleanOptionalAction,
+        default=defaults.correction_history,
+        help="with --from-onnx",
+    )
     ap.add_argument("--out", type=Path, required=True, help="output path without extension")
     ap.add_argument("--name", default="harmonizer-small")
     ap.add_argument("--version", default="0.1.0")
@@ -165,13 +230,24 @@ def main(argv: list[str] | None = None) -> int:
         help="manifest `stabilize`: the runtime stabilizes the output over time (default on)",
     )
     args = ap.parse_args(argv)
-    if not args.ckpt.exists():
-        print(f"export: checkpoint {args.ckpt} not found", file=sys.stderr)
+    source = args.ckpt or args.from_onnx
+    if not source.exists():
+        print(f"export: {source} not found", file=sys.stderr)
         return 2
-    ck = torch.load(args.ckpt, map_location="cpu", weights_only=False)
-    model = Enhancer(ModelConfig.from_dict(ck["model_cfg"]))
-    model.load_state_dict(ck["model"])
-    model.eval()
+    if args.from_onnx:
+        model = weights_from_onnx(
+            args.from_onnx,
+            prior_floor=args.prior_floor,
+            prior_gate=args.prior_gate,
+            correction_history=args.correction_history,
+        )
+        step = None
+    else:
+        ck = torch.load(args.ckpt, map_location="cpu", weights_only=False)
+        model = Enhancer(ModelConfig.from_dict(ck["model_cfg"]))
+        model.load_state_dict(ck["model"])
+        model.eval()
+        step = ck["step"]
     manifest = export(model, args.out, args.name, args.version, args.stabilize)
     onnx_path = args.out.with_suffix(".onnx")
     diff = verify(model, onnx_path)
@@ -182,7 +258,8 @@ def main(argv: list[str] | None = None) -> int:
             {
                 "onnx": str(onnx_path),
                 "manifest": str(args.out.with_suffix(".json")),
-                "step": ck["step"],
+                "step": step,
+                "source": str(source),
                 "params": params,
                 "gmac_1024x576": round(macs / 1e9, 3),
                 "onnx_bytes": size,

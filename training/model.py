@@ -49,6 +49,22 @@ class ModelConfig:
     # averaged the valid history frames and pulled plain 2x2 averages, which
     # blurred the fill across the holes (hole PSNR 1.5 dB lower without history).
     prior_fill: str = "chain"
+    # The classical fill's two guards (`core/src/backend/classical.rs`), in the prior:
+    # a pixel covered below `prior_floor` loses its own color (`coverage_floor`), and
+    # a history frame fills a hole pixel only where few covered pixels are near
+    # (`prior_gate`: `history_weight` of the share of pixels covered at least
+    # max(prior_floor, 0.5) within 3 pixels). Out of domain the faint colors and last
+    # frame's fill reprojected into thin gaps were both further from the truth than
+    # the spatial fill (model card, 1.2.0).
+    prior_floor: float = 0.95
+    prior_gate: bool = True
+    # Whether the correction network sees the history channels. 1.1 did, and fed
+    # back its own outputs it amplified small differences in them (a chunk of a
+    # sequence started elsewhere drifted away from the sequential run: 34.5 ->
+    # 16.9 dB over 24 frames without stabilization) without gaining from them
+    # (K=4 and K=0 scored the same); without, the history reaches it only through
+    # the prior.
+    correction_history: bool = False
     # Manifest `premultiplied`: false = the network sees straight color (color /
     # coverage where coverage >= 1e-3, else 0), so the prior's `coverage * color
     # + (1 - coverage) * fill` blends soft edges correctly (premultiplied input
@@ -84,12 +100,32 @@ class ModelConfig:
         d = dict(d)
         d["widths"] = tuple(d["widths"])
         # Configurations saved before the prior existed describe the plain residual UNet.
-        for k, v in (("prior", False), ("stem", 0), ("skip", "cat"), ("premultiplied", True), ("prior_fill", "mean")):
+        # Those saved before the prior's guards fill as 1.1 did.
+        for k, v in (
+            ("prior", False),
+            ("stem", 0),
+            ("skip", "cat"),
+            ("premultiplied", True),
+            ("prior_fill", "mean"),
+            ("prior_floor", 0.0),
+            ("prior_gate", False),
+            ("correction_history", True),
+        ):
             d.setdefault(k, v)
         return ModelConfig(**d)
 
 
 NEGATIVE_SLOPE = 0.1
+
+# The classical backend's history gate (`core/src/backend/classical.rs`,
+# `GATE_RADIUS` and `history_weight`).
+GATE_RADIUS = 3
+
+
+def history_weight(known_share: torch.Tensor) -> torch.Tensor:
+    """How much history a hole pixel takes from the share of covered pixels
+    around it: all up to 0.225, none from 0.3."""
+    return ((0.3 - known_share) / 0.075).clamp(0, 1)
 
 
 def act() -> nn.Module:
@@ -201,16 +237,27 @@ class Enhancer(nn.Module):
         nn.init.zeros_(self.head.bias)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        seen = x
+        if not self.cfg.correction_history and x.shape[1] > 5:
+            seen = torch.cat([x[:, :5], torch.zeros_like(x[:, 5:])], 1)
         if self.cfg.prior:
             p = self.prior(x)
-            return p + self.correction(torch.cat([x, p], 1))
-        return x[:, 0:3] + self.correction(x)
+            return p + self.correction(torch.cat([seen, p], 1))
+        return x[:, 0:3] + self.correction(seen)
 
     def prior(self, x: torch.Tensor) -> torch.Tensor:
         """The input color with its holes filled: reprojected history first
         (newer frames weigh more), then push-pull of what is known."""
         color = x[:, 0:3]
         cov = x[:, 3:4].clamp(0, 1)
+        if self.cfg.prior_floor > 0:
+            cov = cov * (cov >= self.cfg.prior_floor).to(cov.dtype)
+        gate = None
+        if self.cfg.prior_gate:
+            covered = (cov >= max(self.cfg.prior_floor, 0.5)).to(cov.dtype)
+            r = GATE_RADIUS
+            share = F.avg_pool2d(covered, 2 * r + 1, stride=1, padding=r, count_include_pad=False)
+            gate = history_weight(share)
         if self.cfg.prior_fill == "chain":
             # Newest history first, each under what is still missing.
             known = cov * color
@@ -218,6 +265,8 @@ class Enhancer(nn.Module):
             for k in range(self.cfg.context_frames):
                 b = 5 + 4 * k
                 v = x[:, b + 3 : b + 4].clamp(0, 1)
+                if gate is not None:
+                    v = v * gate
                 m = (1 - weight) * v
                 known = known + m * x[:, b : b + 3]
                 weight = weight + m

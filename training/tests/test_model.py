@@ -79,7 +79,7 @@ def test_network_shapes_cost_and_history_dropout():
 
 
 def test_prior_fills_holes_from_history_then_push_pull():
-    cfg = ModelConfig(widths=(8, 8, 12, 16))
+    cfg = ModelConfig(widths=(8, 8, 12, 16), prior_floor=0.0, prior_gate=False)
     m = Enhancer(cfg)
     h, w = 48, 64
     x = torch.zeros(1, len(cfg.input_channels()), h, w)
@@ -100,6 +100,72 @@ def test_prior_fills_holes_from_history_then_push_pull():
     y = torch.rand(1, len(cfg.input_channels()), 37, 53)
     y[:, 3, :, :40] = 0.0
     assert torch.isfinite(m.prior(y)).all()
+
+
+def test_prior_drops_faint_colors_and_gates_the_history_by_covered_neighbours():
+    cfg = ModelConfig(widths=(8, 8, 12, 16))
+    assert cfg.prior_floor == 0.95 and cfg.prior_gate and not cfg.correction_history
+    m = Enhancer(cfg)
+    h, w = 48, 64
+    x = torch.zeros(1, len(cfg.input_channels()), h, w)
+    x[:, 0:3] = 0.4
+    x[:, 3] = 1.0
+    # A crack one pixel wide (col 50) and a wide hole (rows 10..30, cols 10..40).
+    x[:, 3, 5:40, 50] = 0.0
+    x[:, 3, 10:30, 10:40] = 0.0
+    # A faint pixel with a wrong color, in the middle of the wide hole's row band.
+    x[:, 3, 20, 45] = 0.5
+    x[:, 0:3, 20, 45] = 5.0
+    # History: 0.9, valid everywhere.
+    x[:, 5:8] = 0.9
+    x[:, 8] = 1.0
+    p = m.prior(x)
+    # The crack takes its neighbours (0.4), not the history.
+    assert torch.allclose(p[:, :, 8:37, 50], torch.full((1, 3, 29), 0.4), atol=1e-5)
+    # The faint pixel lost its color and took its neighbours too.
+    assert torch.allclose(p[:, :, 20, 45], torch.full((1, 3), 0.4), atol=1e-5)
+    # The wide hole's inside (over 3 pixels from covered ones) takes the history.
+    assert torch.allclose(p[:, :, 14:26, 14:36], torch.full((1, 3, 12, 22), 0.9), atol=1e-5)
+    # Covered pixels keep their color.
+    assert torch.allclose(p[:, :, 35:, :45], torch.full((1, 3, h - 35, 45), 0.4), atol=1e-5)
+
+
+def test_the_correction_sees_the_history_only_when_configured():
+    torch.manual_seed(0)
+    x = torch.rand(1, 21, 32, 48)
+    y = x.clone()
+    y[:, 5:] = torch.rand(1, 16, 32, 48)
+    # Covered everywhere: the prior is the input color whatever the history.
+    x[:, 3] = y[:, 3] = 1.0
+    for seen in (False, True):
+        m = Enhancer(ModelConfig(widths=(8, 8, 12, 16), correction_history=seen))
+        torch.nn.init.normal_(m.head.weight, std=0.1)
+        with torch.no_grad():
+            same = torch.equal(m(x), m(y))
+        assert same is (not seen)
+
+
+def test_weights_from_onnx_rebuild_the_exported_model(tmp_path):
+    from training.export import export, weights_from_onnx
+
+    torch.manual_seed(1)
+    m = Enhancer(ModelConfig(widths=(8, 8, 12, 16), stem=16, correction_history=True, prior_gate=False))
+    # Distinct values everywhere, as trained weights have (the exporter shares
+    # equal initializers, such as the zero biases of a fresh model).
+    with torch.no_grad():
+        for p in m.parameters():
+            p.normal_(std=0.1)
+    export(m, tmp_path / "m")
+    back = weights_from_onnx(tmp_path / "m.onnx", correction_history=True, prior_gate=False, prior_floor=0.95)
+    assert back.cfg.widths == (8, 8, 12, 16) and back.cfg.stem == 16
+    for k, v in m.state_dict().items():
+        assert torch.equal(back.state_dict()[k], v), k
+    # Old exported models (no guards in their prior) can be re-exported as they were.
+    old = weights_from_onnx(tmp_path / "m.onnx", correction_history=True, prior_gate=False, prior_floor=0.0)
+    x = torch.rand(1, 21, 32, 48)
+    m.cfg.prior_floor = 0.0
+    with torch.no_grad():
+        assert torch.allclose(old(x), m(x), atol=1e-6)
 
 
 @pytest.mark.parametrize("prior", [True, False])
