@@ -4,7 +4,8 @@
 //! 1. **inpaint** (`fill_holes`): pixels with coverage < 1 are completed
 //!    from the reprojected history (frame 0, then older frames only where
 //!    still missing, and only while more than [`OLDER_HISTORY_MIN_HOLES`] of
-//!    the frame is missing), then by push-pull over a window around the rest.
+//!    the frame is missing), then by push-pull over a window around the rest,
+//!    on the square root of the color ([`crate::ops::inpaint::push_pull_sqrt`]).
 //!    The history fills a pixel only where few confidently covered pixels
 //!    are near ([`history_weight`] of [`crate::ops::inpaint::KnownCounts`]
 //!    within [`GATE_RADIUS`]): thin gaps take the spatial fill. Pixels below
@@ -307,10 +308,7 @@ fn run_ops_on(
         if let Some(hh) = holes {
             let window = inpaint::fill_window(hh.rect, w, h);
             stages.time("inpaint", || {
-                pool.install(|| match &missing {
-                    Some(list) => inpaint::push_pull_at(img, window, list),
-                    None => inpaint::push_pull(img, window),
-                })
+                pool.install(|| inpaint::push_pull_sqrt(img, window, missing.as_deref()))
             });
         }
     }
