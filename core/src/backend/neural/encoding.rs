@@ -95,6 +95,44 @@ impl ColorCodec {
 
     /// Encodes a row: `dst[i] = encode(src[i])`.
     pub fn encode_row(&self, src: &[f32], dst: &mut [f32]) {
+        crate::ops::simd(RowJob {
+            codec: self,
+            op: RowOp::Encode(src),
+            dst,
+        });
+    }
+
+    /// Encodes a row of premultiplied color as straight color:
+    /// `dst[i] = encode(src[i] / alpha[i])`, 0 where `alpha < COVERAGE_EPSILON`.
+    pub fn encode_straight_row(&self, src: &[f32], alpha: &[f32], dst: &mut [f32]) {
+        crate::ops::simd(RowJob {
+            codec: self,
+            op: RowOp::EncodeStraight(src, alpha),
+            dst,
+        });
+    }
+
+    /// Decodes a row: `dst[i] = decode(src[i])`.
+    pub fn decode_row(&self, src: &[f32], dst: &mut [f32]) {
+        crate::ops::simd(RowJob {
+            codec: self,
+            op: RowOp::Decode(src),
+            dst,
+        });
+    }
+
+    /// [`ColorCodec::decode_row`] of `net + inp` (a residual model's
+    /// output plus its encoded input), element by element.
+    pub fn decode_sum_row(&self, net: &[f32], inp: &[f32], dst: &mut [f32]) {
+        crate::ops::simd(RowJob {
+            codec: self,
+            op: RowOp::DecodeSum(net, inp),
+            dst,
+        });
+    }
+
+    #[inline(always)]
+    fn encode_row_in(&self, src: &[f32], dst: &mut [f32]) {
         let s = self.scale;
         match self.log_range {
             None => dst.iter_mut().zip(src).for_each(|(d, &x)| *d = x * s),
@@ -107,9 +145,8 @@ impl ColorCodec {
         }
     }
 
-    /// Encodes a row of premultiplied color as straight color:
-    /// `dst[i] = encode(src[i] / alpha[i])`, 0 where `alpha < COVERAGE_EPSILON`.
-    pub fn encode_straight_row(&self, src: &[f32], alpha: &[f32], dst: &mut [f32]) {
+    #[inline(always)]
+    fn encode_straight_row_in(&self, src: &[f32], alpha: &[f32], dst: &mut [f32]) {
         for ((d, &x), &a) in dst.iter_mut().zip(src).zip(alpha) {
             let v = if a >= COVERAGE_EPSILON { x / a } else { 0.0 };
             *d = v;
@@ -125,8 +162,8 @@ impl ColorCodec {
         }
     }
 
-    /// Decodes a row: `dst[i] = decode(src[i])`.
-    pub fn decode_row(&self, src: &[f32], dst: &mut [f32]) {
+    #[inline(always)]
+    fn decode_row_in(&self, src: &[f32], dst: &mut [f32]) {
         let inv_s = 1.0 / self.scale;
         match self.log_range {
             None => dst
@@ -137,6 +174,46 @@ impl ColorCodec {
                 .iter_mut()
                 .zip(src)
                 .for_each(|(d, &y)| *d = clean(exp2_m1(y * c) * inv_s)),
+        }
+    }
+}
+
+/// What a [`RowJob`] computes into its `dst`.
+enum RowOp<'a> {
+    Encode(&'a [f32]),
+    EncodeStraight(&'a [f32], &'a [f32]),
+    Decode(&'a [f32]),
+    DecodeSum(&'a [f32], &'a [f32]),
+}
+
+/// One row of the codec compiled for the CPU's widest vectors
+/// ([`crate::ops::simd`]): the same operations in the same order as the
+/// baseline (no fused multiply-add), so the same bits.
+struct RowJob<'a> {
+    codec: &'a ColorCodec,
+    op: RowOp<'a>,
+    dst: &'a mut [f32],
+}
+
+impl pulp::WithSimd for RowJob<'_> {
+    type Output = ();
+
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, _: S) {
+        let RowJob { codec, op, dst } = self;
+        match op {
+            RowOp::Encode(src) => codec.encode_row_in(src, dst),
+            RowOp::EncodeStraight(src, alpha) => codec.encode_straight_row_in(src, alpha, dst),
+            RowOp::Decode(src) => codec.decode_row_in(src, dst),
+            RowOp::DecodeSum(net, inp) => {
+                dst.iter_mut()
+                    .zip(net.iter().zip(inp))
+                    .for_each(|(d, (&r, &i))| *d = r + i);
+                // Decode in place.
+                for d in dst.iter_mut() {
+                    *d = codec.decode(*d);
+                }
+            }
         }
     }
 }

@@ -814,13 +814,7 @@ impl TileOutput<'_> {
         match slot {
             Some(s) => {
                 let inp = &self.tensor[s * np + at..s * np + at + dst.len()];
-                dst.iter_mut()
-                    .zip(net.iter().zip(inp))
-                    .for_each(|(d, (&r, &i))| *d = r + i);
-                // Decode in place.
-                for d in dst.iter_mut() {
-                    *d = codec.decode(*d);
-                }
+                codec.decode_sum_row(net, inp, dst);
             }
             None => codec.decode_row(net, dst),
         }
