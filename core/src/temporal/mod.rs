@@ -13,6 +13,7 @@ pub use history::{History, HistoryFrame};
 pub use scene_cut::{is_scene_cut, scene_cut_score, Lattice, LatticeRows, SceneCutScore};
 
 use crate::frame::{Image, PreparedFrame, Recycler};
+use crate::ops;
 use reproject::{Chain, Source};
 
 /// History frame `k` aligned to the current view.
@@ -136,6 +137,26 @@ impl Sampler<'_> {
                     (o0[t], o1[t], o2[t], o3[t], ov[t]) = (c[0], c[1], c[2], c[3], v);
                 }
             }
+        }
+    }
+}
+
+/// Row buffers of [`HistoryView::reproject_rows`].
+pub struct RowScratch {
+    out: [Vec<f32>; 5],
+    chains: Vec<reproject::Chain>,
+    done: Vec<bool>,
+}
+
+impl RowScratch {
+    /// Scratch for rows of `width` pixels and up to `frames` history frames.
+    pub fn new(width: usize, frames: usize) -> RowScratch {
+        RowScratch {
+            out: std::array::from_fn(|_| vec![0.0; width]),
+            chains: (1..frames.max(1))
+                .map(|_| reproject::Chain::row(width))
+                .collect(),
+            done: Vec::with_capacity(frames),
         }
     }
 }
@@ -393,6 +414,78 @@ impl<'a> HistoryView<'a> {
             &mut ov[..w],
         ];
         self.row_into(k, i, &mut reproject::Planar(out));
+    }
+
+    /// Row `i` of history frames `0..n` reprojected into the current view,
+    /// handed to `put(k, [r, g, b, a, valid])` for each `k` in order: the
+    /// same bits as row `i` of [`HistoryView::reproject`]`(k)`, but
+    /// computed for this row alone, nothing frame-sized written nor cached
+    /// (frames already reprojected are copied from their cache): frames
+    /// reached by chained motion vectors follow the chain for this row
+    /// only, in `scratch` ([`RowScratch::new`] for this view's width and
+    /// at least `n` frames; one per parallel task).
+    ///
+    /// # Panics
+    /// When `n > self.len()` or `i` is not a row of the frame.
+    pub fn reproject_rows(
+        &self,
+        n: usize,
+        i: usize,
+        scratch: &mut RowScratch,
+        mut put: impl FnMut(usize, [&[f32]; 5]),
+    ) {
+        assert!(n <= self.count, "{n} history frames of {}", self.count);
+        let w = self.current.width();
+        let RowScratch { out, chains, done } = scratch;
+        done.clear();
+        done.resize(n.saturating_sub(1), false);
+        for k in 0..n {
+            let [o0, o1, o2, o3, ov] = out;
+            let rows = [
+                &mut o0[..w],
+                &mut o1[..w],
+                &mut o2[..w],
+                &mut o3[..w],
+                &mut ov[..w],
+            ];
+            let cached = self.cache[k].get().is_some();
+            if !cached && self.mode(k) == ReprojectionMode::MotionVectors {
+                // Positions of this row in frames 1..=k, hop by hop, where
+                // the whole chain is not known already.
+                for hop in 1..=k {
+                    if self.chains[hop - 1].get().is_some() || done[hop - 1] {
+                        continue;
+                    }
+                    let (before, rest) = chains.split_at_mut(hop - 1);
+                    let src = self.row_source(hop - 1, before);
+                    reproject::hop_chain_row(src, self.frame(hop - 1), i, &mut rest[0]);
+                    done[hop - 1] = true;
+                }
+                ops::simd(SpanJob {
+                    src: self.row_source(k, chains),
+                    frame: self.frame(k),
+                    i,
+                    j0: 0,
+                    out: rows,
+                });
+            } else {
+                self.row_into(k, i, &mut reproject::Planar(rows));
+            }
+            put(k, [&o0[..w], &o1[..w], &o2[..w], &o3[..w], &ov[..w]]);
+        }
+    }
+
+    /// The source of the last hop into history frame `k` (motion vectors)
+    /// for [`HistoryView::reproject_rows`]: the current frame, the cached
+    /// chain, else the row of it in `rows[k - 1]`.
+    fn row_source<'s>(&'s self, k: usize, rows: &'s [reproject::Chain]) -> Source<'s> {
+        match k {
+            0 => self.source(0),
+            _ => match self.chains[k - 1].get() {
+                Some(c) => Source::Chain(c),
+                None => Source::ChainRow(&rows[k - 1]),
+            },
+        }
     }
 
     /// [`HistoryView::reproject_row`] with the row's RGBA interleaved: pixel

@@ -548,6 +548,17 @@ pub(crate) struct Chain {
 }
 
 impl Chain {
+    /// A chain of one row of `w` pixels (for [`Source::ChainRow`]); its
+    /// values are written by [`hop_chain_row`].
+    pub(crate) fn row(w: usize) -> Chain {
+        Chain {
+            x: vec![0.0; w],
+            y: vec![0.0; w],
+            depth: vec![0.0; w],
+            valid: vec![0.0; w],
+        }
+    }
+
     /// Gives the chain's buffers to `rec`.
     pub(crate) fn recycle(self, rec: &Recycler) {
         for b in [self.x, self.y, self.depth, self.valid] {
@@ -569,6 +580,10 @@ pub(crate) enum Source<'a> {
     },
     /// A chain into a history frame.
     Chain(&'a Chain),
+    /// One row of a chain into a history frame ([`Chain::row`], written by
+    /// [`hop_chain_row`]): the values of that row of the whole [`Chain`],
+    /// for the row it was computed for only.
+    ChainRow(&'a Chain),
 }
 
 impl Source<'_> {
@@ -585,6 +600,7 @@ impl Source<'_> {
                 1.0,
             ),
             Source::Chain(c) => (c.x[p], c.y[p], c.depth[p], c.valid[p]),
+            Source::ChainRow(c) => (c.x[j], c.y[j], c.depth[j], c.valid[j]),
         }
     }
 
@@ -603,6 +619,7 @@ impl Source<'_> {
                 }
             }
             Source::Chain(c) => f.run(&ChainAt { c, w }),
+            Source::ChainRow(c) => f.run(&ChainAt { c, w: 0 }),
         }
     }
 }
@@ -641,7 +658,8 @@ impl Positions for CurrentAt<'_, ()> {
     }
 }
 
-/// A chain into a history frame.
+/// A chain into a history frame (`w` its row length; 0 for a chain of one
+/// row, [`Source::ChainRow`], read at the columns alone).
 struct ChainAt<'a> {
     c: &'a Chain,
     w: usize,
@@ -942,55 +960,103 @@ impl SourceUser<Chain> for ChainHop<'_> {
             depth: take(),
             valid: take(),
         };
-        let motion = frame
-            .motion
-            .as_ref()
-            .expect("hop_chain needs the frame's motion vectors");
-        let (mx, my) = (motion.plane(0), motion.plane(1));
-        let hdepth = frame.depth.as_deref();
         let Chain { x, y, depth, valid } = &mut chain;
         par_rows(self.pool, [x, y, depth, valid], w, |i, [rx, ry, rd, rv]| {
-            let (rx, ry, rd, rv) = (&mut rx[..w], &mut ry[..w], &mut rd[..w], &mut rv[..w]);
-            let mut b = Batch::new();
-            for j in 0..w {
-                let t = j % BATCH;
-                if t == 0 {
-                    b.fill(at, i, j, BATCH.min(w - j), w, h, hdepth);
-                }
-                let (x, y, d, v) = (b.x[t], b.y[t], b.d[t], b.v[t]);
-                if b.fast[t] {
-                    // The common case, bit-identical to the general one below.
-                    let (k, wt) = (b.idx[t] as usize, &b.weights(t));
-                    rx[j] = x + bilerp(mx, k, w, wt);
-                    ry[j] = y + bilerp(my, k, w, wt);
-                    rd[j] = match hdepth {
-                        Some(hd) => bilerp(hd, k, w, wt),
-                        None => f32::NAN,
-                    };
-                    rv[j] = v;
-                    continue;
-                }
-                rx[j] = 0.0;
-                ry[j] = 0.0;
-                rd[j] = f32::NAN;
-                rv[j] = 0.0;
-                if v <= 0.0 {
-                    continue;
-                }
-                let dt = if d.is_nan() { None } else { hdepth };
-                let t = taps(x, y, w, h, dt, d);
-                if t.sum <= 0.0 {
-                    continue;
-                }
-                rx[j] = x + t.sample(mx);
-                ry[j] = y + t.sample(my);
-                if let Some(hd) = hdepth {
-                    rd[j] = t.sample(hd);
-                }
-                rv[j] = v * t.sum;
-            }
+            chain_row(at, frame, i, [rx, ry, rd, rv])
         });
         chain
+    }
+}
+
+/// Row `i` of [`hop_chain`] with positions from `at` into history frame
+/// `frame`: positions, expected depth and validity into `out` (each at
+/// least one row long).
+#[inline(always)]
+fn chain_row<S: Positions>(at: &S, frame: &HistoryFrame, i: usize, out: [&mut [f32]; 4]) {
+    let (w, h) = (frame.color.width, frame.color.height);
+    let motion = frame
+        .motion
+        .as_ref()
+        .expect("hop_chain needs the frame's motion vectors");
+    let (mx, my) = (motion.plane(0), motion.plane(1));
+    let hdepth = frame.depth.as_deref();
+    let [rx, ry, rd, rv] = out;
+    let (rx, ry, rd, rv) = (&mut rx[..w], &mut ry[..w], &mut rd[..w], &mut rv[..w]);
+    let mut b = Batch::new();
+    for j in 0..w {
+        let t = j % BATCH;
+        if t == 0 {
+            b.fill(at, i, j, BATCH.min(w - j), w, h, hdepth);
+        }
+        let (x, y, d, v) = (b.x[t], b.y[t], b.d[t], b.v[t]);
+        if b.fast[t] {
+            // The common case, bit-identical to the general one below.
+            let (k, wt) = (b.idx[t] as usize, &b.weights(t));
+            rx[j] = x + bilerp(mx, k, w, wt);
+            ry[j] = y + bilerp(my, k, w, wt);
+            rd[j] = match hdepth {
+                Some(hd) => bilerp(hd, k, w, wt),
+                None => f32::NAN,
+            };
+            rv[j] = v;
+            continue;
+        }
+        rx[j] = 0.0;
+        ry[j] = 0.0;
+        rd[j] = f32::NAN;
+        rv[j] = 0.0;
+        if v <= 0.0 {
+            continue;
+        }
+        let dt = if d.is_nan() { None } else { hdepth };
+        let t = taps(x, y, w, h, dt, d);
+        if t.sum <= 0.0 {
+            continue;
+        }
+        rx[j] = x + t.sample(mx);
+        ry[j] = y + t.sample(my);
+        if let Some(hd) = hdepth {
+            rd[j] = t.sample(hd);
+        }
+        rv[j] = v * t.sum;
+    }
+}
+
+/// Row `i` of [`hop_chain`] alone (the same bits) into `out`, a chain of
+/// one row ([`Chain::row`]), compiled for the CPU's widest vectors
+/// ([`crate::ops::simd`]). `frame.motion` must be present.
+pub(crate) fn hop_chain_row(src: Source<'_>, frame: &HistoryFrame, i: usize, out: &mut Chain) {
+    crate::ops::simd(ChainRowJob { src, frame, i, out });
+}
+
+struct ChainRowJob<'a, 'o> {
+    src: Source<'a>,
+    frame: &'a HistoryFrame,
+    i: usize,
+    out: &'o mut Chain,
+}
+
+impl pulp::WithSimd for ChainRowJob<'_, '_> {
+    type Output = ();
+
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, _: S) {
+        let ChainRowJob { src, frame, i, out } = self;
+        src.with(frame.color.width, ChainRowUser { frame, i, out });
+    }
+}
+
+struct ChainRowUser<'a, 'o> {
+    frame: &'a HistoryFrame,
+    i: usize,
+    out: &'o mut Chain,
+}
+
+impl SourceUser<()> for ChainRowUser<'_, '_> {
+    #[inline(always)]
+    fn run<S: Positions>(self, at: &S) {
+        let Chain { x, y, depth, valid } = self.out;
+        chain_row(at, self.frame, self.i, [x, y, depth, valid]);
     }
 }
 

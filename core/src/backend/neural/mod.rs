@@ -26,7 +26,7 @@ use crate::error::{Error, Result};
 use crate::frame::Image;
 use crate::model::{InputChannel, Manifest};
 use crate::params::Params;
-use crate::temporal::ReprojectedFrame;
+use crate::temporal::{HistoryView, RowScratch};
 use encoding::ColorCodec;
 use tiling::{reflect, TilePlan};
 
@@ -554,6 +554,11 @@ enum Src<'a> {
     EncodeStraight(&'a [f32], &'a [f32]),
     /// Planar depth as `1 / (1 + max(d, 0))`.
     Disparity(&'a [f32]),
+    /// A channel of a reprojected history frame, computed row by row with
+    /// the others by [`history_rows`] (never through [`Src::row`]).
+    History,
+    /// Already written into the tile's input (by [`history_rows`]).
+    Filled,
 }
 
 impl Src<'_> {
@@ -578,6 +583,9 @@ impl Src<'_> {
                 .iter_mut()
                 .zip(&p[r])
                 .for_each(|(o, &d)| *o = 1.0 / (1.0 + d.max(0.0))),
+            Src::History | Src::Filled => {
+                unreachable!("history channels are written by history_rows")
+            }
         }
     }
 }
@@ -586,7 +594,7 @@ impl Src<'_> {
 fn channel_sources<'a>(
     channels: &[InputChannel],
     frame: &'a crate::frame::PreparedFrame,
-    history: &[&'a ReprojectedFrame],
+    used: usize,
     premultiplied: bool,
 ) -> Vec<Src<'a>> {
     let coverage = frame.coverage.as_deref();
@@ -617,19 +625,101 @@ fn channel_sources<'a>(
                 .motion
                 .as_ref()
                 .map_or(Src::Const(0.0), |m| Src::Copy(m.plane(c))),
-            InputChannel::History(k, c) => match history.get(k) {
-                Some(h) if premultiplied => Src::Encode(h.color.plane(c)),
-                Some(h) => Src::EncodeStraight(h.color.plane(c), h.color.plane(3)),
-                None => Src::Const(0.0),
+            InputChannel::History(k, _)
+            | InputChannel::HistoryAlpha(k)
+            | InputChannel::Valid(k) => match k < used {
+                true => Src::History,
+                false => Src::Const(0.0),
             },
-            InputChannel::HistoryAlpha(k) => history
-                .get(k)
-                .map_or(Src::Const(0.0), |h| Src::Copy(h.color.plane(3))),
-            InputChannel::Valid(k) => history
-                .get(k)
-                .map_or(Src::Const(0.0), |h| Src::Copy(&h.valid)),
         })
         .collect()
+}
+
+/// What a history input channel holds of its reprojected frame.
+#[derive(Clone, Copy)]
+enum HistPart {
+    /// Color channel `c`, encoded (straight or premultiplied as the model reads it).
+    Color(usize),
+    /// The reprojected alpha, as is.
+    Alpha,
+    /// The validity, as is.
+    Valid,
+}
+
+/// The history input channels that read one of the first `used` history
+/// frames: (input channel, history frame, part), in channel order.
+fn history_slots(channels: &[InputChannel], used: usize) -> Vec<(usize, usize, HistPart)> {
+    channels
+        .iter()
+        .enumerate()
+        .filter_map(|(slot, &ch)| match ch {
+            InputChannel::History(k, c) => Some((slot, k, HistPart::Color(c))),
+            InputChannel::HistoryAlpha(k) => Some((slot, k, HistPart::Alpha)),
+            InputChannel::Valid(k) => Some((slot, k, HistPart::Valid)),
+            _ => None,
+        })
+        .filter(|&(_, k, _)| k < used)
+        .collect()
+}
+
+/// Writes the history input channels `slots` for every frame row: `rows[i][s]`
+/// (at least a row long) gets row `i` of slot `s`. The history frames are
+/// reprojected row by row ([`HistoryView::reproject_rows`], the same bits
+/// as whole reprojected frames) and encoded while the row is in cache, so
+/// no frame-sized reprojection is written and read back; rows in parallel
+/// on `pool` (each written by one task: the same bits on any thread count).
+fn history_rows(
+    view: &HistoryView<'_>,
+    slots: &[(usize, usize, HistPart)],
+    codec: &ColorCodec,
+    premultiplied: bool,
+    rows: Vec<Vec<&mut [f32]>>,
+    pool: &rayon::ThreadPool,
+) {
+    let Some(n) = slots.iter().map(|&(_, k, _)| k + 1).max() else {
+        return;
+    };
+    let w = view.current().width();
+    pool.install(|| {
+        rows.into_par_iter()
+            .enumerate()
+            .with_min_len(4)
+            .for_each_init(
+                || RowScratch::new(w, n),
+                |scratch, (i, mut dst)| {
+                    view.reproject_rows(n, i, scratch, |k, [r, g, b, a, v]| {
+                        let rgb = [r, g, b];
+                        for (d, &(_, sk, part)) in dst.iter_mut().zip(slots) {
+                            if sk != k {
+                                continue;
+                            }
+                            let d = &mut d[..w];
+                            match part {
+                                HistPart::Color(c) if premultiplied => codec.encode_row(rgb[c], d),
+                                HistPart::Color(c) => codec.encode_straight_row(rgb[c], a, d),
+                                HistPart::Alpha => d.copy_from_slice(a),
+                                HistPart::Valid => d.copy_from_slice(v),
+                            }
+                        }
+                    });
+                },
+            );
+    });
+}
+
+/// Completes a `ww` x `wh` window plane whose rows `0..h`, columns `0..w`,
+/// hold a frame's (window origin at the frame's corner): the columns and
+/// rows beyond are mirror reflections, as [`fill_window`] writes them.
+fn reflect_pad(plane: &mut [f32], (w, h): (usize, usize), (ww, wh): (usize, usize)) {
+    for row in plane.chunks_exact_mut(ww).take(h) {
+        for wx in w..ww {
+            row[wx] = row[reflect(wx as isize, w)];
+        }
+    }
+    for wy in h..wh {
+        let fy = reflect(wy as isize, h);
+        plane.copy_within(fy * ww..(fy + 1) * ww, wy * ww);
+    }
 }
 
 /// Fills a tile's NCHW input tensor, one window row per task: frame rows and
@@ -658,6 +748,9 @@ fn fill_window(
             .for_each(|(r, row)| {
                 let (ch, wy) = (r / wh, r % wh);
                 let src = &sources[ch];
+                if matches!(src, Src::Filled) {
+                    return;
+                }
                 let fy = reflect(oy + wy as isize, height);
                 src.row(codec, width, fy, fx0, &mut row[c0..c1]);
                 for wx in (0..c0).chain(c1..ww) {
@@ -691,31 +784,47 @@ impl Neural {
             ColorCodec::for_frame(&m.encoding, &frame.color, frame.coverage.as_deref())
         });
         let used = m.context_frames.min(input.history.len());
-        let history: Vec<&ReprojectedFrame> = stages.time("reproject", || {
-            (0..used).map(|k| input.history.reproject(k)).collect()
-        });
-        let mut sources = channel_sources(&model.channels, frame, &history, m.premultiplied);
+        let mut sources = channel_sources(&model.channels, frame, used, m.premultiplied);
+        let slots = history_slots(&model.channels, used);
 
-        // With several tiles, computed channels are computed once for the
-        // whole frame, so the tiles' overlaps only copy.
+        // With several tiles, computed channels (history channels included)
+        // are computed once for the whole frame, so the tiles' overlaps only copy.
         let computed: Buffer<'_>;
         if plan.len() > 1 {
-            computed = stages.time("encode", || {
-                let wanted: Vec<Src<'_>> = sources.iter().copied().filter(Src::computed).collect();
-                let mut planes = model.buffer(wanted.len() * w * h);
+            let n = w * h;
+            let wanted: Vec<Src<'_>> = sources.iter().copied().filter(Src::computed).collect();
+            let mut planes = model.buffer((wanted.len() + slots.len()) * n);
+            let (own, hist) = planes.data.split_at_mut(wanted.len() * n);
+            stages.time("reproject", || {
+                let mut planes: Vec<_> = hist
+                    .chunks_exact_mut(n)
+                    .map(|p| p.chunks_exact_mut(w))
+                    .collect();
+                let rows = (0..h)
+                    .map(|_| {
+                        planes
+                            .iter_mut()
+                            .map(|p| p.next().expect("h rows"))
+                            .collect()
+                    })
+                    .collect();
+                history_rows(input.history, &slots, &codec, m.premultiplied, rows, pool);
+            });
+            stages.time("encode", || {
                 pool.install(|| {
-                    planes
-                        .data
-                        .par_chunks_mut(w)
+                    own.par_chunks_mut(w)
                         .with_min_len(4)
                         .enumerate()
                         .for_each(|(r, row)| wanted[r / h].row(&codec, w, r % h, 0, row));
                 });
-                planes
             });
-            let mut next = computed.data.chunks_exact(w * h);
+            computed = planes;
+            let mut next = computed.data.chunks_exact(n);
             for s in sources.iter_mut().filter(|s| s.computed()) {
                 *s = Src::Copy(next.next().expect("one plane per computed channel"));
+            }
+            for &(slot, ..) in &slots {
+                sources[slot] = Src::Copy(next.next().expect("one plane per history channel"));
             }
         }
 
@@ -750,6 +859,30 @@ impl Neural {
         let mut tensor = model.buffer(cin * np);
         let mut out = Image::try_zeros(w, h, 4)?;
         for (t, tile) in plan.tiles().enumerate() {
+            if n_tiles == 1 && !slots.is_empty() {
+                // One tile, its window at the frame's corner: the history
+                // channels are written straight into the tile's input.
+                stages.time("reproject", || {
+                    let mut planes: Vec<Option<&mut [f32]>> =
+                        tensor.data.chunks_exact_mut(np).map(Some).collect();
+                    let mut mine: Vec<&mut [f32]> = slots
+                        .iter()
+                        .map(|&(slot, ..)| planes[slot].take().expect("one slot per channel"))
+                        .collect();
+                    let mut rows: Vec<_> =
+                        mine.iter_mut().map(|p| p.chunks_exact_mut(ww)).collect();
+                    let rows = (0..h)
+                        .map(|_| rows.iter_mut().map(|p| p.next().expect("h rows")).collect())
+                        .collect();
+                    history_rows(input.history, &slots, &codec, m.premultiplied, rows, pool);
+                    for p in mine {
+                        reflect_pad(p, (w, h), (ww, wh));
+                    }
+                });
+                for &(slot, ..) in &slots {
+                    sources[slot] = Src::Filled;
+                }
+            }
             stages.time("tile_input", || {
                 fill_window(&mut tensor.data, &sources, &codec, (w, h), tile, pool)
             });
