@@ -781,7 +781,12 @@ impl Neural {
         let (w, h) = (frame.width(), frame.height());
         let plan = model.tile_plan_within(w, h, input.params, input.memory_budget)?;
         let codec = stages.time("encode_stats", || {
-            ColorCodec::for_frame(&m.encoding, &frame.color, frame.coverage.as_deref())
+            ColorCodec::for_frame_on(
+                &m.encoding,
+                &frame.color,
+                frame.coverage.as_deref(),
+                Some(pool),
+            )
         });
         let used = m.context_frames.min(input.history.len());
         let mut sources = channel_sources(&model.channels, frame, used, m.premultiplied);
@@ -857,7 +862,19 @@ impl Neural {
             frame.coverage.as_deref()
         };
         let mut tensor = model.buffer(cin * np);
-        let mut out = Image::try_zeros(w, h, 4)?;
+        // The output comes from the session's recycled frame buffers (fresh
+        // memory costs a page fault per 4 KiB on every frame): one tile
+        // writes every sample, several add into zeros.
+        let mut out = match input.history.recycler() {
+            Some(r) => {
+                let mut img = r.try_image(w, h, 4)?;
+                if n_tiles > 1 {
+                    pool.install(|| img.data.par_chunks_mut(w).for_each(|row| row.fill(0.0)));
+                }
+                img
+            }
+            None => Image::try_zeros(w, h, 4)?,
+        };
         for (t, tile) in plan.tiles().enumerate() {
             if n_tiles == 1 && !slots.is_empty() {
                 // One tile, its window at the frame's corner: the history
