@@ -413,29 +413,32 @@ impl<'a> HistoryView<'a> {
             &mut o3[..w],
             &mut ov[..w],
         ];
-        self.row_into(k, i, &mut reproject::Planar(out));
+        self.row_into(k, i, 0, &mut reproject::Planar(out));
     }
 
-    /// Row `i` of history frames `0..n` reprojected into the current view,
-    /// handed to `put(k, [r, g, b, a, valid])` for each `k` in order: the
-    /// same bits as row `i` of [`HistoryView::reproject`]`(k)`, but
-    /// computed for this row alone, nothing frame-sized written nor cached
-    /// (frames already reprojected are copied from their cache): frames
-    /// reached by chained motion vectors follow the chain for this row
-    /// only, in `scratch` ([`RowScratch::new`] for this view's width and
-    /// at least `n` frames; one per parallel task).
+    /// Row `i`, columns `cols`, of history frames `0..n` reprojected into
+    /// the current view, handed to `put(k, [r, g, b, a, valid])` (each
+    /// `cols.len()` long) for each `k` in order: the same bits as that run
+    /// of [`HistoryView::reproject`]`(k)`, but computed for it alone,
+    /// nothing frame-sized written nor cached (frames already reprojected
+    /// are copied from their cache): frames reached by chained motion
+    /// vectors follow the chain for this run only, in `scratch`
+    /// ([`RowScratch::new`] for at least `cols.len()` pixels and `n`
+    /// frames; one per parallel task).
     ///
     /// # Panics
-    /// When `n > self.len()` or `i` is not a row of the frame.
+    /// When `n > self.len()`, the run is not inside the frame or longer
+    /// than `scratch`'s.
     pub fn reproject_rows(
         &self,
         n: usize,
         i: usize,
+        cols: std::ops::Range<usize>,
         scratch: &mut RowScratch,
         mut put: impl FnMut(usize, [&[f32]; 5]),
     ) {
         assert!(n <= self.count, "{n} history frames of {}", self.count);
-        let w = self.current.width();
+        let (j0, w) = (cols.start, cols.len());
         let RowScratch { out, chains, done } = scratch;
         done.clear();
         done.resize(n.saturating_sub(1), false);
@@ -457,19 +460,20 @@ impl<'a> HistoryView<'a> {
                         continue;
                     }
                     let (before, rest) = chains.split_at_mut(hop - 1);
-                    let src = self.row_source(hop - 1, before);
-                    reproject::hop_chain_row(src, self.frame(hop - 1), i, &mut rest[0]);
+                    let src = self.row_source(hop - 1, before, j0);
+                    let cols = cols.clone();
+                    reproject::hop_chain_row(src, self.frame(hop - 1), i, cols, &mut rest[0]);
                     done[hop - 1] = true;
                 }
                 ops::simd(SpanJob {
-                    src: self.row_source(k, chains),
+                    src: self.row_source(k, chains, j0),
                     frame: self.frame(k),
                     i,
-                    j0: 0,
+                    j0,
                     out: rows,
                 });
             } else {
-                self.row_into(k, i, &mut reproject::Planar(rows));
+                self.row_into(k, i, j0, &mut reproject::Planar(rows));
             }
             put(k, [&o0[..w], &o1[..w], &o2[..w], &o3[..w], &ov[..w]]);
         }
@@ -477,13 +481,13 @@ impl<'a> HistoryView<'a> {
 
     /// The source of the last hop into history frame `k` (motion vectors)
     /// for [`HistoryView::reproject_rows`]: the current frame, the cached
-    /// chain, else the row of it in `rows[k - 1]`.
-    fn row_source<'s>(&'s self, k: usize, rows: &'s [reproject::Chain]) -> Source<'s> {
+    /// chain, else the run of it from column `j0` in `rows[k - 1]`.
+    fn row_source<'s>(&'s self, k: usize, rows: &'s [reproject::Chain], j0: usize) -> Source<'s> {
         match k {
             0 => self.source(0),
             _ => match self.chains[k - 1].get() {
                 Some(c) => Source::Chain(c),
-                None => Source::ChainRow(&rows[k - 1]),
+                None => Source::ChainRow(&rows[k - 1], j0),
             },
         }
     }
@@ -499,6 +503,7 @@ impl<'a> HistoryView<'a> {
         self.row_into(
             k,
             i,
+            0,
             &mut reproject::Interleaved {
                 rgba: &mut rgba[..w],
                 valid: &mut valid[..w],
@@ -506,18 +511,23 @@ impl<'a> HistoryView<'a> {
         );
     }
 
-    /// Row `i` of history frame `k` into `out` (one row long).
+    /// Row `i` of history frame `k`, columns `j0..j0 + out.len()`, into `out`.
     #[inline(always)]
-    fn row_into<O: reproject::RowOut>(&self, k: usize, i: usize, out: &mut O) {
+    fn row_into<O: reproject::RowOut>(&self, k: usize, i: usize, j0: usize, out: &mut O) {
         let (w, h) = (self.current.width(), self.current.height());
-        assert!(i < h, "row {i} outside the {w}x{h} frame");
-        let s = i * w..(i + 1) * w;
+        let n = out.len();
+        assert!(
+            i < h && j0 + n <= w,
+            "row {i}, columns {j0}..{} outside the {w}x{h} frame",
+            j0 + n
+        );
+        let s = i * w + j0..i * w + j0 + n;
         let copy = |r: &ReprojectedFrame, out: &mut O| {
             let (c, v) = (&r.color, &r.valid[s.clone()]);
             let p: [&[f32]; 4] = std::array::from_fn(|ch| &c.plane(ch)[s.clone()]);
             out.put_run(
                 0,
-                w,
+                n,
                 reproject::PixFn(|j| ([p[0][j], p[1][j], p[2][j], p[3][j]], v[j])),
             );
         };
@@ -527,22 +537,22 @@ impl<'a> HistoryView<'a> {
         let frame = self.frame(k);
         match self.mode(k) {
             ReprojectionMode::MotionVectors if k == 0 => {
-                reproject::hop_color_row(self.source(0), frame, i, 0, out)
+                reproject::hop_color_row(self.source(0), frame, i, j0, out)
             }
             ReprojectionMode::MotionVectors => copy(self.reproject(k), out),
             ReprojectionMode::DepthCamera => {
                 let (map, depth) = self.camera_map(k);
-                map.color_row(frame, depth, i, out)
+                map.color_row(frame, depth, i, j0, out)
             }
             ReprojectionMode::Identity => {
                 out.put_run(
                     0,
-                    w,
-                    reproject::PixFn(|j| (frame.color.pixel(i * w + j), 1.0)),
+                    n,
+                    reproject::PixFn(|j| (frame.color.pixel(i * w + j0 + j), 1.0)),
                 );
             }
             ReprojectionMode::Unavailable => {
-                out.put_run(0, w, reproject::PixFn(|_| ([0.0; 4], 0.0)));
+                out.put_run(0, n, reproject::PixFn(|_| ([0.0; 4], 0.0)));
             }
         }
     }

@@ -580,10 +580,11 @@ pub(crate) enum Source<'a> {
     },
     /// A chain into a history frame.
     Chain(&'a Chain),
-    /// One row of a chain into a history frame ([`Chain::row`], written by
-    /// [`hop_chain_row`]): the values of that row of the whole [`Chain`],
-    /// for the row it was computed for only.
-    ChainRow(&'a Chain),
+    /// A run of one row of a chain into a history frame ([`Chain::row`],
+    /// written by [`hop_chain_row`]) starting at the column given: the
+    /// values of that run of the whole [`Chain`], for the row and columns
+    /// it was computed for only.
+    ChainRow(&'a Chain, usize),
 }
 
 impl Source<'_> {
@@ -600,7 +601,10 @@ impl Source<'_> {
                 1.0,
             ),
             Source::Chain(c) => (c.x[p], c.y[p], c.depth[p], c.valid[p]),
-            Source::ChainRow(c) => (c.x[j], c.y[j], c.depth[j], c.valid[j]),
+            Source::ChainRow(c, o) => {
+                let q = j - o;
+                (c.x[q], c.y[q], c.depth[q], c.valid[q])
+            }
         }
     }
 
@@ -618,8 +622,8 @@ impl Source<'_> {
                     None => f.run(&CurrentAt { mx, my, d: (), w }),
                 }
             }
-            Source::Chain(c) => f.run(&ChainAt { c, w }),
-            Source::ChainRow(c) => f.run(&ChainAt { c, w: 0 }),
+            Source::Chain(c) => f.run(&ChainAt { c, w, first: 0 }),
+            Source::ChainRow(c, first) => f.run(&ChainAt { c, w: 0, first }),
         }
     }
 }
@@ -658,18 +662,20 @@ impl Positions for CurrentAt<'_, ()> {
     }
 }
 
-/// A chain into a history frame (`w` its row length; 0 for a chain of one
-/// row, [`Source::ChainRow`], read at the columns alone).
+/// A chain into a history frame (`w` its row length; 0 for a run of one
+/// row, [`Source::ChainRow`], read at the columns alone, less `first`).
 struct ChainAt<'a> {
     c: &'a Chain,
     w: usize,
+    first: usize,
 }
 
 impl Positions for ChainAt<'_> {
     #[inline(always)]
     fn fill(&self, i: usize, j0: usize, m: usize, b: &mut Batch) {
         let (c, w) = (self.c, self.w);
-        let p = i * w + j0..i * w + j0 + m;
+        let p0 = i * w + j0 - self.first;
+        let p = p0..p0 + m;
         b.x[..m].copy_from_slice(&c.x[p.clone()]);
         b.y[..m].copy_from_slice(&c.y[p.clone()]);
         b.d[..m].copy_from_slice(&c.depth[p.clone()]);
@@ -962,18 +968,26 @@ impl SourceUser<Chain> for ChainHop<'_> {
         };
         let Chain { x, y, depth, valid } = &mut chain;
         par_rows(self.pool, [x, y, depth, valid], w, |i, [rx, ry, rd, rv]| {
-            chain_row(at, frame, i, [rx, ry, rd, rv])
+            chain_row(at, frame, i, 0..w, [rx, ry, rd, rv])
         });
         chain
     }
 }
 
 /// Row `i` of [`hop_chain`] with positions from `at` into history frame
-/// `frame`: positions, expected depth and validity into `out` (each at
-/// least one row long).
+/// `frame`, columns `cols`: positions, expected depth and validity of
+/// column `j` into `out[..][j - cols.start]` (each at least `cols.len()`
+/// long). Every pixel's values depend on that pixel alone.
 #[inline(always)]
-fn chain_row<S: Positions>(at: &S, frame: &HistoryFrame, i: usize, out: [&mut [f32]; 4]) {
+fn chain_row<S: Positions>(
+    at: &S,
+    frame: &HistoryFrame,
+    i: usize,
+    cols: std::ops::Range<usize>,
+    out: [&mut [f32]; 4],
+) {
     let (w, h) = (frame.color.width, frame.color.height);
+    assert!(cols.end <= w, "columns {cols:?} outside a row of {w}");
     let motion = frame
         .motion
         .as_ref()
@@ -981,30 +995,31 @@ fn chain_row<S: Positions>(at: &S, frame: &HistoryFrame, i: usize, out: [&mut [f
     let (mx, my) = (motion.plane(0), motion.plane(1));
     let hdepth = frame.depth.as_deref();
     let [rx, ry, rd, rv] = out;
-    let (rx, ry, rd, rv) = (&mut rx[..w], &mut ry[..w], &mut rd[..w], &mut rv[..w]);
+    let n = cols.len();
+    let (rx, ry, rd, rv) = (&mut rx[..n], &mut ry[..n], &mut rd[..n], &mut rv[..n]);
     let mut b = Batch::new();
-    for j in 0..w {
-        let t = j % BATCH;
+    for q in 0..n {
+        let (t, j) = (q % BATCH, cols.start + q);
         if t == 0 {
-            b.fill(at, i, j, BATCH.min(w - j), w, h, hdepth);
+            b.fill(at, i, j, BATCH.min(cols.end - j), w, h, hdepth);
         }
         let (x, y, d, v) = (b.x[t], b.y[t], b.d[t], b.v[t]);
         if b.fast[t] {
             // The common case, bit-identical to the general one below.
             let (k, wt) = (b.idx[t] as usize, &b.weights(t));
-            rx[j] = x + bilerp(mx, k, w, wt);
-            ry[j] = y + bilerp(my, k, w, wt);
-            rd[j] = match hdepth {
+            rx[q] = x + bilerp(mx, k, w, wt);
+            ry[q] = y + bilerp(my, k, w, wt);
+            rd[q] = match hdepth {
                 Some(hd) => bilerp(hd, k, w, wt),
                 None => f32::NAN,
             };
-            rv[j] = v;
+            rv[q] = v;
             continue;
         }
-        rx[j] = 0.0;
-        ry[j] = 0.0;
-        rd[j] = f32::NAN;
-        rv[j] = 0.0;
+        rx[q] = 0.0;
+        ry[q] = 0.0;
+        rd[q] = f32::NAN;
+        rv[q] = 0.0;
         if v <= 0.0 {
             continue;
         }
@@ -1013,26 +1028,40 @@ fn chain_row<S: Positions>(at: &S, frame: &HistoryFrame, i: usize, out: [&mut [f
         if t.sum <= 0.0 {
             continue;
         }
-        rx[j] = x + t.sample(mx);
-        ry[j] = y + t.sample(my);
+        rx[q] = x + t.sample(mx);
+        ry[q] = y + t.sample(my);
         if let Some(hd) = hdepth {
-            rd[j] = t.sample(hd);
+            rd[q] = t.sample(hd);
         }
-        rv[j] = v * t.sum;
+        rv[q] = v * t.sum;
     }
 }
 
-/// Row `i` of [`hop_chain`] alone (the same bits) into `out`, a chain of
-/// one row ([`Chain::row`]), compiled for the CPU's widest vectors
-/// ([`crate::ops::simd`]). `frame.motion` must be present.
-pub(crate) fn hop_chain_row(src: Source<'_>, frame: &HistoryFrame, i: usize, out: &mut Chain) {
-    crate::ops::simd(ChainRowJob { src, frame, i, out });
+/// Row `i` of [`hop_chain`] alone (the same bits), columns `cols`, into
+/// `out`, a run of one row ([`Chain::row`] at least `cols.len()` long),
+/// compiled for the CPU's widest vectors ([`crate::ops::simd`]).
+/// `frame.motion` must be present.
+pub(crate) fn hop_chain_row(
+    src: Source<'_>,
+    frame: &HistoryFrame,
+    i: usize,
+    cols: std::ops::Range<usize>,
+    out: &mut Chain,
+) {
+    crate::ops::simd(ChainRowJob {
+        src,
+        frame,
+        i,
+        cols,
+        out,
+    });
 }
 
 struct ChainRowJob<'a, 'o> {
     src: Source<'a>,
     frame: &'a HistoryFrame,
     i: usize,
+    cols: std::ops::Range<usize>,
     out: &'o mut Chain,
 }
 
@@ -1041,14 +1070,29 @@ impl pulp::WithSimd for ChainRowJob<'_, '_> {
 
     #[inline(always)]
     fn with_simd<S: pulp::Simd>(self, _: S) {
-        let ChainRowJob { src, frame, i, out } = self;
-        src.with(frame.color.width, ChainRowUser { frame, i, out });
+        let ChainRowJob {
+            src,
+            frame,
+            i,
+            cols,
+            out,
+        } = self;
+        src.with(
+            frame.color.width,
+            ChainRowUser {
+                frame,
+                i,
+                cols,
+                out,
+            },
+        );
     }
 }
 
 struct ChainRowUser<'a, 'o> {
     frame: &'a HistoryFrame,
     i: usize,
+    cols: std::ops::Range<usize>,
     out: &'o mut Chain,
 }
 
@@ -1056,7 +1100,7 @@ impl SourceUser<()> for ChainRowUser<'_, '_> {
     #[inline(always)]
     fn run<S: Positions>(self, at: &S) {
         let Chain { x, y, depth, valid } = self.out;
-        chain_row(at, self.frame, self.i, [x, y, depth, valid]);
+        chain_row(at, self.frame, self.i, self.cols, [x, y, depth, valid]);
     }
 }
 
@@ -1169,21 +1213,23 @@ impl CameraMap {
         }
     }
 
-    /// Row `i` of [`reproject_camera`] (the same bits): RGBA into
-    /// `out[0..4]`, validity into `out[4]`, each one row long; `depth` is
-    /// the current frame's.
+    /// Row `i` of [`reproject_camera`] (the same bits), columns `j0..j0 +
+    /// out.len()`: RGBA and validity into `out`; `depth` is the current
+    /// frame's.
     pub(crate) fn color_row<O: RowOut>(
         &self,
         frame: &HistoryFrame,
         depth: &[f32],
         i: usize,
+        j0: usize,
         out: &mut O,
     ) {
         let w = self.wf as usize;
-        assert!(out.len() >= w, "an output shorter than the row");
+        let n = out.len();
+        assert!(j0 + n <= w, "columns {j0}..{} outside a row of {w}", j0 + n);
         let b = self.row(i);
-        let drow = &depth[i * w..(i + 1) * w];
-        out.put_run(0, w, PixFn(|j| self.color(frame, b, j, drow[j])));
+        let drow = &depth[i * w + j0..i * w + j0 + n];
+        out.put_run(0, n, PixFn(|t| self.color(frame, b, j0 + t, drow[t])));
     }
 
     /// [`CameraMap::color`] at pixel (row `i`, column `j`) alone; equal to
@@ -1218,7 +1264,7 @@ pub(crate) fn reproject_camera(
     let (mut color, mut valid) = outputs(w, h, rec);
     let [c0, c1, c2, c3] = planes4(&mut color);
     par_rows(pool, [c0, c1, c2, c3, &mut valid], w, |i, out| {
-        map.color_row(frame, depth, i, &mut Planar(out))
+        map.color_row(frame, depth, i, 0, &mut Planar(out))
     });
     ReprojectedFrame { color, valid }
 }

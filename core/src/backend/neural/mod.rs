@@ -555,9 +555,9 @@ enum Src<'a> {
     /// Planar depth as `1 / (1 + max(d, 0))`.
     Disparity(&'a [f32]),
     /// A channel of a reprojected history frame, computed row by row with
-    /// the others by [`history_rows`] (never through [`Src::row`]).
+    /// the others by [`history_window`] (never through [`Src::row`]).
     History,
-    /// Already written into the tile's input (by [`history_rows`]).
+    /// Already written into the tile's input (by [`history_window`]).
     Filled,
 }
 
@@ -584,7 +584,7 @@ impl Src<'_> {
                 .zip(&p[r])
                 .for_each(|(o, &d)| *o = 1.0 / (1.0 + d.max(0.0))),
             Src::History | Src::Filled => {
-                unreachable!("history channels are written by history_rows")
+                unreachable!("history channels are written by history_window")
             }
         }
     }
@@ -662,64 +662,85 @@ fn history_slots(channels: &[InputChannel], used: usize) -> Vec<(usize, usize, H
         .collect()
 }
 
-/// Writes the history input channels `slots` for every frame row: `rows[i][s]`
-/// (at least a row long) gets row `i` of slot `s`. The history frames are
-/// reprojected row by row ([`HistoryView::reproject_rows`], the same bits
-/// as whole reprojected frames) and encoded while the row is in cache, so
-/// no frame-sized reprojection is written and read back; rows in parallel
-/// on `pool` (each written by one task: the same bits on any thread count).
-fn history_rows(
+/// Writes the history input channels `slots` of one tile's input, their
+/// planes (window-sized) in `planes`, in the slots' order: each window row
+/// is reprojected over the frame columns the window covers
+/// ([`HistoryView::reproject_rows`], the same bits as whole reprojected
+/// frames) and encoded while it is in cache, so no frame-sized
+/// reprojection is written and read back; rows and columns outside the
+/// frame are mirror reflections, as [`fill_window`] writes them. Window
+/// rows in parallel on `pool` (each written by one task: the same bits on
+/// any thread count).
+#[allow(clippy::too_many_arguments)]
+fn history_window(
     view: &HistoryView<'_>,
     slots: &[(usize, usize, HistPart)],
     codec: &ColorCodec,
     premultiplied: bool,
-    rows: Vec<Vec<&mut [f32]>>,
+    planes: Vec<&mut [f32]>,
+    (width, height): (usize, usize),
+    tile: tiling::Tile,
     pool: &rayon::ThreadPool,
 ) {
     let Some(n) = slots.iter().map(|&(_, k, _)| k + 1).max() else {
         return;
     };
-    let w = view.current().width();
+    let (ww, wh) = tile.size;
+    let (ox, oy) = tile.origin;
+    // Window columns [c0, c1) lie inside the frame, at frame columns [c0 + ox, c1 + ox).
+    let c0 = (-ox).max(0) as usize;
+    let c1 = ((width as isize - ox).min(ww as isize)).max(c0 as isize) as usize;
+    let fx0 = (c0 as isize + ox) as usize;
+    let mut rows: Vec<_> = planes.into_iter().map(|p| p.chunks_exact_mut(ww)).collect();
+    let rows: Vec<Vec<&mut [f32]>> = (0..wh)
+        .map(|_| {
+            rows.iter_mut()
+                .map(|p| p.next().expect("wh rows"))
+                .collect()
+        })
+        .collect();
+    // Frame row `fy`, frame columns `fx..fx + len`, into window columns `at..at + len` of `dst`.
+    let write =
+        |scratch: &mut RowScratch, dst: &mut [&mut [f32]], fy, fx: usize, at: usize, len| {
+            view.reproject_rows(n, fy, fx..fx + len, scratch, |k, [r, g, b, a, v]| {
+                let rgb = [r, g, b];
+                for (d, &(_, sk, part)) in dst.iter_mut().zip(slots) {
+                    if sk != k {
+                        continue;
+                    }
+                    let d = &mut d[at..at + len];
+                    match part {
+                        HistPart::Color(c) if premultiplied => codec.encode_row(rgb[c], d),
+                        HistPart::Color(c) => codec.encode_straight_row(rgb[c], a, d),
+                        HistPart::Alpha => d.copy_from_slice(a),
+                        HistPart::Valid => d.copy_from_slice(v),
+                    }
+                }
+            });
+        };
     pool.install(|| {
         rows.into_par_iter()
             .enumerate()
             .with_min_len(4)
             .for_each_init(
-                || RowScratch::new(w, n),
-                |scratch, (i, mut dst)| {
-                    view.reproject_rows(n, i, scratch, |k, [r, g, b, a, v]| {
-                        let rgb = [r, g, b];
-                        for (d, &(_, sk, part)) in dst.iter_mut().zip(slots) {
-                            if sk != k {
-                                continue;
+                || RowScratch::new(c1 - c0, n),
+                |scratch, (wy, mut dst)| {
+                    let fy = reflect(oy + wy as isize, height);
+                    write(scratch, &mut dst, fy, fx0, c0, c1 - c0);
+                    for wx in (0..c0).chain(c1..ww) {
+                        let fx = reflect(ox + wx as isize, width);
+                        let inside = fx as isize - ox;
+                        if inside >= c0 as isize && inside < c1 as isize {
+                            for d in dst.iter_mut() {
+                                d[wx] = d[inside as usize];
                             }
-                            let d = &mut d[..w];
-                            match part {
-                                HistPart::Color(c) if premultiplied => codec.encode_row(rgb[c], d),
-                                HistPart::Color(c) => codec.encode_straight_row(rgb[c], a, d),
-                                HistPart::Alpha => d.copy_from_slice(a),
-                                HistPart::Valid => d.copy_from_slice(v),
-                            }
+                        } else {
+                            write(scratch, &mut dst, fy, fx, wx, 1);
                         }
-                    });
+                    }
                 },
             );
     });
-}
-
-/// Completes a `ww` x `wh` window plane whose rows `0..h`, columns `0..w`,
-/// hold a frame's (window origin at the frame's corner): the columns and
-/// rows beyond are mirror reflections, as [`fill_window`] writes them.
-fn reflect_pad(plane: &mut [f32], (w, h): (usize, usize), (ww, wh): (usize, usize)) {
-    for row in plane.chunks_exact_mut(ww).take(h) {
-        for wx in w..ww {
-            row[wx] = row[reflect(wx as isize, w)];
-        }
-    }
-    for wy in h..wh {
-        let fy = reflect(wy as isize, h);
-        plane.copy_within(fy * ww..(fy + 1) * ww, wy * ww);
-    }
 }
 
 /// Fills a tile's NCHW input tensor, one window row per task: frame rows and
@@ -792,44 +813,31 @@ impl Neural {
         let mut sources = channel_sources(&model.channels, frame, used, m.premultiplied);
         let slots = history_slots(&model.channels, used);
 
-        // With several tiles, computed channels (history channels included)
-        // are computed once for the whole frame, so the tiles' overlaps only copy.
+        // The history channels are written into each tile's input by
+        // `history_window`.
+        for &(slot, ..) in &slots {
+            sources[slot] = Src::Filled;
+        }
+        // With several tiles, the other computed channels are computed once
+        // for the whole frame, so the tiles' overlaps only copy.
         let computed: Buffer<'_>;
         if plan.len() > 1 {
-            let n = w * h;
-            let wanted: Vec<Src<'_>> = sources.iter().copied().filter(Src::computed).collect();
-            let mut planes = model.buffer((wanted.len() + slots.len()) * n);
-            let (own, hist) = planes.data.split_at_mut(wanted.len() * n);
-            stages.time("reproject", || {
-                let mut planes: Vec<_> = hist
-                    .chunks_exact_mut(n)
-                    .map(|p| p.chunks_exact_mut(w))
-                    .collect();
-                let rows = (0..h)
-                    .map(|_| {
-                        planes
-                            .iter_mut()
-                            .map(|p| p.next().expect("h rows"))
-                            .collect()
-                    })
-                    .collect();
-                history_rows(input.history, &slots, &codec, m.premultiplied, rows, pool);
-            });
-            stages.time("encode", || {
+            computed = stages.time("encode", || {
+                let wanted: Vec<Src<'_>> = sources.iter().copied().filter(Src::computed).collect();
+                let mut planes = model.buffer(wanted.len() * w * h);
                 pool.install(|| {
-                    own.par_chunks_mut(w)
+                    planes
+                        .data
+                        .par_chunks_mut(w)
                         .with_min_len(4)
                         .enumerate()
                         .for_each(|(r, row)| wanted[r / h].row(&codec, w, r % h, 0, row));
                 });
+                planes
             });
-            computed = planes;
-            let mut next = computed.data.chunks_exact(n);
+            let mut next = computed.data.chunks_exact(w * h);
             for s in sources.iter_mut().filter(|s| s.computed()) {
                 *s = Src::Copy(next.next().expect("one plane per computed channel"));
-            }
-            for &(slot, ..) in &slots {
-                sources[slot] = Src::Copy(next.next().expect("one plane per history channel"));
             }
         }
 
@@ -876,29 +884,25 @@ impl Neural {
             None => Image::try_zeros(w, h, 4)?,
         };
         for (t, tile) in plan.tiles().enumerate() {
-            if n_tiles == 1 && !slots.is_empty() {
-                // One tile, its window at the frame's corner: the history
-                // channels are written straight into the tile's input.
+            if !slots.is_empty() {
                 stages.time("reproject", || {
                     let mut planes: Vec<Option<&mut [f32]>> =
                         tensor.data.chunks_exact_mut(np).map(Some).collect();
-                    let mut mine: Vec<&mut [f32]> = slots
+                    let mine: Vec<&mut [f32]> = slots
                         .iter()
                         .map(|&(slot, ..)| planes[slot].take().expect("one slot per channel"))
                         .collect();
-                    let mut rows: Vec<_> =
-                        mine.iter_mut().map(|p| p.chunks_exact_mut(ww)).collect();
-                    let rows = (0..h)
-                        .map(|_| rows.iter_mut().map(|p| p.next().expect("h rows")).collect())
-                        .collect();
-                    history_rows(input.history, &slots, &codec, m.premultiplied, rows, pool);
-                    for p in mine {
-                        reflect_pad(p, (w, h), (ww, wh));
-                    }
+                    history_window(
+                        input.history,
+                        &slots,
+                        &codec,
+                        m.premultiplied,
+                        mine,
+                        (w, h),
+                        tile,
+                        pool,
+                    );
                 });
-                for &(slot, ..) in &slots {
-                    sources[slot] = Src::Filled;
-                }
             }
             stages.time("tile_input", || {
                 fill_window(&mut tensor.data, &sources, &codec, (w, h), tile, pool)
