@@ -820,6 +820,29 @@ mod tests {
                             assert_eq!(got, wc, "{name}: k {k} span color at ({}, {i})", j0 + t);
                             assert_eq!(run[4 * n + t].to_bits(), want.valid[p].to_bits());
                         }
+                        // The same run of every frame at once, as the
+                        // neural backend takes it (chains followed for the
+                        // run only, or from the cache where `k` is).
+                        let mut scratch = RowScratch::new(n, full.len());
+                        let mut seen = 0;
+                        view.reproject_rows(full.len(), i, j0..j0 + n, &mut scratch, |kk, got| {
+                            assert_eq!(kk, seen, "{name}: frames in order");
+                            seen += 1;
+                            let want = full.reproject(kk);
+                            for t in 0..n {
+                                let p = i * w + j0 + t;
+                                for c in 0..4 {
+                                    assert_eq!(
+                                        got[c][t].to_bits(),
+                                        want.color.plane(c)[p].to_bits(),
+                                        "{name}: k {k}: frame {kk} run color at ({}, {i})",
+                                        j0 + t
+                                    );
+                                }
+                                assert_eq!(got[4][t].to_bits(), want.valid[p].to_bits());
+                            }
+                        });
+                        assert_eq!(seen, full.len(), "{name}");
                         for j in 0..w {
                             let p = i * w + j;
                             let wc = [0, 1, 2, 3].map(|c| want.color.plane(c)[p].to_bits());
