@@ -258,8 +258,10 @@ impl NeuralModel {
 
     /// Estimated working memory in bytes of a frame run with `plan`: the
     /// frame's output (4 planes), with several tiles the frame-sized planes of
-    /// the computed input channels (encoded color and history, disparity),
-    /// plus one tile's network working set.
+    /// the computed input channels (encoded color and history, disparity;
+    /// the history channels are now written into each tile's input instead,
+    /// an upper bound kept so that tile plans stay as they were), plus one
+    /// tile's network working set.
     pub fn working_bytes(&self, plan: &TilePlan) -> usize {
         let computed = if plan.len() > 1 {
             self.channels
@@ -1093,7 +1095,10 @@ impl Backend for Neural {
 
     fn working_planes(&self, params: &Params) -> usize {
         // The reprojected history frames the model reads (RGBA and validity,
-        // frame-sized); the tiles fit what is left of the limit.
+        // frame-sized); the tiles fit what is left of the limit. The history
+        // channels are now reprojected row by row into each tile's input
+        // (`history_window`), so this is an upper bound, kept so that the
+        // tile plans under a memory limit stay as they were.
         5 * self
             .model
             .manifest
