@@ -829,17 +829,17 @@ mod tests {
                             assert_eq!(kk, seen, "{name}: frames in order");
                             seen += 1;
                             let want = full.reproject(kk);
-                            for t in 0..n {
-                                let p = i * w + j0 + t;
-                                for c in 0..4 {
-                                    assert_eq!(
-                                        got[c][t].to_bits(),
-                                        want.color.plane(c)[p].to_bits(),
-                                        "{name}: k {k}: frame {kk} run color at ({}, {i})",
-                                        j0 + t
-                                    );
-                                }
-                                assert_eq!(got[4][t].to_bits(), want.valid[p].to_bits());
+                            let p0 = i * w + j0;
+                            let planes = [0, 1, 2, 3].map(|c| want.color.plane(c));
+                            let planes = planes.iter().copied().chain([&want.valid[..]]);
+                            let bits =
+                                |s: &[f32]| s.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+                            for (c, (g, p)) in got.iter().zip(planes).enumerate() {
+                                assert_eq!(
+                                    bits(&g[..n]),
+                                    bits(&p[p0..p0 + n]),
+                                    "{name}: k {k}: frame {kk}, channel {c} of the run in row {i}"
+                                );
                             }
                         });
                         assert_eq!(seen, full.len(), "{name}");
