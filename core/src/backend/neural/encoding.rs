@@ -34,55 +34,18 @@ pub struct ColorCodec {
 /// (`exp(sum(w * ln(1e-4 + L)) / sum(w))`, L of the unpremultiplied color),
 /// or `None` when nothing is covered. Deterministic (fixed summation order).
 pub fn log_average_luminance(color: &Image, coverage: Option<&[f32]>) -> Option<f64> {
-    log_average_luminance_on(color, coverage, None)
-}
-
-/// Rows per block of [`log_average_luminance_on`].
-const LOG_AVERAGE_ROWS: usize = 32;
-
-/// [`log_average_luminance`] with the logarithms computed in parallel on
-/// `pool` (blocks of rows, each pixel's term on its own), then summed one
-/// after the other in pixel order as the serial loop does: the same bits
-/// on any thread count. A pixel left out (coverage below
-/// [`COVERAGE_EPSILON`]) adds nothing to either sum.
-pub fn log_average_luminance_on(
-    color: &Image,
-    coverage: Option<&[f32]>,
-    pool: Option<&rayon::ThreadPool>,
-) -> Option<f64> {
-    use rayon::prelude::*;
     let n = color.len();
-    let w = color.width.max(1);
     let (r, g, b) = (color.plane(0), color.plane(1), color.plane(2));
-    let term = |i: usize| -> f64 {
-        let a = coverage.map_or(1.0, |c| c[i]);
-        let l = (LUMA[0] * r[i] as f64 + LUMA[1] * g[i] as f64 + LUMA[2] * b[i] as f64) / a as f64;
-        a as f64 * (LUMINANCE_FLOOR + l).ln()
-    };
     let mut sum = 0.0f64;
     let mut weight = 0.0f64;
-    let block = LOG_AVERAGE_ROWS * w;
-    let mut terms = vec![0.0f64; block.min(n)];
-    for start in (0..n).step_by(block) {
-        let len = block.min(n - start);
-        let terms = &mut terms[..len];
-        let fill = |(q, t): (usize, &mut [f64])| {
-            for (o, v) in t.iter_mut().enumerate() {
-                *v = term(start + q * w + o);
-            }
-        };
-        match pool {
-            Some(p) => p.install(|| terms.par_chunks_mut(w).enumerate().for_each(fill)),
-            None => terms.chunks_mut(w).enumerate().for_each(fill),
+    for i in 0..n {
+        let a = coverage.map_or(1.0, |c| c[i]);
+        if a < COVERAGE_EPSILON {
+            continue;
         }
-        for (o, &t) in terms.iter().enumerate() {
-            let a = coverage.map_or(1.0, |c| c[start + o]);
-            if a < COVERAGE_EPSILON {
-                continue;
-            }
-            sum += t;
-            weight += a as f64;
-        }
+        let l = (LUMA[0] * r[i] as f64 + LUMA[1] * g[i] as f64 + LUMA[2] * b[i] as f64) / a as f64;
+        sum += a as f64 * (LUMINANCE_FLOOR + l).ln();
+        weight += a as f64;
     }
     (weight > 0.0).then(|| (sum / weight).exp())
 }
@@ -91,17 +54,6 @@ impl ColorCodec {
     /// The codec for one frame: with `exposure: frame`, `s = key / log-average
     /// luminance` of the whole frame (1 when nothing is covered), clamped to 1e-6..=1e6.
     pub fn for_frame(encoding: &Encoding, color: &Image, coverage: Option<&[f32]>) -> ColorCodec {
-        Self::for_frame_on(encoding, color, coverage, None)
-    }
-
-    /// [`ColorCodec::for_frame`] with the log-average computed on `pool`
-    /// ([`log_average_luminance_on`]: the same bits).
-    pub fn for_frame_on(
-        encoding: &Encoding,
-        color: &Image,
-        coverage: Option<&[f32]>,
-        pool: Option<&rayon::ThreadPool>,
-    ) -> ColorCodec {
         let (key, exposure, log_range) = match *encoding {
             Encoding::Linear { key, exposure } => (key, exposure, None),
             Encoding::Log {
@@ -112,7 +64,7 @@ impl ColorCodec {
         };
         let scale = match exposure {
             Exposure::None => 1.0,
-            Exposure::Frame => match log_average_luminance_on(color, coverage, pool) {
+            Exposure::Frame => match log_average_luminance(color, coverage) {
                 Some(avg) => (key as f64 / avg).clamp(1e-6, 1e6) as f32,
                 None => 1.0,
             },
