@@ -929,12 +929,7 @@ impl Neural {
         }
         if n_tiles > 1 {
             stages.time("finish", || {
-                finish(
-                    &mut out,
-                    frame.coverage.as_deref(),
-                    input.params.fill_holes,
-                    pool,
-                )
+                finish(&mut out, frame.coverage.as_deref(), input.params.fill_holes)
             });
         }
         Ok(out)
@@ -1059,37 +1054,22 @@ fn blend_tile(
 }
 
 /// Normalizes the accumulators and sets the output coverage: 1 when
-/// `fill_holes`, else the input coverage (RGB premultiplied by it). Rows in
-/// parallel on `pool` (each pixel on its own: the same bits on any thread
-/// count).
-fn finish(out: &mut Image, coverage: Option<&[f32]>, fill_holes: bool, pool: &rayon::ThreadPool) {
-    let (n, w) = (out.len(), out.width.max(1));
+/// `fill_holes`, else the input coverage (RGB premultiplied by it).
+fn finish(out: &mut Image, coverage: Option<&[f32]>, fill_holes: bool) {
+    let n = out.len();
     let (rgb, a) = out.data.split_at_mut(3 * n);
-    let (r, rest) = rgb.split_at_mut(n);
-    let (g, b) = rest.split_at_mut(n);
-    let rows = r
-        .par_chunks_mut(w)
-        .zip(g.par_chunks_mut(w))
-        .zip(b.par_chunks_mut(w))
-        .zip(a.par_chunks_mut(w));
-    pool.install(|| {
-        rows.enumerate()
-            .with_min_len(4)
-            .for_each(|(y, (((r, g), b), a))| {
-                for x in 0..a.len() {
-                    let wsum = a[x];
-                    let alpha = match (fill_holes, coverage) {
-                        (false, Some(c)) => c[y * w + x],
-                        _ => 1.0,
-                    };
-                    let k = if wsum > 0.0 { alpha / wsum } else { 0.0 };
-                    r[x] *= k;
-                    g[x] *= k;
-                    b[x] *= k;
-                    a[x] = alpha;
-                }
-            });
-    });
+    for i in 0..n {
+        let wsum = a[i];
+        let alpha = match (fill_holes, coverage) {
+            (false, Some(c)) => c[i],
+            _ => 1.0,
+        };
+        let k = if wsum > 0.0 { alpha / wsum } else { 0.0 };
+        for c in 0..3 {
+            rgb[c * n + i] *= k;
+        }
+        a[i] = alpha;
+    }
 }
 
 impl Backend for Neural {
