@@ -236,9 +236,14 @@ class Enhancer(nn.Module):
         nn.init.zeros_(self.head.weight)
         nn.init.zeros_(self.head.bias)
 
+    def _folds_history_out(self) -> bool:
+        """Whether the correction drops the history channels in its stem's
+        weight (free in the graph) rather than by zeroing its input."""
+        return not self.cfg.correction_history and self.cfg.unshuffle > 1 and self.stem is not None
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         seen = x
-        if not self.cfg.correction_history and x.shape[1] > 5:
+        if not self.cfg.correction_history and x.shape[1] > 5 and not self._folds_history_out():
             seen = torch.cat([x[:, :5], torch.zeros_like(x[:, 5:])], 1)
         if self.cfg.prior:
             p = self.prior(x)
@@ -255,8 +260,12 @@ class Enhancer(nn.Module):
         gate = None
         if self.cfg.prior_gate:
             covered = (cov >= max(self.cfg.prior_floor, 0.5)).to(cov.dtype)
+            # The share over the (2r+1)^2 square, clipped at the edges, as a row
+            # then a column average (a clipped square is a rectangle): 2 (2r+1)
+            # additions per pixel instead of (2r+1)^2.
             r = GATE_RADIUS
-            share = F.avg_pool2d(covered, 2 * r + 1, stride=1, padding=r, count_include_pad=False)
+            share = F.avg_pool2d(covered, (1, 2 * r + 1), stride=1, padding=(0, r), count_include_pad=False)
+            share = F.avg_pool2d(share, (2 * r + 1, 1), stride=1, padding=(r, 0), count_include_pad=False)
             gate = history_weight(share)
         if self.cfg.prior_fill == "chain":
             # Newest history first, each under what is still missing.
@@ -298,6 +307,13 @@ class Enhancer(nn.Module):
             # as (58 of 152 ms of ONNX Runtime's time at 1024x576 on 2 threads).
             stem = self.stem[0]
             weight = stem.weight.reshape(stem.out_channels, -1, r, r)
+            if self._folds_history_out():
+                # The history channels (5 .. 5 + 4K) weigh nothing: the same as
+                # zeroing them in the input, without a frame-sized copy in the
+                # graph (the product with this constant mask is folded away).
+                keep = torch.ones(1, weight.shape[1], 1, 1, dtype=weight.dtype, device=weight.device)
+                keep[:, 5 : 5 + 4 * self.cfg.context_frames] = 0
+                weight = weight * keep
             h = self.stem[1](F.conv2d(x, weight, stem.bias, stride=r))
         else:
             h = F.pixel_unshuffle(x, r) if r > 1 else x
