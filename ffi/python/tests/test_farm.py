@@ -72,6 +72,18 @@ def cli_chunks(pattern: str, first: int, last: int, out: Path) -> dict[int, byte
     return {f: Path(farm.frame_path(o, f)).read_bytes() for f in range(first, last + 1)}
 
 
+def assert_outputs_are_the_cli_chunks(shots: dict, out: Path, tmp_path: Path) -> None:
+    """Each shot's output folder holds exactly its frames, with the bytes of
+    the CLI's chunked run (no temporary left, nothing else)."""
+    for name, (pattern, first, last) in shots.items():
+        files = sorted(p.name for p in (out / name).iterdir())
+        assert files == [f"shot.{f:04d}.exr" for f in range(first, last + 1)], files
+        want = cli_chunks(pattern, first, last, tmp_path / f"cli-{name}")
+        for f in range(first, last + 1):
+            got = Path(farm.frame_path(str(out / name / "shot.####.exr"), f)).read_bytes()
+            assert got == want[f], f"shot {name} frame {f} differs from harmonize run's chunk"
+
+
 def test_two_shots_on_a_local_cluster_with_a_killed_worker(shots: dict, tmp_path: Path) -> None:
     out = tmp_path / "farm"
     job = [farm.shot_from_arg(f"{n}={p}", out, None) for n, (p, _, _) in shots.items()]
@@ -108,13 +120,7 @@ def test_two_shots_on_a_local_cluster_with_a_killed_worker(shots: dict, tmp_path
         assert e["resets"] == ([{"frame": e["frames"][0] - min(PREROLL, e["frames"][0] - shots[e["shot"]][1]), "reason": "first_frame"}])
     # Outputs: exactly the chunks' frames, complete, no temporary left, and
     # the bytes of the CLI's chunked run.
-    for name, (pattern, first, last) in shots.items():
-        files = sorted(p.name for p in (out / name).iterdir())
-        assert files == [f"shot.{f:04d}.exr" for f in range(first, last + 1)], files
-        want = cli_chunks(pattern, first, last, tmp_path / f"cli-{name}")
-        for f in range(first, last + 1):
-            got = Path(farm.frame_path(str(out / name / "shot.####.exr"), f)).read_bytes()
-            assert got == want[f], f"shot {name} frame {f} differs from harmonize run's chunk"
+    assert_outputs_are_the_cli_chunks(shots, out, tmp_path)
     assert result["stale_temporaries_removed"] >= 0
 
 
@@ -191,15 +197,10 @@ def test_two_shots_on_a_separately_started_scheduler(shots: dict, tmp_path: Path
     assert summary["frames_written"] == sum(last - first + 1 for _, first, last in shots.values())
     # Every output written once (one chunk lists it), nothing else in the
     # folders, and the bytes of the CLI's chunked run.
-    for name, (pattern, first, last) in shots.items():
+    for name, (_, first, last) in shots.items():
         listed = sorted(o for e in summary["chunks"] if e["shot"] == name for o in e["outputs"])
         assert listed == [farm.frame_path(str(out / name / "shot.####.exr"), f) for f in range(first, last + 1)]
-        files = sorted(p.name for p in (out / name).iterdir())
-        assert files == [f"shot.{f:04d}.exr" for f in range(first, last + 1)], files
-        want = cli_chunks(pattern, first, last, tmp_path / f"cli-{name}")
-        for f in range(first, last + 1):
-            got = Path(farm.frame_path(str(out / name / "shot.####.exr"), f)).read_bytes()
-            assert got == want[f], f"shot {name} frame {f} differs from harmonize run's chunk"
+    assert_outputs_are_the_cli_chunks(shots, out, tmp_path)
 
 
 def test_the_command_line(shots: dict, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
