@@ -501,6 +501,26 @@ pub fn push_pull_sqrt(img: &mut Image, window: Rect, holes: Option<&[(u32, u32)]
     if window.is_empty() {
         return;
     }
+    // Few holes in the window: the lazy pyramid reads the square roots where
+    // it needs them (as `push_pull` does; the same bits as the copy below).
+    let listed;
+    let list = match holes {
+        Some(l) => l,
+        None => {
+            listed = window_holes(img, window);
+            &listed
+        }
+    };
+    if list.len() * SPARSE_RATIO < window.width() * window.height() {
+        push_pull_sparse(img, window, list, true);
+    } else {
+        push_pull_sqrt_copy(img, window, list);
+    }
+}
+
+/// [`push_pull_sqrt`] on an encoded copy of the window (the dense pyramid
+/// when the holes are a large part of it).
+fn push_pull_sqrt_copy(img: &mut Image, window: Rect, holes: &[(u32, u32)]) {
     let w = img.width;
     let (ww, wh) = (window.width(), window.height());
     let mut enc = Image::zeros(ww, wh, 4);
@@ -525,17 +545,11 @@ pub fn push_pull_sqrt(img: &mut Image, window: Rect, holes: Option<&[(u32, u32)]
             }
         });
     }
-    let full = Rect::full(ww, wh);
-    match holes {
-        Some(list) => {
-            let local: Vec<(u32, u32)> = list
-                .iter()
-                .map(|&(x, y)| (x - window.x0 as u32, y - window.y0 as u32))
-                .collect();
-            push_pull_at(&mut enc, full, &local);
-        }
-        None => push_pull(&mut enc, full),
-    }
+    let local: Vec<(u32, u32)> = holes
+        .iter()
+        .map(|&(x, y)| (x - window.x0 as u32, y - window.y0 as u32))
+        .collect();
+    push_pull_at(&mut enc, Rect::full(ww, wh), &local);
     par_bands_mut(img, window.y0, window.y1).for_each(|(y0, [r, g, b, a])| {
         for dy in 0..a.len() / w {
             let src = (y0 - window.y0 + dy) * ww;
@@ -597,7 +611,7 @@ pub fn push_pull_at(img: &mut Image, window: Rect, holes: &[(u32, u32)]) {
 /// sparse or dense by their share of the window.
 fn push_pull_in(img: &mut Image, window: Rect, holes: &[(u32, u32)]) {
     if holes.len() * SPARSE_RATIO < window.width() * window.height() {
-        push_pull_sparse(img, window, holes);
+        push_pull_sparse(img, window, holes, false);
     } else {
         push_pull_dense(img, window);
     }
@@ -641,7 +655,7 @@ fn window_holes(img: &Image, window: Rect) -> Vec<(u32, u32)> {
 /// [`push_pull`] by the sparse evaluation ([`sparse::Pyramid`]) at `holes`
 /// (all of the window's, in the image's coordinates, [`window_holes`]);
 /// the holes are split among the pool's threads, each with its own memo.
-fn push_pull_sparse(img: &mut Image, window: Rect, holes: &[(u32, u32)]) {
+fn push_pull_sparse(img: &mut Image, window: Rect, holes: &[(u32, u32)], sqrt: bool) {
     let parts = rayon::current_num_threads().max(1);
     let w = img.width;
     let fills: Vec<[f32; 3]> = {
@@ -650,7 +664,7 @@ fn push_pull_sparse(img: &mut Image, window: Rect, holes: &[(u32, u32)]) {
         holes
             .par_chunks(holes.len().div_ceil(parts).max(1))
             .flat_map_iter(|part| {
-                let mut pyramid = sparse::Pyramid::new(view);
+                let mut pyramid = sparse::Pyramid::new(view, sqrt);
                 part.iter()
                     .map(|&(x, y)| {
                         let (x, y) = (x as usize, y as usize);
@@ -663,6 +677,7 @@ fn push_pull_sparse(img: &mut Image, window: Rect, holes: &[(u32, u32)]) {
     let [r, g, b, a] = rgba_planes_mut(img);
     for (&(x, y), f) in holes.iter().zip(&fills) {
         let o = y as usize * w + x as usize;
+        let f = if sqrt { f.map(|v| v * v) } else { *f };
         (r[o], g[o], b[o], a[o]) = (f[0], f[1], f[2], 1.0);
     }
 }
@@ -806,7 +821,7 @@ mod tests {
                     let mut dense = img.clone();
                     push_pull_dense(&mut dense, window);
                     let mut sparse = img.clone();
-                    push_pull_sparse(&mut sparse, window, &holes);
+                    push_pull_sparse(&mut sparse, window, &holes, false);
                     for (k, (a, b)) in dense.data.iter().zip(&sparse.data).enumerate() {
                         assert_eq!(
                             a.to_bits(),
@@ -1161,5 +1176,36 @@ mod tests {
             sq.data[4],
             lin.data[4]
         );
+    }
+
+    #[test]
+    fn the_lazy_square_root_pyramid_equals_the_encoded_copy_bit_for_bit() {
+        for (i, &(w, h)) in [(5, 3), (37, 23), (200, 151), (333, 97)].iter().enumerate() {
+            for density in [2, 30, 400] {
+                let img = holey(w, h, i as u64 + 7, density);
+                for window in [
+                    Rect::full(w, h),
+                    Rect {
+                        x0: w / 5,
+                        y0: h / 4,
+                        x1: w - w / 6,
+                        y1: h - h / 7,
+                    },
+                ] {
+                    let holes = window_holes(&img, window);
+                    let mut lazy = img.clone();
+                    push_pull_sparse(&mut lazy, window, &holes, true);
+                    let mut copy = img.clone();
+                    push_pull_sqrt_copy(&mut copy, window, &holes);
+                    assert!(
+                        lazy.data
+                            .iter()
+                            .zip(&copy.data)
+                            .all(|(a, b)| a.to_bits() == b.to_bits()),
+                        "{w}x{h} density {density} window {window:?}"
+                    );
+                }
+            }
+        }
     }
 }

@@ -40,6 +40,9 @@ struct Level {
 /// The lazily evaluated pyramid over a window (level 0, read-only).
 pub(super) struct Pyramid<'a> {
     base: View<'a>,
+    /// Level 0 read as `sqrt(A * C)` (the square root of the straight
+    /// color, premultiplied: `super::push_pull_sqrt`) instead of `C`.
+    sqrt: bool,
     /// Levels 1 and up (`levels[l - 1]`), the last 1x1.
     levels: Vec<Level>,
     tiles: Vec<Tile>,
@@ -58,7 +61,7 @@ fn tap(x: usize, coarse: usize) -> (usize, usize, f32) {
 
 impl<'a> Pyramid<'a> {
     /// The pyramid of `base` (its levels down to 1x1; nothing computed yet).
-    pub(super) fn new(base: View<'a>) -> Pyramid<'a> {
+    pub(super) fn new(base: View<'a>, sqrt: bool) -> Pyramid<'a> {
         let (mut w, mut h) = (base.width, base.height);
         let mut levels = Vec::new();
         // As the dense pyramid: at least level 1, then up to 1x1.
@@ -77,6 +80,7 @@ impl<'a> Pyramid<'a> {
         }
         Pyramid {
             base,
+            sqrt,
             levels,
             tiles: Vec::new(),
         }
@@ -110,7 +114,7 @@ impl<'a> Pyramid<'a> {
     /// Pixel (`x`, `y`) of level `l` as pulled (RGB premultiplied, weight).
     fn pulled(&mut self, l: usize, x: usize, y: usize) -> [f32; 4] {
         if l == 0 {
-            return std::array::from_fn(|c| self.base.row(c, y)[x]);
+            return self.base_at(x, y);
         }
         let (s, k) = self.slot(l, x, y);
         if self.tiles[s].state[k] & PULLED != 0 {
@@ -196,6 +200,25 @@ impl<'a> Pyramid<'a> {
     pub(super) fn fill(&mut self, x: usize, y: usize, cov: f32) -> [f32; 3] {
         let f = self.up(0, x, y);
         let m = 1.0 - cov;
-        std::array::from_fn(|c| self.base.row(c, y)[x] + m * f[c])
+        let b = self.base_at(x, y);
+        std::array::from_fn(|c| b[c] + m * f[c])
+    }
+
+    /// Level 0 at (`x`, `y`): RGB (or its square root, premultiplied, as
+    /// `super::push_pull_sqrt` encodes it) and the weight.
+    #[inline]
+    fn base_at(&self, x: usize, y: usize) -> [f32; 4] {
+        let v: [f32; 4] = std::array::from_fn(|c| self.base.row(c, y)[x]);
+        if self.sqrt {
+            let a = v[3].max(0.0);
+            [
+                (a * v[0].max(0.0)).sqrt(),
+                (a * v[1].max(0.0)).sqrt(),
+                (a * v[2].max(0.0)).sqrt(),
+                v[3],
+            ]
+        } else {
+            v
+        }
     }
 }
