@@ -754,6 +754,19 @@ mod tests {
         img
     }
 
+    /// The windows the pyramid tests fill: the whole image and an inner part.
+    fn windows(w: usize, h: usize) -> [Rect; 2] {
+        [
+            Rect::full(w, h),
+            Rect {
+                x0: w / 5,
+                y0: h / 4,
+                x1: w - w / 7,
+                y1: h - h / 6,
+            },
+        ]
+    }
+
     /// A frame with holes of every kind (single pixels, thin cracks, blobs,
     /// soft borders, a region with no data at all), from a seeded generator.
     fn holey(w: usize, h: usize, seed: u64, density: u64) -> Image {
@@ -807,16 +820,7 @@ mod tests {
         for (i, &(w, h)) in sizes.iter().enumerate() {
             for density in [0, 2, 30, 400] {
                 let img = holey(w, h, i as u64 + 1, density);
-                let windows = [
-                    Rect::full(w, h),
-                    Rect {
-                        x0: w / 5,
-                        y0: h / 4,
-                        x1: w - w / 7,
-                        y1: h - h / 6,
-                    },
-                ];
-                for window in windows.into_iter().filter(|r| !r.is_empty()) {
+                for window in windows(w, h).into_iter().filter(|r| !r.is_empty()) {
                     let holes = window_holes(&img, window);
                     let mut dense = img.clone();
                     push_pull_dense(&mut dense, window);
@@ -1183,15 +1187,7 @@ mod tests {
         for (i, &(w, h)) in [(5, 3), (37, 23), (200, 151), (333, 97)].iter().enumerate() {
             for density in [2, 30, 400] {
                 let img = holey(w, h, i as u64 + 7, density);
-                for window in [
-                    Rect::full(w, h),
-                    Rect {
-                        x0: w / 5,
-                        y0: h / 4,
-                        x1: w - w / 6,
-                        y1: h - h / 7,
-                    },
-                ] {
+                for window in windows(w, h).into_iter().filter(|r| !r.is_empty()) {
                     let holes = window_holes(&img, window);
                     let mut lazy = img.clone();
                     push_pull_sparse(&mut lazy, window, &holes, true);
