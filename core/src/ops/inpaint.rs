@@ -494,9 +494,10 @@ fn push_level(level: &mut Level, coarser: &Level) {
 /// across a hole lets its bright side dominate; out of domain the fill in
 /// square roots was closer to the truth (`scripts/quality.sh`, classical:
 /// reconstruction holes +0.25 dB outdoors and +0.23 dB indoors; the cube
-/// root gave 0.04-0.07 dB more at several times the cost, and a log a little
-/// more again, but depends on the scene's exposure). The square root, like
-/// any power, commutes with exposure.
+/// root gave 0.04-0.07 dB more but is a library call per sample where the
+/// square root is one instruction, and a log a little more again but
+/// depends on the scene's exposure). The square root, like any power,
+/// commutes with exposure.
 pub fn push_pull_sqrt(img: &mut Image, window: Rect, holes: Option<&[(u32, u32)]>) {
     if window.is_empty() {
         return;
