@@ -534,40 +534,35 @@ fn push_pull_sqrt_copy(img: &mut Image, window: Rect, holes: &[(u32, u32)]) {
                 let o = dy * ww..(dy + 1) * ww;
                 let alpha = &src[3][s.clone()];
                 a[o.clone()].copy_from_slice(alpha);
-                // A * sqrt(C / A) = sqrt(A) * sqrt(C) (0 where A is 0: C is too).
                 for (dst, c) in [&mut r[o.clone()], &mut g[o.clone()], &mut b[o.clone()]]
                     .into_iter()
                     .zip(&src[..3])
                 {
                     for ((d, &v), &al) in dst.iter_mut().zip(&c[s.clone()]).zip(alpha) {
-                        *d = (al.max(0.0) * v.max(0.0)).sqrt();
+                        *d = sqrt_encode(v, al);
                     }
                 }
             }
         });
     }
-    let local: Vec<(u32, u32)> = holes
-        .iter()
-        .map(|&(x, y)| (x - window.x0 as u32, y - window.y0 as u32))
-        .collect();
-    push_pull_at(&mut enc, Rect::full(ww, wh), &local);
-    par_bands_mut(img, window.y0, window.y1).for_each(|(y0, [r, g, b, a])| {
-        for dy in 0..a.len() / w {
-            let src = (y0 - window.y0 + dy) * ww;
-            for x in window.x0..window.x1 {
-                let i = dy * w + x;
-                if a[i] >= FULL {
-                    continue;
-                }
-                let o = src + x - window.x0;
-                let sq = |v: f32| v * v;
-                r[i] = sq(enc.plane(0)[o]);
-                g[i] = sq(enc.plane(1)[o]);
-                b[i] = sq(enc.plane(2)[o]);
-                a[i] = 1.0;
-            }
-        }
-    });
+    // The holes are a large part of the window here: the whole pyramid.
+    push_pull_dense(&mut enc, Rect::full(ww, wh));
+    let [r, g, b, a] = rgba_planes_mut(img);
+    for &(x, y) in holes {
+        let (x, y) = (x as usize, y as usize);
+        let (i, o) = (y * w + x, (y - window.y0) * ww + x - window.x0);
+        let sq = |c: usize| enc.plane(c)[o] * enc.plane(c)[o];
+        (r[i], g[i], b[i], a[i]) = (sq(0), sq(1), sq(2), 1.0);
+    }
+}
+
+/// How [`push_pull_sqrt`] encodes a premultiplied sample `c` of coverage
+/// `a`: `A * sqrt(C / A) = sqrt(A * C)` (0 where A is 0: C is too). The
+/// sparse and dense pyramids both read level 0 through it, so they agree
+/// bit for bit.
+#[inline(always)]
+pub(super) fn sqrt_encode(c: f32, a: f32) -> f32 {
+    (a.max(0.0) * c.max(0.0)).sqrt()
 }
 
 /// The sparse evaluation ([`sparse`]) is taken when the window holds more

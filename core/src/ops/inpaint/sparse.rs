@@ -210,13 +210,8 @@ impl<'a> Pyramid<'a> {
     fn base_at(&self, x: usize, y: usize) -> [f32; 4] {
         let v: [f32; 4] = std::array::from_fn(|c| self.base.row(c, y)[x]);
         if self.sqrt {
-            let a = v[3].max(0.0);
-            [
-                (a * v[0].max(0.0)).sqrt(),
-                (a * v[1].max(0.0)).sqrt(),
-                (a * v[2].max(0.0)).sqrt(),
-                v[3],
-            ]
+            let e = |c: usize| super::sqrt_encode(v[c], v[3]);
+            [e(0), e(1), e(2), v[3]]
         } else {
             v
         }
