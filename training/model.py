@@ -309,8 +309,9 @@ class Enhancer(nn.Module):
             weight = stem.weight.reshape(stem.out_channels, -1, r, r)
             if self._folds_history_out():
                 # The history channels (5 .. 5 + 4K) weigh nothing: the same as
-                # zeroing them in the input, without a frame-sized copy in the
-                # graph (the product with this constant mask is folded away).
+                # zeroing them in the input, but the mask multiplies the small
+                # stem weight, not a frame-sized tensor (zeroing the input in
+                # the graph cost 10 ms of inference at 1024x576).
                 keep = torch.ones(1, weight.shape[1], 1, 1, dtype=weight.dtype, device=weight.device)
                 keep[:, 5 : 5 + 4 * self.cfg.context_frames] = 0
                 weight = weight * keep
