@@ -166,6 +166,10 @@ pub struct Params {
     pub coverage_floor: f32,
     /// Harmonize inserted objects with their surroundings (`harmonize`).
     pub harmonize: bool,
+    /// With `harmonize`, a light direction and a camera: give an inserted
+    /// object lit by another light the scene light's shading (`relight`,
+    /// [`crate::ops::relight`]).
+    pub relight: bool,
     /// Add contact shadows under inserted objects (`contact_shadows`).
     pub contact_shadows: bool,
     /// Shadow darkness, 0..=1 (`shadow_strength`): the share of the light
@@ -233,6 +237,7 @@ impl Default for Params {
             fill_holes: true,
             coverage_floor: 0.95,
             harmonize: true,
+            relight: true,
             contact_shadows: true,
             shadow_strength: 0.6,
             light_direction: None,
@@ -264,6 +269,7 @@ pub const PARAM_NAMES: &[&str] = &[
     "fill_holes",
     "coverage_floor",
     "harmonize",
+    "relight",
     "contact_shadows",
     "shadow_strength",
     "light_direction",
@@ -366,6 +372,7 @@ impl Params {
             "fill_holes" => self.fill_holes = want_bool(name, v)?,
             "coverage_floor" => self.coverage_floor = want_float(name, v, 0.0, 1.0)?,
             "harmonize" => self.harmonize = want_bool(name, v)?,
+            "relight" => self.relight = want_bool(name, v)?,
             "contact_shadows" => self.contact_shadows = want_bool(name, v)?,
             "shadow_strength" => self.shadow_strength = want_float(name, v, 0.0, 1.0)?,
             "light_direction" => {
@@ -437,6 +444,7 @@ impl Params {
             "fill_holes" => ParamValue::Bool(self.fill_holes),
             "coverage_floor" => ParamValue::Float(self.coverage_floor as f64),
             "harmonize" => ParamValue::Bool(self.harmonize),
+            "relight" => ParamValue::Bool(self.relight),
             "contact_shadows" => ParamValue::Bool(self.contact_shadows),
             "shadow_strength" => ParamValue::Float(self.shadow_strength as f64),
             "light_direction" => ParamValue::Str(

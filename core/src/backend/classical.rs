@@ -36,12 +36,19 @@ use rayon::prelude::*;
 use super::{Backend, BackendInput, Carry, KeptColor, Progress, Stages};
 use crate::error::Result;
 use crate::frame::{Image, PreparedFrame};
-use crate::ops::{cast_shadow, harmonize, inpaint, par_bands_mut, shadow, stabilize, Rect};
+use crate::ops::{
+    cast_shadow, harmonize, inpaint, par_bands_mut, relight, shadow, stabilize, Rect,
+};
 use crate::temporal::ReprojectionMode;
 
 /// Carry key of the smoothed harmonization filters, one per inserted object
 /// ([`harmonize::tracks_to_vec`]).
 pub const TONE_KEY: &str = "classical.harmonize.tone";
+
+/// Carry key of the smoothed shading corrections
+/// ([`relight::Shade`]: target, current), one per track of [`TONE_KEY`] in
+/// its order.
+pub const SHADE_KEY: &str = "classical.harmonize.shade";
 
 /// Carry key of the smoothed shares of the contact and the cast shadow still
 /// missing from the render ([`shadow::missing_share`]) and of the cast
@@ -64,6 +71,7 @@ fn shadows(
     rect: Rect,
     depth: &[f32],
     input: &BackendInput<'_>,
+    scene: &mut SceneLightOnce,
     carry: &mut Carry,
 ) -> Option<Rect> {
     let (params, frame) = (input.params, input.frame);
@@ -76,12 +84,9 @@ fn shadows(
         .and_then(|(l, camera)| cast_shadow::cast_shadow_map(mask, depth, rect, camera, l, w, h));
     // How dark a shadow is here, from the scene's own shadows.
     let measured_strength = match (&cast, light) {
-        (Some(_), Some((l, camera))) => {
-            cast_shadow::scene_shadow_darkening(img, Some(mask), depth, camera, l).map(|stops| {
-                (1.0 - (-stops).exp2())
-                    .clamp(MIN_STRENGTH, params.shadow_strength.max(MIN_STRENGTH))
-            })
-        }
+        (Some(_), Some((l, camera))) => scene.get(img, mask, depth, camera, l).map(|s| {
+            (1.0 - (-s.stops).exp2()).clamp(MIN_STRENGTH, params.shadow_strength.max(MIN_STRENGTH))
+        }),
         _ => None,
     };
     // Whether the render already has the insert's shadows: told by the cast
@@ -127,6 +132,41 @@ fn shadows(
     }
     carry.values.insert(SHADOW_KEY.to_string(), smoothed);
     area
+}
+
+/// The scene's own light ([`cast_shadow::scene_light`]), measured at most
+/// once per frame: by the first of the shading correction and the cast
+/// shadow that needs it (the insert, mask above 0.5, is left out of it, so
+/// harmonizing the insert in between does not change it).
+#[derive(Debug, Default)]
+struct SceneLightOnce(Option<Option<cast_shadow::SceneLight>>);
+
+impl SceneLightOnce {
+    fn get(
+        &mut self,
+        img: &Image,
+        mask: &[f32],
+        depth: &[f32],
+        camera: &crate::frame::Camera,
+        light: glam::DVec3,
+    ) -> Option<cast_shadow::SceneLight> {
+        *self
+            .0
+            .get_or_insert_with(|| cast_shadow::scene_light(img, Some(mask), depth, camera, light))
+    }
+}
+
+/// The scene's direct-to-ambient ratio for the shading correction: from its
+/// own shadows when some are in view, else from `shadow_strength` (a shadow
+/// taking that share of the light, on ground facing the light).
+fn scene_ratio(measured: Option<cast_shadow::SceneLight>, shadow_strength: f32) -> f32 {
+    match measured {
+        Some(s) => s.direct_to_ambient(),
+        None => {
+            let s = shadow_strength.clamp(0.0, 0.9);
+            s / (1.0 - s)
+        }
+    }
 }
 
 /// Share of the shadow strength the contact shadow under an insert takes.
@@ -328,6 +368,12 @@ fn run_ops_on(
     };
     // Whether harmonization changed the insert's colors noticeably.
     let mut recolored = false;
+    let mut scene = SceneLightOnce::default();
+    let light = params
+        .light_direction_world(frame.camera.as_ref())
+        .filter(|_| params.relight)
+        .zip(frame.camera.as_ref())
+        .zip(frame.depth.as_deref());
     match insert {
         Some((mask, rect)) if params.harmonize => {
             // Each inserted object (a connected part of the mask) gets its
@@ -340,16 +386,66 @@ fn run_ops_on(
                 .get(TONE_KEY)
                 .and_then(|v| harmonize::tracks_from_slice(v))
                 .unwrap_or_default();
+            // The shading corrections, one per track of `previous`.
+            let previous_shades: Vec<relight::Shade> = carry
+                .values
+                .get(SHADE_KEY)
+                .filter(|v| v.len() == 2 * previous.len() && v.iter().all(|x| x.is_finite()))
+                .map(|v| {
+                    v.chunks(2)
+                        .map(|c| relight::Shade {
+                            target: c[0],
+                            current: c[1],
+                        })
+                        .collect()
+                })
+                .unwrap_or_default();
             let centroids: Vec<[f32; 2]> = parts.iter().map(|p| p.centroid).collect();
             let seen: Vec<[f32; 2]> = previous.iter().map(|(c, _)| *c).collect();
             let reach = TRACK_REACH * w.max(h) as f32;
             let matched = harmonize::match_tracks(&centroids, &seen, reach);
             let mut tracks = Vec::with_capacity(parts.len());
+            let mut shades = Vec::with_capacity(2 * parts.len());
             for (part, m) in parts.iter().zip(matched) {
                 let pmask: &[f32] = if part.mask.is_empty() {
                     mask
                 } else {
                     &part.mask
+                };
+                // The shading toward the host's light first: the color
+                // filter then matches the object as the scene lights it.
+                let shade = match light {
+                    Some(((l, camera), depth)) => stages.time("harmonize", || {
+                        // Fitted on a lattice; the normals of every pixel
+                        // only for an insert that is corrected.
+                        let step = relight::fit_step(part.rect);
+                        let lattice = pool.install(|| {
+                            relight::facing(depth, pmask, part.rect, step, camera, l, w, h)
+                        })?;
+                        let fit = pool.install(|| relight::fit(img, pmask, &lattice))?;
+                        let ratio = scene_ratio(
+                            scene.get(img, mask, depth, camera, l),
+                            params.shadow_strength,
+                        );
+                        let measured = relight::shade(&fit, ratio);
+                        let shade = match m.and_then(|j| previous_shades.get(j)) {
+                            Some(p) => p.toward(&measured, 1.0 - params.temporal_blend),
+                            None => measured,
+                        };
+                        if !shade.is_identity() {
+                            let full = match step {
+                                1 => lattice,
+                                _ => pool.install(|| {
+                                    relight::facing(depth, pmask, part.rect, 1, camera, l, w, h)
+                                })?,
+                            };
+                            pool.install(|| {
+                                relight::apply(img, pmask, &full, fit.mean_facing, &shade)
+                            });
+                        }
+                        Some(shade)
+                    }),
+                    None => None,
                 };
                 let estimate = stages.time("harmonize", || {
                     pool.install(|| {
@@ -371,15 +467,20 @@ fn run_ops_on(
                         pool.install(|| harmonize::apply(img, pmask, part.rect, &tone))
                     });
                     tracks.push((part.centroid, tone));
-                    recolored |= !tone.is_near_identity(RECOLOR_TOLERANCE);
+                    let shade = shade.unwrap_or(relight::Shade::IDENTITY);
+                    shades.extend([shade.target, shade.current]);
+                    recolored |= !tone.is_near_identity(RECOLOR_TOLERANCE)
+                        || shade.stops().abs() > RECOLOR_TOLERANCE;
                 }
             }
             carry
                 .values
                 .insert(TONE_KEY.to_string(), harmonize::tracks_to_vec(&tracks));
+            carry.values.insert(SHADE_KEY.to_string(), shades);
         }
         _ => {
             carry.values.remove(TONE_KEY);
+            carry.values.remove(SHADE_KEY);
         }
     }
     progress.report(0.6)?;
@@ -395,7 +496,7 @@ fn run_ops_on(
     if params.contact_shadows && params.shadow_strength > 0.0 {
         if let (Some((mask, rect)), Some(depth)) = (insert, &frame.depth) {
             stages.time("shadow", || {
-                pool.install(|| shadows(img, mask, rect, depth, input, carry))
+                pool.install(|| shadows(img, mask, rect, depth, input, &mut scene, carry))
             });
         } else {
             carry.values.remove(SHADOW_KEY);

@@ -248,6 +248,36 @@ pub fn scene_shadow_darkening(
     camera: &Camera,
     light: DVec3,
 ) -> Option<f32> {
+    scene_light(img, mask, depth, camera, light).map(|s| s.stops)
+}
+
+/// What the scene's own shadows say of its light: how dark they are and
+/// at which facing that was measured ([`scene_light`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SceneLight {
+    /// Lit against shadowed ground, stops ([`scene_shadow_darkening`]).
+    pub stops: f32,
+    /// Mean `n.l` of the lit cells compared, weighted as the stops are.
+    pub facing: f32,
+}
+
+impl SceneLight {
+    /// The direct light's share against the ambient one for a surface
+    /// facing the light: `k` in `ambient * (1 + k * n.l)`, from the lit
+    /// ground being `2^stops` times the shadowed one at `facing`.
+    pub fn direct_to_ambient(&self) -> f32 {
+        (self.stops.exp2() - 1.0) / self.facing.max(0.1)
+    }
+}
+
+/// [`scene_shadow_darkening`] with the facing it was measured at.
+pub fn scene_light(
+    img: &crate::frame::Image,
+    mask: Option<&[f32]>,
+    depth: &[f32],
+    camera: &Camera,
+    light: DVec3,
+) -> Option<SceneLight> {
     let l = light.try_normalize()?;
     let (width, height) = (img.width, img.height);
     if width < 4 || height < 4 {
@@ -278,8 +308,8 @@ pub fn scene_shadow_darkening(
         let (r, g, b) = (img.plane(0)[i], img.plane(1)[i], img.plane(2)[i]);
         super::LUMA[0] * r + super::LUMA[1] * g + super::LUMA[2] * b
     };
-    // Per cell: (band of n.l, shadowed, log2 luminance).
-    let cells: Vec<(usize, bool, f32)> = (0..gh)
+    // Per cell: (band of n.l, shadowed, log2 luminance, n.l).
+    let cells: Vec<(usize, bool, f32, f32)> = (0..gh)
         .into_par_iter()
         .flat_map_iter(|j| {
             let y = j * cell + cell / 2;
@@ -330,7 +360,7 @@ pub fn scene_shadow_darkening(
                     },
                 );
                 let v = lum(x, y);
-                (v > 0.0).then(|| (band, shadowed, v.log2()))
+                (v > 0.0).then(|| (band, shadowed, v.log2(), facing as f32))
             })
         })
         .collect();
@@ -338,7 +368,7 @@ pub fn scene_shadow_darkening(
         v.sort_by(f32::total_cmp);
         v[v.len() / 2]
     };
-    let (mut sum, mut weight) = (0.0f64, 0.0f64);
+    let (mut sum, mut facing, mut weight) = (0.0f64, 0.0f64, 0.0f64);
     for band in 0..3 {
         let pick = |s: bool| -> Vec<f32> {
             cells
@@ -350,11 +380,21 @@ pub fn scene_shadow_darkening(
         let (lit, dark) = (pick(false), pick(true));
         let n = lit.len().min(dark.len());
         if n >= SCENE_MIN_CELLS {
+            let lit_facing = cells
+                .iter()
+                .filter(|c| c.0 == band && !c.1)
+                .map(|c| c.3 as f64)
+                .sum::<f64>()
+                / lit.len() as f64;
             sum += n as f64 * (median(lit) - median(dark)) as f64;
+            facing += n as f64 * lit_facing;
             weight += n as f64;
         }
     }
-    (weight > 0.0).then(|| ((sum / weight) as f32).max(0.0))
+    (weight > 0.0).then(|| SceneLight {
+        stops: ((sum / weight) as f32).max(0.0),
+        facing: (facing / weight) as f32,
+    })
 }
 
 /// Separable normalized Gaussian blur of a `gw x gh` grid, edges clamped.

@@ -10,6 +10,7 @@
 pub mod cast_shadow;
 pub mod harmonize;
 pub mod inpaint;
+pub mod relight;
 pub mod shadow;
 pub mod stabilize;
 

@@ -2,7 +2,8 @@
 //! away from the host's light (`light_direction`) falls where the geometry
 //! says, is not added again where the render already has it, and without a
 //! light no cast shadow is made; frames without holes keep every pixel the
-//! enhancer did not change (do no harm).
+//! enhancer did not change (do no harm); an insert lit only by the sky gets
+//! the scene's sun on its faces toward it, a correctly lit one is kept.
 //!
 //! The scene is ray cast here: a textured ground plane y = 0 (+y up), a
 //! 1 x 1 x 1 box standing at the origin (the insert), a camera looking down
@@ -59,6 +60,13 @@ fn box_shadows(p: DVec3) -> bool {
 /// with `shadowed`, the ground in the box's true shadow is darkened to
 /// `shadowed` of its light, as a render with the object in it has it.
 fn scene(eye_x: f32, shadowed: Option<f32>) -> Scene {
+    scene_lit(eye_x, shadowed, None)
+}
+
+/// [`scene`] with the box shaded: with `box_light` = Some(k), its color
+/// times `0.2 * (1 + k * max(0, n.l))` (0.2: the ambient of a ground whose
+/// shadow keeps 0.2 of its light).
+fn scene_lit(eye_x: f32, shadowed: Option<f32>, box_light: Option<f64>) -> Scene {
     let camera = Camera::look_at(
         Vec3::new(eye_x, 3.0, -6.0),
         Vec3::new(0.0, 0.5, 0.0),
@@ -88,7 +96,24 @@ fn scene(eye_x: f32, shadowed: Option<f32>) -> Scene {
             }
             let (p, c) = if t0 <= t1 {
                 mask[i] = 1.0;
-                (eye + dir * t0, [0.7, 0.45, 0.3])
+                let p = eye + dir * t0;
+                let base = [0.7f32, 0.45, 0.3];
+                let c = match box_light {
+                    None => base,
+                    Some(k) => {
+                        // The face hit: the coordinate on its slab's bound.
+                        let n = if (p.y - 1.0).abs() < 1e-6 {
+                            DVec3::Y
+                        } else if (p.x.abs() - 0.5).abs() < 1e-6 {
+                            DVec3::X * p.x.signum()
+                        } else {
+                            DVec3::Z * p.z.signum()
+                        };
+                        let c = n.dot(DVec3::from(LIGHT).normalize()).max(0.0);
+                        base.map(|v| v * (0.2 * (1.0 + k * c)) as f32)
+                    }
+                };
+                (p, c)
             } else if dir.y < 0.0 {
                 let p = eye + dir * (-eye.y / dir.y);
                 ground[i] = Some(p);
@@ -317,4 +342,76 @@ fn the_scene_s_own_shadows_say_how_dark_a_shadow_is() {
         scene_shadow_darkening(&planes(&sc), Some(&sc.mask), &sc.depth, &sc.camera, light),
         None
     );
+}
+
+/// The box's (the insert's) mean absolute log2 error against `want`.
+fn insert_log_error(out: &Image, want: &Scene) -> f64 {
+    let n = W * H;
+    let (mut e, mut count) = (0.0, 0);
+    for i in 0..n {
+        if want.mask[i] < 1.0 {
+            continue;
+        }
+        for c in 0..3 {
+            e += ((out.data[c * n + i] + 1e-3) / (want.rgb[3 * i + c] + 1e-3))
+                .log2()
+                .abs() as f64;
+        }
+        count += 3;
+    }
+    e / count as f64
+}
+
+#[test]
+fn an_insert_lit_only_by_the_sky_gets_the_scene_s_sun() {
+    // The ground's shadow keeps 0.2 of its light: the scene's sun gives
+    // 5.66 times the ambient on ground facing it at 45 degrees. The only
+    // shadow in view is the insert's own, which the scene's measure leaves
+    // out, so the host says how dark shadows are: `shadow_strength` 0.8
+    // (direct 4 times the ambient).
+    let k = 4.0 / std::f64::consts::FRAC_1_SQRT_2;
+    let strength = ("shadow_strength", ParamValue::Float(0.8));
+    let (eye, shadow) = (1.5, Some(0.2));
+    let truth = scene_lit(eye, shadow, Some(k));
+    let sky_only = scene_lit(eye, shadow, Some(0.0));
+    let before = {
+        let mut img = Image::zeros(W, H, 3);
+        for i in 0..W * H {
+            for c in 0..3 {
+                img.data[c * W * H + i] = sky_only.rgb[3 * i + c];
+            }
+        }
+        insert_log_error(&img, &truth)
+    };
+    let mut s = session(&[light(), strength.clone()]);
+    let out = process(&mut s, &sky_only, 0, true);
+    let after = insert_log_error(&out, &truth);
+    assert!(
+        after < 0.25 * before,
+        "insert error {before:.3} -> {after:.3} stops"
+    );
+    // Without the light, or with `relight` off, no shading is corrected.
+    let off = ("relight", ParamValue::Bool(false));
+    for extra in [vec![strength.clone()], vec![strength.clone(), light(), off]] {
+        let mut s = session(&extra);
+        let out = process(&mut s, &sky_only, 0, true);
+        let unlit = insert_log_error(&out, &truth);
+        assert!(
+            unlit > 0.9 * before,
+            "{before:.3} -> {unlit:.3} with {extra:?}"
+        );
+    }
+    // The correctly lit insert's shading is left as it came: with the
+    // light it comes out as without it (where only the color filter acts).
+    let mut s = session(&[light(), strength.clone()]);
+    let lit = process(&mut s, &truth, 0, true);
+    let mut s = session(&[strength]);
+    let alone = process(&mut s, &truth, 0, true);
+    let n = W * H;
+    for i in (0..n).filter(|&i| truth.mask[i] >= 1.0) {
+        for c in 0..3 {
+            assert_eq!(lit.data[c * n + i], alone.data[c * n + i], "pixel {i}");
+        }
+    }
+    assert!(insert_log_error(&lit, &truth) < 0.02);
 }
