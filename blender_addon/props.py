@@ -59,7 +59,11 @@ LIGHT_SOURCES = [
         "without a Sun, inserts cast no directional shadow",
     ),
     ("MANUAL", "Manual", "A fixed direction toward the light, in world space"),
-    ("OFF", "Off", "No light direction: inserts get only the contact shadow under them"),
+    (
+        "OFF",
+        "Off",
+        "No light direction: inserts get only the contact shadow under them, and their shading is kept",
+    ),
 ]
 
 COVERAGE = [
@@ -108,7 +112,10 @@ class HarmonizerSceneSettings(bpy.types.PropertyGroup):
     mask_crypto_layer: EnumProperty(name="Cryptomatte Layer", items=CRYPTO_LAYERS, default="CryptoObject")
     light_source: EnumProperty(
         name="Light",
-        description="Where the direction toward the light comes from: inserts cast their shadow away from it",
+        description=(
+            "Where the direction toward the light comes from: inserts cast their shadow away from it, "
+            "and an insert lit by another light gets its shading"
+        ),
         items=LIGHT_SOURCES,
         default="AUTO",
     )
