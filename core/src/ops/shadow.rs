@@ -27,6 +27,13 @@ pub const PRESENT_FROM: f32 = 0.15;
 /// Fewest shadowed/unshadowed pairs [`existing_darkening`] decides on.
 pub const PRESENCE_MIN_PAIRS: usize = 16;
 
+/// Rows below a footprint pixel at which the background's depth tells
+/// whether the object stands there ([`shadow_map`]).
+pub const BELOW_ROWS: usize = 2;
+/// The background [`BELOW_ROWS`] under a footprint pixel farther than the
+/// insert there by more than this share: the insert floats over it.
+pub const FLOAT_TOLERANCE: f32 = 0.02;
+
 /// Relative depth difference at which the shadow falls to 1/e.
 pub const DEPTH_TOLERANCE: f32 = 0.1;
 /// Horizontal blur sigma as a share of the footprint size.
@@ -129,7 +136,17 @@ pub fn shadow_map(
         let x = insert.x0 + i;
         let yi = if above[i] != usize::MAX { above[i] } else { yb };
         let d = depth[yi * width + x];
-        if d.is_finite() && d > 0.0 && d < EMPTY_DEPTH {
+        // A column whose lowest insert pixel floats (the edge of a table
+        // top, the round side of an object): the background just below it
+        // on screen lies farther away, on ground the object does not touch
+        // there.
+        let below = depth[(yb + BELOW_ROWS).min(height - 1) * width + x];
+        let floats = yb + 1 < height
+            && below.is_finite()
+            && below < EMPTY_DEPTH
+            && mask[(yb + BELOW_ROWS).min(height - 1) * width + x] <= 0.5
+            && below > d * (1.0 + FLOAT_TOLERANCE);
+        if d.is_finite() && d > 0.0 && d < EMPTY_DEPTH && !floats {
             foot.push((x, yb, d));
             fx0 = fx0.min(x);
             fx1 = fx1.max(x + 1);
@@ -474,6 +491,27 @@ mod tests {
         // Beside the footprint it fades.
         assert!(v(76, 111) > v(100, 111) && v(76, 111) < 0.5);
         let _ = w;
+    }
+
+    #[test]
+    fn an_insert_floating_over_the_ground_casts_no_contact_shadow() {
+        // The same box nearer the camera, over the floor 20 rows further
+        // down the image: lifted off the floor, so the floor just below it
+        // on screen lies farther away than the box.
+        let (mut img, mut mask, mut depth) = scene();
+        let w = img.width;
+        let d_lifted = depth[(109 + 20) * w];
+        for y in 70..110 {
+            for x in 80..120 {
+                mask[y * w + x] = 1.0;
+                depth[y * w + x] = d_lifted;
+            }
+        }
+        let orig = img.clone();
+        let rect = crate::ops::harmonize::insert_rect(&mask, w, img.height).unwrap();
+        assert!(shadow_map(&mask, &depth, rect, w, img.height).is_none());
+        assert!(contact_shadow(&mut img, &mask, rect, &depth, 0.6).is_none());
+        assert_eq!(img, orig);
     }
 
     #[test]
