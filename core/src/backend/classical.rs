@@ -206,6 +206,18 @@ pub fn history_weight(known_share: f32) -> f32 {
     ((0.3 - known_share) / 0.075).clamp(0.0, 1.0)
 }
 
+/// Share of the frame's own fill of its holes ([`inpaint::SpatialFill`];
+/// less far from data) that a reprojected history sample takes before it
+/// fills a hole, in both backends. Without it the fill carried in a hole
+/// that stays in view remembers the frame it was first made in, however
+/// long ago, and a chunk of a sequence started with a pre-roll never meets
+/// the sequential run there (issue 22: the lowest frame of 24-frame chunks
+/// with a pre-roll of 8 was 45.4 dB from the sequential run's, classical,
+/// 42.1 neural; with 0.2, 58.7 and 57.0; docs/farm.md). Out of domain it
+/// also gains on recon_hall (classical 19.98 -> 20.13 dB, neural 19.89 ->
+/// 20.06) and leaves recon_courtyard as it was (`scripts/quality.sh`).
+pub const HISTORY_REFRESH: f32 = 0.2;
+
 /// The classical pipeline.
 #[derive(Debug, Default)]
 pub struct Classical;
@@ -294,6 +306,28 @@ fn run_ops_on(
             Some((r, counts)) if r.contains(j, i) => history_weight(counts.share(j, i)),
             _ => 1.0,
         };
+        // The frame's own fill of its holes, which the history is pulled
+        // toward where it fills one (a chunk's seam, `HISTORY_REFRESH`).
+        let refresh = HISTORY_REFRESH;
+        let fresh = gate
+            .as_ref()
+            .filter(|_| refresh > 0.0)
+            .and_then(|(rect, _)| {
+                stages.time("inpaint", || {
+                    pool.install(|| {
+                        inpaint::SpatialFill::new(
+                            [img.plane(0), img.plane(1), img.plane(2), img.plane(3)],
+                            w,
+                            *rect,
+                            params.coverage_floor,
+                        )
+                    })
+                })
+            });
+        let pull = |i: usize, j: usize, c: [f32; 4]| match &fresh {
+            Some(f) => f.pull(i, j, c, refresh),
+            None => c,
+        };
         // The pixels still missing, once a history frame has filled some.
         let mut missing: Option<Vec<(u32, u32)>> = None;
         let mut k = 0;
@@ -330,13 +364,17 @@ fn run_ops_on(
                         hh.rect,
                         |i, j| {
                             let (c, v) = at.at(i, j);
-                            (c, v * allow(i, j))
+                            (pull(i, j, c), v * allow(i, j))
                         },
                         |i, j, out| {
                             let [o0, o1, o2, o3, ov] = out;
-                            at.span(i, j, [o0, o1, o2, o3, &mut *ov]);
+                            at.span(i, j, [&mut *o0, &mut *o1, &mut *o2, &mut *o3, &mut *ov]);
                             for (t, v) in ov.iter_mut().enumerate() {
                                 *v *= allow(i, j + t);
+                                if fresh.is_some() {
+                                    let c = pull(i, j + t, [o0[t], o1[t], o2[t], o3[t]]);
+                                    (o0[t], o1[t], o2[t], o3[t]) = (c[0], c[1], c[2], c[3]);
+                                }
                             }
                         },
                     )

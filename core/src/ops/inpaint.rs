@@ -313,6 +313,121 @@ where
     found.map(|(rect, count)| (Holes { rect, count }, all))
 }
 
+/// A frame's own spatial fill of its holes, without history: the holes'
+/// window ([`fill_window`]) with the pixels covered below a floor emptied
+/// (as [`drop_faint`] does), then [`push_pull_sqrt`] over it; kept as the
+/// straight color of each hole pixel's missing part, `(out - premult) / (1
+/// - A)` (the fill itself where A is 0). Where history fills a hole it is first pulled toward
+/// this fill by a share ([`SpatialFill::pull`]): a fill carried from frame
+/// to frame in a hole that stays in view otherwise remembers the frame it
+/// was first made in, however long ago (what a chunk of a sequence started
+/// with a pre-roll cannot know: docs/farm.md, "Which pre-roll").
+#[derive(Debug, Clone)]
+pub struct SpatialFill {
+    /// The window's 3 planes of fill (RGB, straight) and the share of the
+    /// refresh each pixel takes.
+    img: Image,
+    window: Rect,
+}
+
+impl SpatialFill {
+    /// The fill of the holes inside `holes` of an image given as its 4
+    /// planes (`rgba`: RGB premultiplied, A coverage, `width` pixels a
+    /// row), from its pixels covered at least `floor`. `None` when the
+    /// window has none.
+    pub fn new(rgba: [&[f32]; 4], width: usize, holes: Rect, floor: f32) -> Option<SpatialFill> {
+        let height = rgba[3].len() / width.max(1);
+        let window = fill_window(holes, width, height);
+        let (ww, wh) = (window.width(), window.height());
+        let mut img = Image::try_zeros(ww, wh, 4).ok()?;
+        let at = |dy: usize| (window.y0 + dy) * width + window.x0;
+        let known: usize = par_bands_mut(&mut img, 0, wh)
+            .map(|(y0, [r, g, b, a])| {
+                let mut known = 0;
+                for dy in 0..a.len() / ww {
+                    let s = at(y0 + dy);
+                    for x in 0..ww {
+                        let c = rgba[3][s + x];
+                        if c >= floor && c > 0.0 {
+                            let o = dy * ww + x;
+                            (r[o], g[o], b[o], a[o]) =
+                                (rgba[0][s + x], rgba[1][s + x], rgba[2][s + x], c);
+                            known += usize::from(c >= FULL);
+                        }
+                    }
+                }
+                known
+            })
+            .sum();
+        if known == 0 {
+            return None;
+        }
+        // How much each pixel's fill is an interpolation from data near it:
+        // the share of fully covered pixels within `NEAR_RADIUS`, over
+        // `NEAR_SHARE` (1 from there on).
+        let counts = KnownCounts::new(&img, Rect::full(ww, wh), NEAR_RADIUS, FULL);
+        let mut near = vec![0f32; ww * wh];
+        near.par_chunks_mut(ww).enumerate().for_each(|(y, row)| {
+            for (x, v) in row.iter_mut().enumerate() {
+                *v = (counts.share(x, y) / NEAR_SHARE).min(1.0);
+            }
+        });
+        push_pull_sqrt(&mut img, Rect::full(ww, wh), None);
+        img.plane_mut(3).copy_from_slice(&near);
+        // The straight fill of each hole pixel's missing part.
+        par_bands_mut(&mut img, 0, wh).for_each(|(y0, [r, g, b, _])| {
+            for dy in 0..r.len() / ww {
+                let s = at(y0 + dy);
+                for x in 0..ww {
+                    let c = rgba[3][s + x];
+                    if c >= floor && c > 0.0 && c < FULL {
+                        let o = dy * ww + x;
+                        let k = 1.0 / (1.0 - c);
+                        r[o] = (r[o] - rgba[0][s + x]) * k;
+                        g[o] = (g[o] - rgba[1][s + x]) * k;
+                        b[o] = (b[o] - rgba[2][s + x]) * k;
+                    }
+                }
+            }
+        });
+        Some(SpatialFill { img, window })
+    }
+
+    /// `c` (a history sample, RGBA premultiplied) moved by `share` toward
+    /// the fill at (row `i`, column `j`) (of coverage 1); `c` unchanged
+    /// outside the window.
+    #[inline]
+    pub fn pull(&self, i: usize, j: usize, c: [f32; 4], share: f32) -> [f32; 4] {
+        let w = self.window;
+        if !w.contains(j, i) {
+            return c;
+        }
+        let n = self.img.width * self.img.height;
+        let o = (i - w.y0) * self.img.width + (j - w.x0);
+        let share = share * self.img.data[3 * n + o];
+        let f = |k: usize| {
+            if k == 3 {
+                1.0
+            } else {
+                self.img.data[k * n + o]
+            }
+        };
+        std::array::from_fn(|k| c[k] + share * (f(k) - c[k]))
+    }
+}
+
+/// Radius of the square whose fully covered share says how near a hole
+/// pixel's own fill is to data ([`SpatialFill`]).
+pub const NEAR_RADIUS: usize = 16;
+
+/// Share of fully covered pixels within [`NEAR_RADIUS`] from which a hole
+/// pixel's own fill takes the whole refresh (less in proportion below):
+/// a fill across a wide empty area (a reconstruction's uncovered edge)
+/// is an extrapolation, further from the truth than the history it would
+/// replace (recon_hall, `scripts/quality.sh`: 19.98 -> 19.56 dB with the
+/// whole refresh everywhere, 20.13 dB with this weight).
+pub const NEAR_SHARE: f32 = 0.5;
+
 /// The window push-pull works in for holes inside `holes`: the holes' box
 /// grown by an eighth of its size (32 to 128 pixels), clipped to the image.
 /// Every hole inside the box is surrounded by data inside the window, so
@@ -1199,5 +1314,50 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn the_spatial_fill_pulls_history_toward_the_frames_own_fill_near_data_only() {
+        // Flat color 0.5 with a small hole (a 5x5 square) and a wide empty
+        // strip (the left 40 columns), a soft pixel of coverage 0.5.
+        let (w, h) = (96, 64);
+        let img = rgba(w, h, |x, y| {
+            if x < 40 || ((60..65).contains(&x) && (30..35).contains(&y)) {
+                [0.0; 4]
+            } else if (x, y) == (70, 10) {
+                [0.25, 0.25, 0.25, 0.5]
+            } else {
+                [0.5, 0.5, 0.5, 1.0]
+            }
+        });
+        let planes = [img.plane(0), img.plane(1), img.plane(2), img.plane(3)];
+        let holes = find_holes(&img).unwrap().rect;
+        let fill = SpatialFill::new(planes, w, holes, 0.0).unwrap();
+        let history = [0.1, 0.2, 0.3, 1.0];
+        // In the small hole: the flat color, pulled by the whole share.
+        let c = fill.pull(32, 62, history, 0.5);
+        for k in 0..3 {
+            assert!(
+                (c[k] - (history[k] + 0.5 * (0.5 - history[k]))).abs() < 1e-4,
+                "{c:?}"
+            );
+        }
+        assert_eq!(c[3], 1.0);
+        // The soft pixel's fill is its missing part's (straight) color.
+        let c = fill.pull(10, 70, [0.0, 0.0, 0.0, 0.0], 1.0);
+        assert!((c[0] - 0.5).abs() < 1e-3, "{c:?}");
+        // Deep in the wide strip, far from data: unchanged.
+        assert_eq!(fill.pull(32, 5, history, 0.5), history);
+        // Share 0: unchanged everywhere.
+        assert_eq!(fill.pull(32, 62, history, 0.0), history);
+        // Nothing covered: no fill.
+        let empty = Image::zeros(8, 8, 4);
+        let planes = [
+            empty.plane(0),
+            empty.plane(1),
+            empty.plane(2),
+            empty.plane(3),
+        ];
+        assert!(SpatialFill::new(planes, 8, Rect::full(8, 8), 0.0).is_none());
     }
 }

@@ -25,6 +25,7 @@ use crate::device::{DeviceOptions, ModelSource};
 use crate::error::{Error, Result};
 use crate::frame::Image;
 use crate::model::{InputChannel, Manifest};
+use crate::ops::inpaint::{SpatialFill, FULL};
 use crate::params::Params;
 use crate::temporal::{HistoryView, RowScratch};
 use encoding::ColorCodec;
@@ -683,6 +684,7 @@ fn history_window(
     (width, height): (usize, usize),
     tile: tiling::Tile,
     pool: &rayon::ThreadPool,
+    fresh: Option<&Refresh<'_>>,
 ) {
     let Some(n) = slots.iter().map(|&(_, k, _)| k + 1).max() else {
         return;
@@ -702,30 +704,61 @@ fn history_window(
         })
         .collect();
     // Frame row `fy`, frame columns `fx..fx + len`, into window columns `at..at + len` of `dst`.
-    let write =
-        |scratch: &mut RowScratch, dst: &mut [&mut [f32]], fy, fx: usize, at: usize, len| {
-            view.reproject_rows(n, fy, fx..fx + len, scratch, |k, [r, g, b, a, v]| {
-                let rgb = [r, g, b];
-                for (d, &(_, sk, part)) in dst.iter_mut().zip(slots) {
-                    if sk != k {
-                        continue;
-                    }
-                    let d = &mut d[at..at + len];
-                    match part {
-                        HistPart::Color(c) if premultiplied => codec.encode_row(rgb[c], d),
-                        HistPart::Color(c) => codec.encode_straight_row(rgb[c], a, d),
-                        HistPart::Alpha => d.copy_from_slice(a),
-                        HistPart::Valid => d.copy_from_slice(v),
-                    }
-                }
+    let write = |(scratch, mixed): &mut (RowScratch, [Vec<f32>; 4]),
+                 dst: &mut [&mut [f32]],
+                 fy,
+                 fx: usize,
+                 at: usize,
+                 len| {
+        view.reproject_rows(n, fy, fx..fx + len, scratch, |k, [r, g, b, a, v]| {
+            // Where the current frame has a hole, the history is first
+            // pulled toward the frame's own fill (the prior fills holes
+            // from it; `Refresh`).
+            let holes = fresh.filter(|f| {
+                f.coverage[fy * width + fx..fy * width + fx + len]
+                    .iter()
+                    .any(|&c| c < FULL)
             });
-        };
+            let (r, g, b, a) = match holes {
+                Some(f) => {
+                    for (m, src) in mixed.iter_mut().zip([r, g, b, a]) {
+                        m.clear();
+                        m.extend_from_slice(src);
+                    }
+                    let [mr, mg, mb, ma] = mixed;
+                    for t in 0..len {
+                        if f.coverage[fy * width + fx + t] < FULL {
+                            let c = f
+                                .fill
+                                .pull(fy, fx + t, [mr[t], mg[t], mb[t], ma[t]], f.share);
+                            (mr[t], mg[t], mb[t], ma[t]) = (c[0], c[1], c[2], c[3]);
+                        }
+                    }
+                    (&mr[..], &mg[..], &mb[..], &ma[..])
+                }
+                None => (r, g, b, a),
+            };
+            let rgb = [r, g, b];
+            for (d, &(_, sk, part)) in dst.iter_mut().zip(slots) {
+                if sk != k {
+                    continue;
+                }
+                let d = &mut d[at..at + len];
+                match part {
+                    HistPart::Color(c) if premultiplied => codec.encode_row(rgb[c], d),
+                    HistPart::Color(c) => codec.encode_straight_row(rgb[c], a, d),
+                    HistPart::Alpha => d.copy_from_slice(a),
+                    HistPart::Valid => d.copy_from_slice(v),
+                }
+            }
+        });
+    };
     pool.install(|| {
         rows.into_par_iter()
             .enumerate()
             .with_min_len(4)
             .for_each_init(
-                || RowScratch::new(c1 - c0, n),
+                || (RowScratch::new(c1 - c0, n), Default::default()),
                 |scratch, (wy, mut dst)| {
                     let fy = reflect(oy + wy as isize, height);
                     write(scratch, &mut dst, fy, fx0, c0, c1 - c0);
@@ -743,6 +776,15 @@ fn history_window(
                 },
             );
     });
+}
+
+/// The current frame's own fill of its holes ([`SpatialFill`]), toward which
+/// the history input is pulled by `share` at the frame's hole pixels
+/// (those with coverage below [`FULL`]).
+struct Refresh<'a> {
+    fill: SpatialFill,
+    coverage: &'a [f32],
+    share: f32,
 }
 
 /// Fills a tile's NCHW input tensor, one window row per task: frame rows and
@@ -838,6 +880,43 @@ impl Neural {
             }
         }
 
+        // The frame's own fill of its holes, which the history the model
+        // reads is pulled toward there (the in-graph prior fills holes
+        // from it), as the classical backend pulls its history:
+        // `classical::HISTORY_REFRESH`.
+        let share = crate::backend::classical::HISTORY_REFRESH;
+        let fresh = match (&frame.coverage, used > 0 && share > 0.0) {
+            (Some(coverage), true) if frame.color.channels >= 3 => {
+                let holes = match frame.scan {
+                    Some(scan) => scan.holes,
+                    None => crate::ops::bbox_below(coverage, w, h, FULL),
+                };
+                holes
+                    .and_then(|(rect, _)| {
+                        stages.time("inpaint", || {
+                            pool.install(|| {
+                                SpatialFill::new(
+                                    [
+                                        frame.color.plane(0),
+                                        frame.color.plane(1),
+                                        frame.color.plane(2),
+                                        coverage,
+                                    ],
+                                    w,
+                                    rect,
+                                    input.params.coverage_floor,
+                                )
+                            })
+                        })
+                    })
+                    .map(|fill| Refresh {
+                        fill,
+                        coverage,
+                        share,
+                    })
+            }
+            _ => None,
+        };
         let n_tiles = plan.len();
         let cin = model.channels.len();
         let (ww, wh) = (plan.x.window, plan.y.window);
@@ -898,6 +977,7 @@ impl Neural {
                         (w, h),
                         tile,
                         pool,
+                        fresh.as_ref(),
                     );
                 });
             }
