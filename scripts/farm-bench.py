@@ -11,7 +11,7 @@ machine's load average (``os.getloadavg``) before and after, since the
 numbers mean little on a machine busy with other work.
 
     PYTHONPATH=ffi/python .venv/bin/python scripts/farm-bench.py \\
-        [--frames 96] [--size 640x360] [--chunk 24] [--preroll 8] [--backend classical]
+        [--frames 96] [--size 640x360] [--chunk 24] [--preroll 4] [--backend classical]
 
 Needs the release build (``cargo build --release -p harmonizer-ffi -p
 harmonizer-cli``) and ``dask[distributed]`` (scripts/setup-venv.sh).

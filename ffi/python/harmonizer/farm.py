@@ -35,7 +35,7 @@ pre-roll frames, worker, host and process, seconds, attempts, resets and
 warnings.
 
     harmonize-farm in/a/shot.####.exr in/b/shot.####.exr -o out/ \\
-        --chunk 24 --preroll 8 --workers 2 --threads-per-worker 1
+        --chunk 24 --preroll 4 --workers 2 --threads-per-worker 1
 """
 
 from __future__ import annotations
@@ -59,7 +59,7 @@ from ._api import parse_param
 #: which every frame of chunks of 24 is at least 40 dB from the sequential
 #: run's, on the 96-frame synthetic sequence with the classical and the
 #: neural backend (docs/farm.md, cli/tests/cli.rs preroll::seams).
-DEFAULT_PREROLL = 8
+DEFAULT_PREROLL = 4
 #: Frames per chunk by default.
 DEFAULT_CHUNK = 24
 
