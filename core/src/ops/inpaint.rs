@@ -316,12 +316,13 @@ where
 /// A frame's own spatial fill of its holes, without history: the holes'
 /// window ([`fill_window`]) with the pixels covered below a floor emptied
 /// (as [`drop_faint`] does), then [`push_pull_sqrt`] over it; kept as the
-/// straight color of each hole pixel's missing part, `(out - premult) / (1
-/// - A)` (the fill itself where A is 0). Where history fills a hole it is first pulled toward
-/// this fill by a share ([`SpatialFill::pull`]): a fill carried from frame
-/// to frame in a hole that stays in view otherwise remembers the frame it
-/// was first made in, however long ago (what a chunk of a sequence started
-/// with a pre-roll cannot know: docs/farm.md, "Which pre-roll").
+/// straight color of each hole pixel's missing part, `(out - premult) /
+/// (1 - A)` (the fill itself where A is 0). Where history fills a hole it
+/// is first pulled toward this fill by a share ([`SpatialFill::pull`]): a
+/// fill carried from frame to frame in a hole that stays in view otherwise
+/// remembers the frame it was first made in, however long ago (what a
+/// chunk of a sequence started with a pre-roll cannot know: docs/farm.md,
+/// "Which pre-roll").
 #[derive(Debug, Clone)]
 pub struct SpatialFill {
     /// The window's 3 planes of fill (RGB, straight) and the share of the
