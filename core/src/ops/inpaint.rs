@@ -313,20 +313,22 @@ where
     found.map(|(rect, count)| (Holes { rect, count }, all))
 }
 
-/// A frame's own spatial fill of its holes, without history: the holes'
-/// window ([`fill_window`]) with the pixels covered below a floor emptied
-/// (as [`drop_faint`] does), then [`push_pull_sqrt`] over it; kept as the
-/// straight color of each hole pixel's missing part, `(out - premult) /
-/// (1 - A)` (the fill itself where A is 0). Where history fills a hole it
-/// is first pulled toward this fill by a share ([`SpatialFill::pull`]): a
-/// fill carried from frame to frame in a hole that stays in view otherwise
+/// A frame's own spatial fill of its holes, without history, at half
+/// resolution: the holes' window ([`fill_window`]) in 2x2 box sums of its
+/// pixels covered at least a floor (as [`drop_faint`] leaves them; the
+/// weight clamped to 1, as the push-pull's pull step does), then
+/// [`push_pull_sqrt`] over it. Where history fills a hole it is first
+/// pulled toward this fill by a share ([`SpatialFill::pull`]): a fill
+/// carried from frame to frame in a hole that stays in view otherwise
 /// remembers the frame it was first made in, however long ago (what a
 /// chunk of a sequence started with a pre-roll cannot know: docs/farm.md,
-/// "Which pre-roll").
+/// "Which pre-roll"). Half resolution because the fill is smooth anyway
+/// and the whole window is filled: at full resolution it cost more than
+/// the rest of the hole fill on frame-wide holes.
 #[derive(Debug, Clone)]
 pub struct SpatialFill {
-    /// The window's 3 planes of fill (RGB, straight) and the share of the
-    /// refresh each pixel takes.
+    /// The window at half resolution: 3 planes of fill (RGB, straight),
+    /// then the share of the refresh each pixel takes.
     img: Image,
     window: Rect,
 }
@@ -335,26 +337,41 @@ impl SpatialFill {
     /// The fill of the holes inside `holes` of an image given as its 4
     /// planes (`rgba`: RGB premultiplied, A coverage, `width` pixels a
     /// row), from its pixels covered at least `floor`. `None` when the
-    /// window has none.
+    /// window has no fully covered pixel.
     pub fn new(rgba: [&[f32]; 4], width: usize, holes: Rect, floor: f32) -> Option<SpatialFill> {
         let height = rgba[3].len() / width.max(1);
         let window = fill_window(holes, width, height);
-        let (ww, wh) = (window.width(), window.height());
-        let mut img = Image::try_zeros(ww, wh, 4).ok()?;
-        let at = |dy: usize| (window.y0 + dy) * width + window.x0;
-        let known: usize = par_bands_mut(&mut img, 0, wh)
+        let (hw, hh) = (window.width().div_ceil(2), window.height().div_ceil(2));
+        let mut img = Image::try_zeros(hw, hh, 4).ok()?;
+        let known: usize = par_bands_mut(&mut img, 0, hh)
             .map(|(y0, [r, g, b, a])| {
                 let mut known = 0;
-                for dy in 0..a.len() / ww {
-                    let s = at(y0 + dy);
-                    for x in 0..ww {
-                        let c = rgba[3][s + x];
-                        if c >= floor && c > 0.0 {
-                            let o = dy * ww + x;
-                            (r[o], g[o], b[o], a[o]) =
-                                (rgba[0][s + x], rgba[1][s + x], rgba[2][s + x], c);
-                            known += usize::from(c >= FULL);
+                for dy in 0..a.len() / hw {
+                    let y = window.y0 + 2 * (y0 + dy);
+                    for x in 0..hw {
+                        let mut sum = [0f32; 4];
+                        let mut full = 0;
+                        for yy in y..(y + 2).min(window.y1) {
+                            let xa = window.x0 + 2 * x;
+                            for xx in xa..(xa + 2).min(window.x1) {
+                                let p = yy * width + xx;
+                                let c = rgba[3][p];
+                                if c >= floor && c > 0.0 {
+                                    for k in 0..3 {
+                                        sum[k] += rgba[k][p];
+                                    }
+                                    sum[3] += c;
+                                    full += usize::from(c >= FULL);
+                                }
+                            }
                         }
+                        if sum[3] > 1.0 {
+                            let k = 1.0 / sum[3];
+                            sum = [sum[0] * k, sum[1] * k, sum[2] * k, 1.0];
+                        }
+                        let o = dy * hw + x;
+                        (r[o], g[o], b[o], a[o]) = (sum[0], sum[1], sum[2], sum[3]);
+                        known += full;
                     }
                 }
                 known
@@ -364,33 +381,18 @@ impl SpatialFill {
             return None;
         }
         // How much each pixel's fill is an interpolation from data near it:
-        // the share of fully covered pixels within `NEAR_RADIUS`, over
-        // `NEAR_SHARE` (1 from there on).
-        let counts = KnownCounts::new(&img, Rect::full(ww, wh), NEAR_RADIUS, FULL);
-        let mut near = vec![0f32; ww * wh];
-        near.par_chunks_mut(ww).enumerate().for_each(|(y, row)| {
+        // the share of complete half-resolution pixels within
+        // `NEAR_RADIUS` (full-resolution pixels), over `NEAR_SHARE` (1 from
+        // there on).
+        let counts = KnownCounts::new(&img, Rect::full(hw, hh), NEAR_RADIUS / 2, FULL);
+        let mut near = vec![0f32; hw * hh];
+        near.par_chunks_mut(hw).enumerate().for_each(|(y, row)| {
             for (x, v) in row.iter_mut().enumerate() {
                 *v = (counts.share(x, y) / NEAR_SHARE).min(1.0);
             }
         });
-        push_pull_sqrt(&mut img, Rect::full(ww, wh), None);
+        push_pull_sqrt(&mut img, Rect::full(hw, hh), None);
         img.plane_mut(3).copy_from_slice(&near);
-        // The straight fill of each hole pixel's missing part.
-        par_bands_mut(&mut img, 0, wh).for_each(|(y0, [r, g, b, _])| {
-            for dy in 0..r.len() / ww {
-                let s = at(y0 + dy);
-                for x in 0..ww {
-                    let c = rgba[3][s + x];
-                    if c >= floor && c > 0.0 && c < FULL {
-                        let o = dy * ww + x;
-                        let k = 1.0 / (1.0 - c);
-                        r[o] = (r[o] - rgba[0][s + x]) * k;
-                        g[o] = (g[o] - rgba[1][s + x]) * k;
-                        b[o] = (b[o] - rgba[2][s + x]) * k;
-                    }
-                }
-            }
-        });
         Some(SpatialFill { img, window })
     }
 
@@ -404,7 +406,7 @@ impl SpatialFill {
             return c;
         }
         let n = self.img.width * self.img.height;
-        let o = (i - w.y0) * self.img.width + (j - w.x0);
+        let o = (i - w.y0) / 2 * self.img.width + (j - w.x0) / 2;
         let share = share * self.img.data[3 * n + o];
         let f = |k: usize| {
             if k == 3 {
@@ -1344,7 +1346,7 @@ mod tests {
             );
         }
         assert_eq!(c[3], 1.0);
-        // The soft pixel's fill is its missing part's (straight) color.
+        // Beside a soft pixel: the flat color.
         let c = fill.pull(10, 70, [0.0, 0.0, 0.0, 0.0], 1.0);
         assert!((c[0] - 0.5).abs() < 1e-3, "{c:?}");
         // Deep in the wide strip, far from data: unchanged.
