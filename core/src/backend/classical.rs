@@ -213,9 +213,9 @@ pub fn history_weight(known_share: f32) -> f32 {
 /// long ago, and a chunk of a sequence started with a pre-roll never meets
 /// the sequential run there (issue 22: the lowest frame of 24-frame chunks
 /// with a pre-roll of 8 was 45.4 dB from the sequential run's, classical,
-/// 42.1 neural; with 0.2, 58.7 and 57.0; docs/farm.md). Out of domain it
-/// also gains on recon_hall (classical 19.98 -> 20.13 dB, neural 19.89 ->
-/// 20.06) and leaves recon_courtyard as it was (`scripts/quality.sh`).
+/// 42.1 neural; with 0.2, 58.8 and 57.1; docs/farm.md). Out of domain it
+/// also gains on recon_hall (classical 19.98 -> 20.11 dB, neural 19.89 ->
+/// 20.04) and leaves recon_courtyard as it was (`scripts/quality.sh`).
 pub const HISTORY_REFRESH: f32 = 0.2;
 
 /// The classical pipeline.

@@ -428,7 +428,7 @@ pub const NEAR_RADIUS: usize = 16;
 /// a fill across a wide empty area (a reconstruction's uncovered edge)
 /// is an extrapolation, further from the truth than the history it would
 /// replace (recon_hall, `scripts/quality.sh`: 19.98 -> 19.56 dB with the
-/// whole refresh everywhere, 20.13 dB with this weight).
+/// whole refresh everywhere, 20.11 dB with this weight).
 pub const NEAR_SHARE: f32 = 0.5;
 
 /// The window push-pull works in for holes inside `holes`: the holes' box
