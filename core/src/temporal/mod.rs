@@ -388,6 +388,31 @@ impl<'a> HistoryView<'a> {
         })
     }
 
+    /// Keeps `frame` as history frame `k` reprojected, so the passes after
+    /// the caller's copy it ([`HistoryView::reproject_row_rgba`] and the
+    /// others read the cache first) instead of computing it again. The
+    /// caller assembled `frame` from [`HistoryView::reproject_rows`] runs
+    /// that cover every pixel once, so it holds the bits
+    /// [`HistoryView::reproject`] would compute. When `k` is reprojected
+    /// already, `frame`'s buffers go back to the recycler.
+    ///
+    /// # Panics
+    /// When `k >= self.len()` or `frame` is not of the current frame's size.
+    pub(crate) fn keep_reprojected(&self, k: usize, frame: ReprojectedFrame) {
+        let (w, h) = (self.current.width(), self.current.height());
+        assert!(
+            (frame.color.width, frame.color.height, frame.color.channels) == (w, h, 4)
+                && frame.valid.len() == w * h,
+            "a reprojected frame of another size than the {w}x{h} frame"
+        );
+        if let Err(unused) = self.cache[k].set(frame) {
+            if let Some(rec) = self.recycler {
+                rec.give(unused.color.data);
+                rec.give(unused.valid);
+            }
+        }
+    }
+
     /// Row `i` of history frame `k` reprojected into the current view, the
     /// same bits as that row of [`HistoryView::reproject`]: R, G, B, A into
     /// `out[0..4]` and the validity into `out[4]`, each one row long.

@@ -776,6 +776,82 @@ fn manifest_stabilize_blends_the_network_output_with_its_history() {
 }
 
 #[test]
+fn the_stabilization_copies_the_history_the_tiles_reprojected_bit_for_bit() {
+    // The manifest's stabilization copies history frame 0 as the tiles
+    // reprojected it (by motion vectors here, into one window or several
+    // tiles); it must equal the classical stabilization after the network
+    // (`classical_post` with the other operations off), which reprojects
+    // the history itself.
+    let (w, h) = (96, 64);
+    let frames = flickering(w, h, 43);
+    let mut r = Rng(44);
+    let motion: Vec<f32> = (0..w * h)
+        .flat_map(|_| [1.5 + r.next() - 0.5, -0.75 + r.next() * 0.5])
+        .collect();
+    let depth: Vec<f32> = (0..w * h).map(|i| 2.0 + (i % w) as f32 * 0.01).collect();
+    let run = |device: Arc<Device>, set: &[(&str, ParamValue)]| {
+        // Random pixels moved by the motion look like a scene cut.
+        let mut set = set.to_vec();
+        set.push(("scene_cut_detection", ParamValue::Bool(false)));
+        let mut s = session(device, &set);
+        frames
+            .iter()
+            .enumerate()
+            .map(|(i, rgb)| {
+                let mut input =
+                    FrameInput::new(ImageView::from_f32("color", rgb, w, h, 3).unwrap());
+                input.motion = Some(ImageView::from_f32("motion", &motion, w, h, 2).unwrap());
+                input.depth = Some(ImageView::from_f32("depth", &depth, w, h, 1).unwrap());
+                input.frame_index = Some(i as i64);
+                s.process(&input, None).unwrap().0
+            })
+            .collect::<Vec<_>>()
+    };
+    // The probe returns input channels 5, 8 and 4: made the current color
+    // here, so the stabilization has something to change.
+    let probe = |stabilize: bool| {
+        device_edited("channel_probe", 0, |m| {
+            let ch = m["input"]["channels"].as_array_mut().unwrap();
+            ch.swap(0, 5);
+            ch.swap(1, 8);
+            ch.swap(2, 4);
+            m["stabilize"] = stabilize.into();
+        })
+    };
+    for tiles in [
+        vec![("tile_size", ParamValue::Int(160))],
+        vec![
+            ("tile_size", ParamValue::Int(40)),
+            ("tile_overlap", ParamValue::Int(3)),
+        ],
+    ] {
+        let stabilized = run(probe(true), &tiles);
+        let mut post = tiles.clone();
+        post.extend([
+            ("classical_post", ParamValue::Bool(true)),
+            ("harmonize", ParamValue::Bool(false)),
+            ("contact_shadows", ParamValue::Bool(false)),
+            ("stabilize_all", ParamValue::Bool(true)),
+        ]);
+        let reference = run(probe(false), &post);
+        for (i, (s, r)) in stabilized.iter().zip(&reference).enumerate() {
+            assert!(s.data == r.data, "{tiles:?}, frame {i}: stabilized output");
+        }
+        let plain = run(probe(false), &tiles);
+        let moved = (1..frames.len())
+            .map(|i| {
+                let pairs = stabilized[i].data.iter().zip(&plain[i].data);
+                pairs.filter(|(a, b)| (*a - *b).abs() > 1e-3).count()
+            })
+            .sum::<usize>();
+        assert!(
+            moved > 100,
+            "{tiles:?}: stabilization changed {moved} values"
+        );
+    }
+}
+
+#[test]
 fn missing_runtime_says_what_to_install() {
     let opts = DeviceOptions {
         ort_library: Some("/nonexistent/libonnxruntime.so.1.31.1".into()),

@@ -27,7 +27,7 @@ use crate::frame::Image;
 use crate::model::{InputChannel, Manifest};
 use crate::ops::inpaint::{SpatialFill, FULL};
 use crate::params::Params;
-use crate::temporal::{HistoryView, RowScratch};
+use crate::temporal::{HistoryView, ReprojectedFrame, RowScratch};
 use encoding::ColorCodec;
 use tiling::{reflect, TilePlan};
 
@@ -673,7 +673,8 @@ fn history_slots(channels: &[InputChannel], used: usize) -> Vec<(usize, usize, H
 /// reprojection is written and read back; rows and columns outside the
 /// frame are mirror reflections, as [`fill_window`] writes them. Window
 /// rows in parallel on `pool` (each written by one task: the same bits on
-/// any thread count).
+/// any thread count). With `keep`, history frame 0's runs over the tile's
+/// core are also copied into `keep`'s frame-sized planes.
 #[allow(clippy::too_many_arguments)]
 fn history_window(
     view: &HistoryView<'_>,
@@ -683,6 +684,7 @@ fn history_window(
     planes: Vec<&mut [f32]>,
     (width, height): (usize, usize),
     tile: tiling::Tile,
+    keep: Option<Keep<'_>>,
     pool: &rayon::ThreadPool,
     fresh: Option<&Refresh<'_>>,
 ) {
@@ -703,14 +705,42 @@ fn history_window(
                 .collect()
         })
         .collect();
-    // Frame row `fy`, frame columns `fx..fx + len`, into window columns `at..at + len` of `dst`.
+    // Per window row, the runs of `keep`'s planes it writes (frame row
+    // `oy + wy` inside the core's rows, the core's columns), else none.
+    let mut kept: Vec<Vec<&mut [f32]>> = (0..wh).map(|_| Vec::new()).collect();
+    let mut kept_cols = 0..0;
+    if let Some(Keep {
+        planes,
+        cols,
+        rows: (r0, r1),
+    }) = keep
+    {
+        debug_assert!(fx0 <= cols.0 && cols.1 <= fx0 + (c1 - c0));
+        kept_cols = cols.0 - fx0..cols.1 - fx0;
+        for p in planes {
+            for (fy, row) in p.chunks_exact_mut(width).enumerate().take(r1).skip(r0) {
+                kept[(fy as isize - oy) as usize].push(&mut row[cols.0..cols.1]);
+            }
+        }
+    }
+    // Frame row `fy`, frame columns `fx..fx + len`, into window columns
+    // `at..at + len` of `dst`; history frame 0's `kept_cols` of the run into
+    // `keep` (the five planes, or none), as reprojected (before the pull
+    // toward the frame's own fill).
     let write = |(scratch, mixed): &mut (RowScratch, [Vec<f32>; 4]),
                  dst: &mut [&mut [f32]],
+                 keep: &mut [&mut [f32]],
                  fy,
                  fx: usize,
                  at: usize,
                  len| {
-        view.reproject_rows(n, fy, fx..fx + len, scratch, |k, [r, g, b, a, v]| {
+        view.reproject_rows(n, fy, fx..fx + len, scratch, |k, run| {
+            if k == 0 {
+                for (kp, src) in keep.iter_mut().zip(run) {
+                    kp.copy_from_slice(&src[kept_cols.clone()]);
+                }
+            }
+            let [r, g, b, a, v] = run;
             // Where the current frame has a hole, the history is first
             // pulled toward the frame's own fill (the prior fills holes
             // from it; `Refresh`).
@@ -755,13 +785,14 @@ fn history_window(
     };
     pool.install(|| {
         rows.into_par_iter()
+            .zip(kept)
             .enumerate()
             .with_min_len(4)
             .for_each_init(
                 || (RowScratch::new(c1 - c0, n), Default::default()),
-                |scratch, (wy, mut dst)| {
+                |scratch, (wy, (mut dst, mut keep))| {
                     let fy = reflect(oy + wy as isize, height);
-                    write(scratch, &mut dst, fy, fx0, c0, c1 - c0);
+                    write(scratch, &mut dst, &mut keep, fy, fx0, c0, c1 - c0);
                     for wx in (0..c0).chain(c1..ww) {
                         let fx = reflect(ox + wx as isize, width);
                         let inside = fx as isize - ox;
@@ -770,7 +801,7 @@ fn history_window(
                                 d[wx] = d[inside as usize];
                             }
                         } else {
-                            write(scratch, &mut dst, fy, fx, wx, 1);
+                            write(scratch, &mut dst, &mut [], fy, fx, wx, 1);
                         }
                     }
                 },
@@ -785,6 +816,15 @@ struct Refresh<'a> {
     fill: SpatialFill,
     coverage: &'a [f32],
     share: f32,
+}
+
+/// Where [`history_window`] copies history frame 0's reprojection: the
+/// frame-sized planes (R, G, B, A, validity) and the frame columns and rows
+/// of the tile's core (the cores of a plan cover every pixel once).
+struct Keep<'k> {
+    planes: [&'k mut [f32]; 5],
+    cols: (usize, usize),
+    rows: (usize, usize),
 }
 
 /// Fills a tile's NCHW input tensor, one window row per task: frame rows and
@@ -959,6 +999,25 @@ impl Neural {
             }
             None => Image::try_zeros(w, h, 4)?,
         };
+        // When the manifest's stabilization follows, its pass reads history
+        // frame 0 reprojected again: the tiles keep the runs they compute
+        // of it (each pixel once, from its tile's core), and the view
+        // caches that frame for the pass to copy.
+        let stabilized = input.params.stabilize
+            && input.params.temporal_blend > 0.0
+            && m.stabilize
+            && !input.params.classical_post;
+        let mut first = match (!slots.is_empty() && stabilized, input.history.recycler()) {
+            (true, Some(r)) => Some(ReprojectedFrame {
+                color: r.try_image(w, h, 4)?,
+                valid: r.try_image(w, h, 1)?.data,
+            }),
+            (true, None) => Some(ReprojectedFrame {
+                color: Image::try_zeros(w, h, 4)?,
+                valid: Image::try_zeros(w, h, 1)?.data,
+            }),
+            (false, _) => None,
+        };
         for (t, tile) in plan.tiles().enumerate() {
             if !slots.is_empty() {
                 stages.time("reproject", || {
@@ -968,6 +1027,14 @@ impl Neural {
                         .iter()
                         .map(|&(slot, ..)| planes[slot].take().expect("one slot per channel"))
                         .collect();
+                    let keep = first.as_mut().map(|f| {
+                        let [r, g, b, a] = f.color.planes_mut().try_into().expect("4 planes");
+                        Keep {
+                            planes: [r, g, b, a, &mut f.valid[..]],
+                            cols: plan.x.cores[tile.ix],
+                            rows: plan.y.cores[tile.iy],
+                        }
+                    });
                     history_window(
                         input.history,
                         &slots,
@@ -976,6 +1043,7 @@ impl Neural {
                         mine,
                         (w, h),
                         tile,
+                        keep,
                         pool,
                         fresh.as_ref(),
                     );
@@ -1011,6 +1079,9 @@ impl Neural {
             stages.time("finish", || {
                 finish(&mut out, frame.coverage.as_deref(), input.params.fill_holes)
             });
+        }
+        if let Some(f) = first {
+            input.history.keep_reprojected(0, f);
         }
         Ok(out)
     }
