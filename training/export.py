@@ -57,7 +57,9 @@ def effective_radius(model: Enhancer, size: int = 256, mass: float = 0.99) -> in
     return size // 2
 
 
-def manifest_for(model: Enhancer, name: str, version: str, stabilize: bool = True) -> dict:
+def manifest_for(
+    model: Enhancer, name: str, version: str, stabilize: bool = True, history_read: int | None = None
+) -> dict:
     cfg = model.cfg
     # Tiled equals untiled output when overlap - overlap/2 >= the receptive radius;
     # the 256 px tile allows at most 63 px (tile_size >= 4 * overlap + 2).
@@ -84,7 +86,7 @@ def manifest_for(model: Enhancer, name: str, version: str, stabilize: bool = Tru
         # to the local color range (held-out warping error 0.0215 -> 0.0189 for
         # harmonizer-small 1.1.x, PSNR 30.30 -> 30.58 dB).
         "stabilize": stabilize,
-    }
+    } | ({"history_read": history_read} if history_read is not None else {})
 
 
 class _ResidualFree(torch.nn.Module):
@@ -107,7 +109,12 @@ def graph_of(model: Enhancer) -> torch.nn.Module:
 
 
 def export(
-    model: Enhancer, out_stem: Path, name: str = "harmonizer-small", version: str = "0.1.0", stabilize: bool = True
+    model: Enhancer,
+    out_stem: Path,
+    name: str = "harmonizer-small",
+    version: str = "0.1.0",
+    stabilize: bool = True,
+    history_read: int | None = None,
 ) -> dict:
     import onnx
 
@@ -135,7 +142,7 @@ def export(
     onnx.checker.check_model(proto)
     onnx.save(proto, str(tmp))
     tmp.replace(onnx_path)
-    manifest = manifest_for(model, name, version, stabilize)
+    manifest = manifest_for(model, name, version, stabilize, history_read)
     json_path = out_stem.with_suffix(".json")
     json_path.write_text(json.dumps(manifest, indent=2) + "\n")
     return manifest
@@ -231,6 +238,12 @@ def main(argv: list[str] | None = None) -> int:
         default=True,
         help="manifest `stabilize`: the runtime stabilizes the output over time (default on)",
     )
+    ap.add_argument(
+        "--history-read",
+        type=int,
+        default=None,
+        help="manifest `history_read`: the runtime fills only the first N history slots (default: all)",
+    )
     args = ap.parse_args(argv)
     source = args.ckpt or args.from_onnx
     if not source.exists():
@@ -250,7 +263,7 @@ def main(argv: list[str] | None = None) -> int:
         model.load_state_dict(ck["model"])
         model.eval()
         step = ck["step"]
-    manifest = export(model, args.out, args.name, args.version, args.stabilize)
+    manifest = export(model, args.out, args.name, args.version, args.stabilize, args.history_read)
     onnx_path = args.out.with_suffix(".onnx")
     diff = verify(model, onnx_path)
     macs, params = count_macs(model, 576, 1024)

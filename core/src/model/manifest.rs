@@ -208,6 +208,13 @@ pub struct Manifest {
     pub version: String,
     /// K: previous enhanced frames the model expects (0..=8).
     pub context_frames: usize,
+    /// How many of its `context_frames` history slots the runtime fills
+    /// (the newest frames first); the later slots get no frame (zeros,
+    /// validity 0), as at a sequence's start. For a model measured to gain
+    /// nothing from its older frames: their reprojection is skipped.
+    /// Absent: all of them.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub history_read: Option<usize>,
     /// The input tensor (NCHW f32).
     pub input: TensorSpec,
     /// The output tensor (NCHW f32); channels are a permutation of `color.r`, `color.g`, `color.b`.
@@ -248,6 +255,14 @@ pub struct Manifest {
 }
 
 impl Manifest {
+    /// The history slots the runtime fills: `history_read`, else
+    /// `context_frames`.
+    pub fn history_slots(&self) -> usize {
+        self.history_read
+            .unwrap_or(self.context_frames)
+            .min(self.context_frames)
+    }
+
     /// Parses and validates manifest JSON; `origin` names the source in errors
     /// (a file path or "in-memory manifest").
     pub fn from_json(text: &str, origin: &str) -> Result<Manifest> {
@@ -321,6 +336,14 @@ impl Manifest {
                     self.context_frames
                 ),
             );
+        }
+        if let Some(n) = self.history_read {
+            if n > self.context_frames {
+                return bad(
+                    "history_read",
+                    format!("{n} is above context_frames {}", self.context_frames),
+                );
+            }
         }
         if self.input.name.is_empty() {
             return bad("input.name", "is empty".into());
@@ -444,6 +467,7 @@ mod tests {
             name: "m".into(),
             version: "1".into(),
             context_frames: 2,
+            history_read: None,
             input: TensorSpec {
                 name: "input".into(),
                 channels: ["color.r", "color.g", "color.b", "hist1.a", "valid0"]

@@ -401,8 +401,38 @@ fn channel_probe_proves_the_tensor_layout() {
         context_frames: 1,
         ..Params::default()
     };
-    let out = run_backend(&model, &device, &frame, &[h0, h1], &params);
+    let out = run_backend(&model, &device, &frame, &[h0.clone(), h1.clone()], &params);
     assert!(out.plane(2).iter().chain(out.plane(1)).all(|&v| v == 0.0));
+
+    // The manifest's `history_read` 1: the same, whatever the session's
+    // context; hist0 is still read.
+    let device = device_edited("channel_probe", 0, |m| {
+        let ch = m["input"]["channels"].as_array_mut().unwrap();
+        ch.swap(8, 12); // valid0 <-> valid1
+        m["history_read"] = 1.into();
+    });
+    let model = device.neural_model().unwrap().unwrap();
+    assert_eq!(model.manifest.history_slots(), 1);
+    let out = run_backend(
+        &model,
+        &device,
+        &frame,
+        &[h0.clone(), h1],
+        &Params::default(),
+    );
+    assert_close(&plane_of(&out, 0), h0.plane(0), 1e-6, "output.r = hist0.r");
+    assert!(
+        out.plane(1).iter().all(|&v| v == 0.0),
+        "output.g = valid1: none"
+    );
+    // Above `context_frames`: refused, naming the field.
+    let text = fixture_manifest("channel_probe");
+    let mut bad = text.clone();
+    bad["history_read"] = 3.into();
+    let err = harmonizer_core::model::Manifest::from_json(&bad.to_string(), "test")
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("history_read"), "{err}");
 }
 
 /// The box filter in the encoded domain with reflected borders; on an axis

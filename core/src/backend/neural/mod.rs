@@ -888,7 +888,7 @@ impl Neural {
         let codec = stages.time("encode_stats", || {
             ColorCodec::for_frame(&m.encoding, &frame.color, frame.coverage.as_deref())
         });
-        let used = m.context_frames.min(input.history.len());
+        let used = m.history_slots().min(input.history.len());
         let mut sources = channel_sources(&model.channels, frame, used, m.premultiplied);
         let slots = history_slots(&model.channels, used);
 
@@ -1248,7 +1248,7 @@ impl Backend for Neural {
         5 * self
             .model
             .manifest
-            .context_frames
+            .history_slots()
             .min(params.context_frames)
     }
 
