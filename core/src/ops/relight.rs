@@ -214,10 +214,14 @@ pub fn fit_step(rect: Rect) -> usize {
 
 /// Weighted least squares of `y` on `[1, x1, ..]` (2 or 3 regressors with
 /// the constant): the coefficients and the weighted mean squared residual.
-fn least_squares<const N: usize>(rows: &[([f64; N], f64, f64)]) -> Option<([f64; N], f64)> {
+/// `rows` is read twice (the normal equations, then the residual), never
+/// collected.
+fn least_squares<const N: usize>(
+    rows: impl Iterator<Item = ([f64; N], f64, f64)> + Clone,
+) -> Option<([f64; N], f64)> {
     let mut a = [[0.0f64; N]; N];
     let mut b = [0.0f64; N];
-    for (x, y, w) in rows {
+    for (x, y, w) in rows.clone() {
         for i in 0..N {
             b[i] += w * x[i] * y;
             for j in 0..N {
@@ -292,17 +296,21 @@ pub fn fit(img: &Image, mask: &[f32], f: &Facing) -> Option<Fit> {
     let l = f.light;
     let facing =
         |n: [f32; 3], d: [f32; 3]| (n[0] * d[0] + n[1] * d[1] + n[2] * d[2]).max(0.0) as f64;
-    let one: Vec<([f64; 2], f64, f64)> = samples
-        .iter()
-        .map(|&(n, y, wt)| ([1.0, facing(n, l)], y, wt))
-        .collect();
-    let mc = one.iter().map(|s| s.2 * s.0[1]).sum::<f64>() / wsum;
-    let var = one.iter().map(|s| s.2 * (s.0[1] - mc).powi(2)).sum::<f64>() / wsum;
-    let my = one.iter().map(|s| s.2 * s.1).sum::<f64>() / wsum;
+    // Each sample's facing to the scene's light, once.
+    let lit: Vec<f64> = samples.iter().map(|&(n, ..)| facing(n, l)).collect();
+    let one = || {
+        samples
+            .iter()
+            .zip(&lit)
+            .map(|(&(_, y, wt), &c)| ([1.0, c], y, wt))
+    };
+    let mc = one().map(|s| s.2 * s.0[1]).sum::<f64>() / wsum;
+    let var = one().map(|s| s.2 * (s.0[1] - mc).powi(2)).sum::<f64>() / wsum;
+    let my = one().map(|s| s.2 * s.1).sum::<f64>() / wsum;
     if var < MIN_FACING_VARIANCE || my <= 0.0 {
         return None;
     }
-    let ([intercept, slope], residual) = least_squares(&one)?;
+    let ([intercept, slope], residual) = least_squares(one())?;
     let ratio = if intercept <= 0.0 {
         MAX_RATIO
     } else {
@@ -320,11 +328,11 @@ pub fn fit(img: &Image, mask: &[f32], f: &Facing) -> Option<Fit> {
                 if d[0] * l[0] + d[1] * l[1] + d[2] * l[2] >= 0.5 {
                     continue;
                 }
-                let two: Vec<([f64; 3], f64, f64)> = samples
+                let two = samples
                     .iter()
-                    .map(|&(n, y, wt)| ([1.0, facing(n, l), facing(n, d)], y, wt))
-                    .collect();
-                if let Some(([a0, _, a2], res)) = least_squares(&two) {
+                    .zip(&lit)
+                    .map(|(&(n, y, wt), &c)| ([1.0, c, facing(n, d)], y, wt));
+                if let Some(([a0, _, a2], res)) = least_squares(two) {
                     if a0 > 0.0
                         && a2 / a0 >= OTHER_LIGHT_RATIO
                         && 1.0 - res / residual >= OTHER_LIGHT_GAIN

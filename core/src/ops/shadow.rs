@@ -140,12 +140,9 @@ pub fn shadow_map(
         // top, the round side of an object): the background just below it
         // on screen lies farther away, on ground the object does not touch
         // there.
-        let below = depth[(yb + BELOW_ROWS).min(height - 1) * width + x];
-        let floats = yb + 1 < height
-            && below.is_finite()
-            && below < EMPTY_DEPTH
-            && mask[(yb + BELOW_ROWS).min(height - 1) * width + x] <= 0.5
-            && below > d * (1.0 + FLOAT_TOLERANCE);
+        let j = (yb + BELOW_ROWS).min(height - 1) * width + x;
+        let floats =
+            depth[j] < EMPTY_DEPTH && mask[j] <= 0.5 && depth[j] > d * (1.0 + FLOAT_TOLERANCE);
         if d.is_finite() && d > 0.0 && d < EMPTY_DEPTH && !floats {
             foot.push((x, yb, d));
             fx0 = fx0.min(x);
