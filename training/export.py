@@ -57,10 +57,20 @@ def effective_radius(model: Enhancer, size: int = 256, mass: float = 0.99) -> in
     return size // 2
 
 
-def manifest_for(
-    model: Enhancer, name: str, version: str, stabilize: bool = True, history_read: int | None = None
-) -> dict:
+def history_read_of(cfg: ModelConfig) -> int | None:
+    """Manifest `history_read`: the history slots the graph reads, where it reads
+    fewer than `context_frames` (the prior's `prior_frames`, with a correction
+    blind to the history), else None (all)."""
+    if cfg.prior_frames <= 0 or cfg.prior_frames >= cfg.context_frames:
+        return None
+    if cfg.correction_history or not cfg.prior:
+        raise ValueError("prior_frames below context_frames needs a prior and a correction blind to the history")
+    return cfg.prior_frames
+
+
+def manifest_for(model: Enhancer, name: str, version: str, stabilize: bool = True) -> dict:
     cfg = model.cfg
+    history_read = history_read_of(cfg)
     # Tiled equals untiled output when overlap - overlap/2 >= the receptive radius;
     # the 256 px tile allows at most 63 px (tile_size >= 4 * overlap + 2).
     overlap = int(min(max(2 * effective_radius(model), 16), 62))
@@ -114,7 +124,6 @@ def export(
     name: str = "harmonizer-small",
     version: str = "0.1.0",
     stabilize: bool = True,
-    history_read: int | None = None,
 ) -> dict:
     import onnx
 
@@ -142,7 +151,7 @@ def export(
     onnx.checker.check_model(proto)
     onnx.save(proto, str(tmp))
     tmp.replace(onnx_path)
-    manifest = manifest_for(model, name, version, stabilize, history_read)
+    manifest = manifest_for(model, name, version, stabilize)
     json_path = out_stem.with_suffix(".json")
     json_path.write_text(json.dumps(manifest, indent=2) + "\n")
     return manifest
@@ -182,12 +191,14 @@ def weights_from_onnx(path: Path, **changes) -> Enhancer:
     levels = sorted({int(k.split(".")[1]) for k in init if k.startswith("enc.")})
     widths = tuple(int(init[f"enc.{i}.0.0.weight"].shape[0]) for i in levels)
     # The stem as one r x r convolution of stride r: [stem, channels, r, r].
-    folded = [v for k, v in init.items() if k.startswith("onnx::Conv") and v.dim() == 4 and v.shape[-1] > 1]
+    folded = [v for k, v in init.items() if k.startswith("onnx::") and v.dim() == 4 and v.shape[-1] > 1]
     if "stem.0.bias" not in init or len(folded) != 1:
         raise ValueError(f"{path}: no folded stem convolution found (not a model this trainer exported)")
     stem_w = folded[0]
+    context = int(manifest["context_frames"])
+    changes.setdefault("prior_frames", int(manifest.get("history_read", 0)))
     cfg = ModelConfig(
-        context_frames=int(manifest["context_frames"]),
+        context_frames=context,
         widths=widths,
         unshuffle=int(stem_w.shape[-1]),
         key=float(manifest["encoding"]["key"]),
@@ -202,6 +213,12 @@ def weights_from_onnx(path: Path, **changes) -> Enhancer:
     model = Enhancer(cfg)
     own = model.state_dict()
     weights = {k: init[k] for k in own if k in init}
+    full = own["stem.0.weight"].shape[1] // cfg.unshuffle**2
+    if stem_w.shape[1] == full - 4 * context:
+        # A graph without the history channels in the correction's input
+        # (1.2.1 on): their rows come back as zeros, which they weighed before.
+        hist = torch.zeros(stem_w.shape[0], 4 * context, *stem_w.shape[2:], dtype=stem_w.dtype)
+        stem_w = torch.cat([stem_w[:, :5], hist, stem_w[:, 5:]], 1)
     weights["stem.0.weight"] = stem_w.reshape(own["stem.0.weight"].shape)
     missing = sorted(set(own) - set(weights))
     if missing:
@@ -242,7 +259,7 @@ def main(argv: list[str] | None = None) -> int:
         "--history-read",
         type=int,
         default=None,
-        help="manifest `history_read`: the runtime fills only the first N history slots (default: all)",
+        help="the prior reads only the first N history slots (manifest `history_read`; default: as the source)",
     )
     args = ap.parse_args(argv)
     source = args.ckpt or args.from_onnx
@@ -255,15 +272,18 @@ def main(argv: list[str] | None = None) -> int:
             prior_floor=args.prior_floor,
             prior_gate=args.prior_gate,
             correction_history=args.correction_history,
+            **({"prior_frames": args.history_read} if args.history_read is not None else {}),
         )
         step = None
     else:
         ck = torch.load(args.ckpt, map_location="cpu", weights_only=False)
         model = Enhancer(ModelConfig.from_dict(ck["model_cfg"]))
         model.load_state_dict(ck["model"])
+        if args.history_read is not None:
+            model.cfg.prior_frames = args.history_read
         model.eval()
         step = ck["step"]
-    manifest = export(model, args.out, args.name, args.version, args.stabilize, args.history_read)
+    manifest = export(model, args.out, args.name, args.version, args.stabilize)
     onnx_path = args.out.with_suffix(".onnx")
     diff = verify(model, onnx_path)
     macs, params = count_macs(model, 576, 1024)

@@ -168,6 +168,43 @@ def test_weights_from_onnx_rebuild_the_exported_model(tmp_path):
         assert torch.allclose(old(x), m(x), atol=1e-6)
 
 
+def test_a_lean_graph_reads_only_its_history_frames_and_comes_back_whole(tmp_path):
+    """The default wiring leaves the history channels out of the correction's
+    input and, with `prior_frames`, the prior reads the first frames only: the
+    same output where the later slots carry no frame, a manifest that says
+    `history_read`, and weights that re-export to the same model."""
+    from training.export import export, weights_from_onnx
+
+    torch.manual_seed(2)
+    full = Enhancer(ModelConfig(widths=(8, 8, 12, 16)))
+    with torch.no_grad():
+        for p in full.parameters():
+            p.normal_(std=0.1)
+    lean = Enhancer(ModelConfig(widths=(8, 8, 12, 16), prior_frames=2))
+    lean.load_state_dict(full.state_dict())
+    x = torch.rand(1, 21, 32, 48)
+    x[:, 3] = (torch.rand(32, 48) > 0.4).float()
+    x[:, 3, 8:24, 10:40] = 0.0  # a wide hole, which the history may fill
+    x[:, 8, 8:24, 10:40] = 0.0  # slot 0 has no data there
+    x[:, 13:] = 0.0  # slots 2 and 3: no frame
+    with torch.no_grad():
+        assert torch.allclose(lean(x), full(x), atol=1e-6)
+        # Slot 2 with a frame: the lean prior does not read it.
+        y = x.clone()
+        y[:, 13:16] = 5.0
+        y[:, 16] = 1.0
+        assert torch.equal(lean(y), lean(x)) and not torch.equal(full(y), full(x))
+    manifest = export(lean, tmp_path / "m")
+    assert manifest["history_read"] == 2 and manifest["context_frames"] == 4
+    back = weights_from_onnx(tmp_path / "m.onnx")
+    assert back.cfg.prior_frames == 2
+    with torch.no_grad():
+        assert torch.allclose(back(y), lean(y), atol=1e-6)
+    # The correction reading the history cannot skip slots.
+    with pytest.raises(ValueError, match="blind to the history"):
+        export(Enhancer(ModelConfig(widths=(8, 8, 12, 16), prior_frames=2, correction_history=True)), tmp_path / "h")
+
+
 @pytest.mark.parametrize("prior", [True, False])
 def test_export_matches_pytorch_in_onnx_runtime(tmp_path, prior):
     pytest.importorskip("onnxruntime")
