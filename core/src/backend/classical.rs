@@ -76,7 +76,7 @@ fn shadows(
 ) -> Option<Rect> {
     let (params, frame) = (input.params, input.frame);
     let (w, h) = (img.width, img.height);
-    let contact = shadow::shadow_map(mask, depth, rect, w, h);
+    let contact = shadow::shadow_map(mask, depth, rect, w, h, frame.camera.as_ref());
     let light = params
         .light_direction_world(frame.camera.as_ref())
         .zip(frame.camera.as_ref());

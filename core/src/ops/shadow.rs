@@ -11,11 +11,18 @@
 //! only where its depth `d` is close to the footprint depth `D` (the ground
 //! the object stands on, not a wall far behind it, not the sky) and never on
 //! the insert itself. Sizes scale with the footprint width.
+//!
+//! With a camera, each footprint column counts by how much of the object
+//! stands over it ([`standing`]): the ground at the foot of a wall is
+//! occluded, the ground at the rim of a thin plate (a table's base disc)
+//! hardly is.
 
 use rayon::prelude::*;
 
+use glam::DVec2;
+
 use super::{fast_exp2, fmax, fmin, par_bands_mut, Rect, EMPTY_DEPTH};
-use crate::frame::Image;
+use crate::frame::{Camera, Image};
 
 /// Distance (share of the shadow map's larger edge) at which
 /// [`existing_darkening`] looks for unshadowed background.
@@ -33,6 +40,17 @@ pub const BELOW_ROWS: usize = 2;
 /// The background [`BELOW_ROWS`] under a footprint pixel farther than the
 /// insert there by more than this share: the insert floats over it.
 pub const FLOAT_TOLERANCE: f32 = 0.02;
+
+/// Height of the object over a footprint column, as a share of the
+/// shadow's reach below the footprint (`SIGMA_BELOW` of the footprint size,
+/// in world units there), at which the column occludes fully ([`standing`]).
+/// The darkening integrated away from the foot of a wall of height `H` is
+/// about `H` (`1 - d / sqrt(d^2 + H^2)` over the distance `d`); the map's
+/// profile integrates to about 1.25 reaches.
+pub const STANDING_HEIGHT: f64 = 1.25;
+/// Horizontal distance from the footprint point, in reaches, within which
+/// the object's height counts ([`standing`]).
+pub const STANDING_REACH: f64 = 2.0;
 
 /// Relative depth difference at which the shadow falls to 1/e.
 pub const DEPTH_TOLERANCE: f32 = 0.1;
@@ -105,6 +123,7 @@ pub fn shadow_map(
     insert: Rect,
     width: usize,
     height: usize,
+    camera: Option<&Camera>,
 ) -> Option<ShadowMap> {
     // Footprint: lowest insert pixel per column (row-major scan: the last
     // row that has the column inside wins) and the insert's depth there, one
@@ -158,6 +177,12 @@ pub fn shadow_map(
         .max(0.25 * insert.height() as f32)
         .max(8.0);
     let (sx, sb, sa) = (SIGMA_SIDE * size, SIGMA_BELOW * size, SIGMA_ABOVE * size);
+    let weight = camera
+        .and_then(|c| standing(mask, depth, &foot, sb, c, width, height))
+        .unwrap_or_else(|| vec![1.0; foot.len()]);
+    if weight.iter().all(|&r| r <= 0.0) {
+        return None;
+    }
     let cell = ((size / 48.0) as usize).clamp(1, 4);
     let area = Rect {
         x0: fx0.saturating_sub((3.0 * sx).ceil() as usize),
@@ -170,10 +195,10 @@ pub fn shadow_map(
     let mut occ = vec![0.0f32; gw * gh];
     let mut dep = vec![0.0f32; gw * gh];
     let share = 1.0 / cell as f32;
-    for &(x, y, d) in &foot {
+    for (&(x, y, d), &r) in foot.iter().zip(&weight) {
         let g = ((y - area.y0) / cell) * gw + (x - area.x0) / cell;
-        occ[g] += share;
-        dep[g] += share * d;
+        occ[g] += share * r;
+        dep[g] += share * r * d;
     }
     // Horizontal: normalized Gaussian.
     let kx = gaussian(sx / cell as f32);
@@ -252,6 +277,90 @@ pub fn shadow_map(
     })
 }
 
+/// How much each footprint column `(x, y, depth)` occludes the ground at its
+/// foot, in 0..=1: the object's height over the ground plane within
+/// [`STANDING_REACH`] reaches (`reach_px` pixels, in world units at the
+/// column) of the footprint point, over [`STANDING_HEIGHT`] reaches. The
+/// object's points are its pixels straight above the footprint on screen
+/// (mask above 0.5, up to 4 reaches); the ground plane's normal is the mean
+/// of the background's normals just below the footprint (camera space,
+/// from depth). `None` without enough ground to tell its normal: every
+/// column then counts fully.
+pub fn standing(
+    mask: &[f32],
+    depth: &[f32],
+    foot: &[(usize, usize, f32)],
+    reach_px: f32,
+    camera: &Camera,
+    width: usize,
+    height: usize,
+) -> Option<Vec<f32>> {
+    let un = camera.unprojector(width, height);
+    let ground = |x: usize, y: usize| {
+        let i = y * width + x;
+        let d = depth[i];
+        (mask[i] <= 0.5 && d.is_finite() && d > 0.0 && d < EMPTY_DEPTH)
+            .then(|| un.camera_point(DVec2::new(x as f64 + 0.5, y as f64 + 0.5), d as f64))
+    };
+    // The ground's normal, toward the camera.
+    let mut normal = glam::DVec3::ZERO;
+    let mut count = 0usize;
+    for &(x, y, _) in foot {
+        let (yg, step) = (y + BELOW_ROWS + 1, 2);
+        if x + step >= width || yg + step >= height {
+            continue;
+        }
+        let (Some(a), Some(b), Some(c)) =
+            (ground(x, yg), ground(x + step, yg), ground(x, yg + step))
+        else {
+            continue;
+        };
+        let n = (b - a).cross(c - a);
+        let len = n.length();
+        if len > 0.0 && len.is_finite() {
+            let n = n / len;
+            normal += if n.dot(-a) < 0.0 { -n } else { n };
+            count += 1;
+        }
+    }
+    if count < 3 || normal.length() < 0.5 * count as f64 {
+        // Too few samples, or normals that disagree (no plane).
+        return None;
+    }
+    let n = normal.normalize();
+    let rows = (4.0 * reach_px).ceil() as usize + 2;
+    Some(
+        foot.par_iter()
+            .map(|&(x, y, d)| {
+                let px = |yy: usize| DVec2::new(x as f64 + 0.5, yy as f64 + 0.5);
+                let p0 = un.camera_point(px(y), d as f64);
+                // World size of one pixel at the footprint.
+                let pixel = (un.camera_point(DVec2::new(x as f64 + 1.5, y as f64 + 0.5), d as f64)
+                    - p0)
+                    .length();
+                let reach = reach_px as f64 * pixel;
+                let (mut top, near) = (0.0f64, STANDING_REACH * reach);
+                for yy in (y.saturating_sub(rows)..y).rev() {
+                    let i = yy * width + x;
+                    if mask[i] <= 0.5 {
+                        break;
+                    }
+                    let dd = depth[i];
+                    if !(dd.is_finite() && dd > 0.0 && dd < EMPTY_DEPTH) {
+                        continue;
+                    }
+                    let v = un.camera_point(px(yy), dd as f64) - p0;
+                    let up = v.dot(n);
+                    if (v - up * n).length() <= near {
+                        top = top.max(up);
+                    }
+                }
+                ((top / (STANDING_HEIGHT * reach)) as f32).clamp(0.0, 1.0)
+            })
+            .collect(),
+    )
+}
+
 /// Darkens the background of a 4-plane image under the insert (bounding box
 /// `insert`) by `strength` at most. Returns the area touched, `None` when
 /// nothing was.
@@ -266,7 +375,7 @@ pub fn contact_shadow(
         return None;
     }
     let (w, h) = (img.width, img.height);
-    let map = shadow_map(mask, depth, insert, w, h)?;
+    let map = shadow_map(mask, depth, insert, w, h, None)?;
     Some(apply(img, mask, depth, &map, strength))
 }
 
@@ -506,9 +615,96 @@ mod tests {
         }
         let orig = img.clone();
         let rect = crate::ops::harmonize::insert_rect(&mask, w, img.height).unwrap();
-        assert!(shadow_map(&mask, &depth, rect, w, img.height).is_none());
+        assert!(shadow_map(&mask, &depth, rect, w, img.height, None).is_none());
         assert!(contact_shadow(&mut img, &mask, rect, &depth, 0.6).is_none());
         assert_eq!(img, orig);
+    }
+
+    /// A ground plane (world y = 0) seen from above at an angle, with a box
+    /// 1 wide and deep and `height` tall standing on it (the insert),
+    /// ray cast with the camera's planar depth.
+    fn standing_box(height: f64) -> (Image, Vec<f32>, Vec<f32>, Camera) {
+        let (w, h) = (200, 150);
+        let (eye, target) = (
+            glam::Vec3::new(0.0, 1.6, 4.0),
+            glam::Vec3::new(0.0, 0.2, 0.0),
+        );
+        let camera = Camera::look_at(eye, target, 40f32.to_radians(), w as f32 / h as f32);
+        let un = camera.unprojector(w, h);
+        let (eye, fwd) = (eye.as_dvec3(), (target - eye).normalize().as_dvec3());
+        let (mut depth, mut mask) = (vec![1e10f32; w * h], vec![0.0f32; w * h]);
+        for y in 0..h {
+            for x in 0..w {
+                let dir = un.world_point(DVec2::new(x as f64 + 0.5, y as f64 + 0.5), 1.0) - eye;
+                // Slab intersection of the box [-0.5, 0.5] x [0, height] x [-0.5, 0.5].
+                let (lo, hi) = (
+                    glam::DVec3::new(-0.5, 0.0, -0.5),
+                    glam::DVec3::new(0.5, height, 0.5),
+                );
+                let (t0, t1) = ((lo - eye) / dir, (hi - eye) / dir);
+                let (near, far) = (t0.min(t1).max_element(), t0.max(t1).min_element());
+                let i = y * w + x;
+                if near <= far && near > 0.0 {
+                    depth[i] = ((dir * near).dot(fwd)) as f32;
+                    mask[i] = 1.0;
+                } else if dir.y < 0.0 {
+                    depth[i] = ((dir * (-eye.y / dir.y)).dot(fwd)) as f32;
+                }
+            }
+        }
+        (Image::filled(w, h, 4, 0.5), mask, depth, camera)
+    }
+
+    /// Mean darkening of the ground within 6 rows below the insert.
+    fn darkening_below(img: &Image, mask: &[f32]) -> f32 {
+        let w = img.width;
+        let (mut sum, mut n) = (0.0, 0);
+        for x in 0..w {
+            if let Some(yb) = (0..img.height).rev().find(|&y| mask[y * w + x] > 0.5) {
+                for y in yb + 1..(yb + 7).min(img.height) {
+                    sum += 0.5 - img.at(x, y, 1);
+                    n += 1;
+                }
+            }
+        }
+        sum / n.max(1) as f32
+    }
+
+    #[test]
+    fn a_thin_plate_occludes_the_ground_at_its_rim_far_less_than_a_box() {
+        let shadowed = |height: f64, camera: bool| {
+            let (mut img, mask, depth, cam) = standing_box(height);
+            let rect = crate::ops::harmonize::insert_rect(&mask, img.width, img.height).unwrap();
+            let map = shadow_map(
+                &mask,
+                &depth,
+                rect,
+                img.width,
+                img.height,
+                camera.then_some(&cam),
+            )
+            .unwrap();
+            apply(&mut img, &mask, &depth, &map, 0.6);
+            darkening_below(&img, &mask)
+        };
+        let (box_plain, box_seen) = (shadowed(0.6, false), shadowed(0.6, true));
+        let (plate_plain, plate_seen) = (shadowed(0.02, false), shadowed(0.02, true));
+        // Without a camera both darken alike; with one, the box as before
+        // (its front rises straight from the footprint), the plate about
+        // its height over 1.25 reaches (0.02 / 0.1 of the footprint).
+        assert!(
+            box_plain > 0.05 && plate_plain > 0.05,
+            "{box_plain} {plate_plain}"
+        );
+        assert!(
+            box_seen > 0.97 * box_plain,
+            "box {box_seen} against {box_plain}"
+        );
+        assert!(
+            plate_seen < 0.35 * plate_plain,
+            "plate {plate_seen} against {plate_plain}"
+        );
+        assert!(plate_seen > 0.0, "a plate still touches the ground");
     }
 
     #[test]
