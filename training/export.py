@@ -68,9 +68,13 @@ def history_read_of(cfg: ModelConfig) -> int | None:
     return cfg.prior_frames
 
 
-def manifest_for(model: Enhancer, name: str, version: str, stabilize: bool = True) -> dict:
+def manifest_for(
+    model: Enhancer, name: str, version: str, stabilize: bool = True, repair_margin: int | None = None
+) -> dict:
     cfg = model.cfg
     history_read = history_read_of(cfg)
+    if repair_margin is not None and not 1 <= repair_margin <= 64:
+        raise ValueError(f"repair_margin {repair_margin} is out of range 1..=64")
     # Tiled equals untiled output when overlap - overlap/2 >= the receptive radius;
     # the 256 px tile allows at most 63 px (tile_size >= 4 * overlap + 2).
     overlap = int(min(max(2 * effective_radius(model), 16), 62))
@@ -96,7 +100,11 @@ def manifest_for(model: Enhancer, name: str, version: str, stabilize: bool = Tru
         # to the local color range (held-out warping error 0.0215 -> 0.0189 for
         # harmonizer-small 1.1.x, PSNR 30.30 -> 30.58 dB).
         "stabilize": stabilize,
-    } | ({"history_read": history_read} if history_read is not None else {})
+    } | ({"history_read": history_read} if history_read is not None else {}) | (
+        # Covered pixels farther than this from a hole keep their rendered
+        # color (the runtime; measured per model, see the model card).
+        {"repair_margin": repair_margin} if repair_margin is not None else {}
+    )
 
 
 class _ResidualFree(torch.nn.Module):
@@ -124,6 +132,7 @@ def export(
     name: str = "harmonizer-small",
     version: str = "0.1.0",
     stabilize: bool = True,
+    repair_margin: int | None = None,
 ) -> dict:
     import onnx
 
@@ -151,7 +160,7 @@ def export(
     onnx.checker.check_model(proto)
     onnx.save(proto, str(tmp))
     tmp.replace(onnx_path)
-    manifest = manifest_for(model, name, version, stabilize)
+    manifest = manifest_for(model, name, version, stabilize, repair_margin)
     json_path = out_stem.with_suffix(".json")
     json_path.write_text(json.dumps(manifest, indent=2) + "\n")
     return manifest
@@ -261,6 +270,13 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help="the prior reads only the first N history slots (manifest `history_read`; default: as the source)",
     )
+    ap.add_argument(
+        "--repair-margin",
+        type=int,
+        default=None,
+        help="manifest `repair_margin`: covered pixels farther than N px from a hole keep their rendered "
+        "color (default: none; with --from-onnx, the source's)",
+    )
     args = ap.parse_args(argv)
     source = args.ckpt or args.from_onnx
     if not source.exists():
@@ -275,6 +291,9 @@ def main(argv: list[str] | None = None) -> int:
             **({"prior_frames": args.history_read} if args.history_read is not None else {}),
         )
         step = None
+        if args.repair_margin is None:
+            source_manifest = json.loads(args.from_onnx.with_suffix(".json").read_text())
+            args.repair_margin = source_manifest.get("repair_margin")
     else:
         ck = torch.load(args.ckpt, map_location="cpu", weights_only=False)
         model = Enhancer(ModelConfig.from_dict(ck["model_cfg"]))
@@ -283,7 +302,7 @@ def main(argv: list[str] | None = None) -> int:
             model.cfg.prior_frames = args.history_read
         model.eval()
         step = ck["step"]
-    manifest = export(model, args.out, args.name, args.version, args.stabilize)
+    manifest = export(model, args.out, args.name, args.version, args.stabilize, args.repair_margin)
     onnx_path = args.out.with_suffix(".onnx")
     diff = verify(model, onnx_path)
     macs, params = count_macs(model, 576, 1024)

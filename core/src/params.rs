@@ -226,6 +226,10 @@ pub struct Params {
     /// (`neural_clean_frames`); off by default: such frames (clean, or with
     /// an insert alone) get the classical operations.
     pub neural_clean_frames: bool,
+    /// Covered pixels far from holes keep their rendered color where the
+    /// model's manifest gives a `repair_margin` (`keep_covered`); on by
+    /// default. Off: the network's output everywhere.
+    pub keep_covered: bool,
 }
 
 impl Default for Params {
@@ -257,6 +261,7 @@ impl Default for Params {
             samples: 0,
             denoise_prefilter: false,
             neural_clean_frames: false,
+            keep_covered: true,
         }
     }
 }
@@ -289,6 +294,7 @@ pub const PARAM_NAMES: &[&str] = &[
     "samples",
     "denoise_prefilter",
     "neural_clean_frames",
+    "keep_covered",
 ];
 
 fn want_int(name: &str, v: &ParamValue, lo: i64, hi: i64) -> Result<i64> {
@@ -425,6 +431,7 @@ impl Params {
             "samples" => self.samples = want_int(name, v, 0, MAX_SAMPLES)? as u32,
             "denoise_prefilter" => self.denoise_prefilter = want_bool(name, v)?,
             "neural_clean_frames" => self.neural_clean_frames = want_bool(name, v)?,
+            "keep_covered" => self.keep_covered = want_bool(name, v)?,
             _ => {
                 return Err(Error::invalid(format!(
                     "unknown parameter {name:?} (known: {})",
@@ -486,6 +493,7 @@ impl Params {
             "samples" => ParamValue::Int(self.samples as i64),
             "denoise_prefilter" => ParamValue::Bool(self.denoise_prefilter),
             "neural_clean_frames" => ParamValue::Bool(self.neural_clean_frames),
+            "keep_covered" => ParamValue::Bool(self.keep_covered),
             _ => {
                 return Err(Error::invalid(format!(
                     "unknown parameter {name:?} (known: {})",

@@ -194,8 +194,9 @@ def test_a_lean_graph_reads_only_its_history_frames_and_comes_back_whole(tmp_pat
         y[:, 13:16] = 5.0
         y[:, 16] = 1.0
         assert torch.equal(lean(y), lean(x)) and not torch.equal(full(y), full(x))
-    manifest = export(lean, tmp_path / "m")
+    manifest = export(lean, tmp_path / "m", repair_margin=2)
     assert manifest["history_read"] == 2 and manifest["context_frames"] == 4
+    assert manifest["repair_margin"] == 2 and "repair_margin" not in export(full, tmp_path / "f")
     back = weights_from_onnx(tmp_path / "m.onnx")
     assert back.cfg.prior_frames == 2
     with torch.no_grad():

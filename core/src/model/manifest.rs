@@ -20,7 +20,8 @@
 //!   "tile_size": 256,
 //!   "tile_overlap": 32,
 //!   "spatial_multiple": 16,
-//!   "stabilize": true
+//!   "stabilize": true,
+//!   "repair_margin": 2
 //! }
 //! ```
 
@@ -252,7 +253,23 @@ pub struct Manifest {
     /// is on (the default) and `temporal_blend` is above 0.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub stabilize: bool,
+    /// Covered pixels (coverage at least the session's `coverage_floor`)
+    /// farther than this many pixels (Chebyshev distance) from a hole keep
+    /// their rendered color; at this distance they take
+    /// [`REPAIR_EDGE_SHARE`] of the network's output, nearer all of it. For
+    /// a model measured to repair holes and their edges but to repaint the
+    /// rest of the frame worse than it came. Absent: the network's output
+    /// everywhere. The session's `keep_covered` parameter turns it off.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub repair_margin: Option<usize>,
 }
+
+/// Share of the network's output a covered pixel takes at `repair_margin`
+/// pixels from a hole (a one-pixel fade to the rendered color beyond).
+pub const REPAIR_EDGE_SHARE: f32 = 0.4;
+
+/// The largest `repair_margin` a manifest may give.
+pub const MAX_REPAIR_MARGIN: usize = 64;
 
 impl Manifest {
     /// The history slots the runtime fills: `history_read`, else
@@ -342,6 +359,14 @@ impl Manifest {
                 return bad(
                     "history_read",
                     format!("{n} is above context_frames {}", self.context_frames),
+                );
+            }
+        }
+        if let Some(m) = self.repair_margin {
+            if !(1..=MAX_REPAIR_MARGIN).contains(&m) {
+                return bad(
+                    "repair_margin",
+                    format!("{m} is out of range 1..={MAX_REPAIR_MARGIN}"),
                 );
             }
         }
@@ -486,6 +511,7 @@ mod tests {
             spatial_multiple: 16,
             bytes_per_pixel: None,
             stabilize: false,
+            repair_margin: None,
         }
     }
 

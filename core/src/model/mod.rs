@@ -10,7 +10,7 @@ pub mod onnx;
 
 pub use manifest::{
     Encoding, Exposure, InputChannel, Manifest, TensorSpec, MANIFEST_FORMAT_VERSION,
-    MAX_CONTEXT_FRAMES,
+    MAX_CONTEXT_FRAMES, MAX_REPAIR_MARGIN, REPAIR_EDGE_SHARE,
 };
 
 /// The model embedded in this build, if any.

@@ -1277,3 +1277,74 @@ fn a_frame_with_nothing_to_repair_skips_the_network() {
     holed.coverage = Some(ImageView::from_f32("coverage", &coverage, w, h, 1).unwrap());
     assert!(run("neural", false, &holed) != run("classical", false, &holed));
 }
+
+#[test]
+fn a_repair_margin_gives_covered_pixels_far_from_holes_their_rendered_color() {
+    // The network (a 3x3 box blur) repaints everything; with the manifest's
+    // `repair_margin` 2, covered pixels more than 2 px from a hole get
+    // their rendered color back, at 2 px 0.4 of the network's output stays,
+    // nearer and in the holes all of it. `keep_covered = false` turns it off.
+    let (w, h) = (64, 48);
+    let mut rgb = hdr_rgb(w, h, 11);
+    let mut coverage = vec![1.0f32; w * h];
+    for y in 20..24 {
+        for x in 20..24 {
+            coverage[y * w + x] = 0.0;
+        }
+    }
+    // Covered above the floor (0.95): premultiplied by it.
+    coverage[40 * w + 50] = 0.97;
+    for (i, &c) in coverage.iter().enumerate() {
+        for v in &mut rgb[3 * i..3 * i + 3] {
+            *v *= c;
+        }
+    }
+    let mut input = FrameInput::new(ImageView::from_f32("color", &rgb, w, h, 3).unwrap());
+    input.coverage = Some(ImageView::from_f32("coverage", &coverage, w, h, 1).unwrap());
+    let run = |margin: Option<u64>, keep: bool| {
+        let device = device_edited("box3", 0, |m| {
+            if let Some(k) = margin {
+                m["repair_margin"] = k.into();
+            }
+        });
+        let mut s = session(device, &[("keep_covered", ParamValue::Bool(keep))]);
+        s.process(&input, None).unwrap().0
+    };
+    let net = run(None, true);
+    let kept = run(Some(2), true);
+    assert!(run(Some(2), false) == net, "keep_covered off");
+    let rendered = |x: usize, y: usize, c: usize| {
+        let i = y * w + x;
+        rgb[3 * i + c] / coverage[i]
+    };
+    for c in 0..3 {
+        // Far from the hole: the rendered color, bit for bit.
+        assert_eq!(kept.at(30, 22, c), rendered(30, 22, c));
+        assert_eq!(kept.at(5, 5, c), rendered(5, 5, c));
+        assert!((kept.at(50, 40, c) - rendered(50, 40, c)).abs() <= 1e-6 * rendered(50, 40, c));
+        // The hole, and 1 px from it: the network's output.
+        assert_eq!(kept.at(21, 21, c), net.at(21, 21, c));
+        assert_eq!(kept.at(24, 22, c), net.at(24, 22, c));
+        assert_eq!(kept.at(19, 19, c), net.at(19, 19, c));
+        // 2 px from it: 0.4 of the network's output.
+        let want = rendered(25, 22, c) + 0.4 * (net.at(25, 22, c) - rendered(25, 22, c));
+        assert!((kept.at(25, 22, c) - want).abs() <= 1e-5 * want.abs().max(1.0));
+    }
+    // The network does change the far pixels (else the test proves nothing).
+    assert!((0..3).any(|c| net.at(30, 22, c) != rendered(30, 22, c)));
+    // A margin out of range names the field.
+    let bad = Device::new(options(
+        ModelSource::Bytes {
+            onnx: std::fs::read(fixture("box3")).unwrap(),
+            manifest: {
+                let mut m = fixture_manifest("box3");
+                m["repair_margin"] = 0.into();
+                m.to_string()
+            },
+        },
+        0,
+    ))
+    .unwrap_err()
+    .to_string();
+    assert!(bad.contains("repair_margin"), "{bad}");
+}

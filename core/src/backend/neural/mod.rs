@@ -24,7 +24,7 @@ use super::{Backend, BackendInput, Carry, Progress, Stages};
 use crate::device::{DeviceOptions, ModelSource};
 use crate::error::{Error, Result};
 use crate::frame::Image;
-use crate::model::{InputChannel, Manifest};
+use crate::model::{InputChannel, Manifest, REPAIR_EDGE_SHARE};
 use crate::ops::inpaint::{SpatialFill, FULL};
 use crate::params::Params;
 use crate::temporal::{HistoryView, ReprojectedFrame, RowScratch};
@@ -1087,6 +1087,118 @@ impl Neural {
     }
 }
 
+impl Neural {
+    /// The manifest's `repair_margin` (with the session's `keep_covered`):
+    /// covered pixels far from holes get their rendered color back.
+    fn keep_covered(&self, out: &mut Image, input: &BackendInput<'_>, stages: &mut Stages) {
+        let (Some(margin), Some(coverage)) = (
+            self.model.manifest.repair_margin,
+            input.frame.coverage.as_deref(),
+        ) else {
+            return;
+        };
+        if !input.params.keep_covered {
+            return;
+        }
+        stages.time("keep_covered", || {
+            input.pool.install(|| {
+                keep_covered(
+                    out,
+                    &input.frame.color,
+                    coverage,
+                    input.params.coverage_floor,
+                    margin,
+                )
+            })
+        });
+    }
+}
+
+/// Gives pixels covered at least `floor` their rendered color (`color`,
+/// premultiplied by `coverage`) back where no hole (coverage below `floor`)
+/// lies within `margin` pixels (Chebyshev distance); at exactly `margin`
+/// they keep [`REPAIR_EDGE_SHARE`] of `out`, nearer all of it. `out` is
+/// premultiplied by its own alpha (plane 3), which is kept.
+pub(crate) fn keep_covered(
+    out: &mut Image,
+    color: &Image,
+    coverage: &[f32],
+    floor: f32,
+    margin: usize,
+) {
+    let (w, h) = (out.width, out.height);
+    let n = w * h;
+    let cap = margin + 1;
+    // Per row, the distance to the nearest hole in that row, capped.
+    let mut row_dist = vec![0u16; n];
+    row_dist
+        .par_chunks_mut(w)
+        .with_min_len(8)
+        .enumerate()
+        .for_each(|(y, d)| {
+            let cov = &coverage[y * w..(y + 1) * w];
+            let mut last = cap;
+            for x in 0..w {
+                last = if cov[x] < floor {
+                    0
+                } else {
+                    (last + 1).min(cap)
+                };
+                d[x] = last as u16;
+            }
+            let mut next = cap;
+            for x in (0..w).rev() {
+                next = if cov[x] < floor {
+                    0
+                } else {
+                    (next + 1).min(cap)
+                };
+                d[x] = d[x].min(next as u16);
+            }
+        });
+    let (rgb, alpha) = out.data.split_at_mut(3 * n);
+    let alpha = &alpha[..n];
+    let (r, rest) = rgb.split_at_mut(n);
+    let (g, b) = rest.split_at_mut(n);
+    r.par_chunks_mut(w)
+        .zip(g.par_chunks_mut(w))
+        .zip(b.par_chunks_mut(w))
+        .with_min_len(4)
+        .enumerate()
+        .for_each(|(y, ((r, g), b))| {
+            let rows = y.saturating_sub(margin)..(y + margin + 1).min(h);
+            for x in 0..w {
+                let i = y * w + x;
+                let c = coverage[i];
+                if c < floor {
+                    continue;
+                }
+                // Chebyshev distance to the nearest hole, capped.
+                let d = rows
+                    .clone()
+                    .map(|yy| (row_dist[yy * w + x] as usize).max(yy.abs_diff(y)))
+                    .min()
+                    .unwrap_or(cap);
+                let share = if d < margin {
+                    continue;
+                } else if d == margin {
+                    REPAIR_EDGE_SHARE
+                } else {
+                    0.0
+                };
+                let k = alpha[i] / c;
+                let rendered = [
+                    color.data[i] * k,
+                    color.data[n + i] * k,
+                    color.data[2 * n + i] * k,
+                ];
+                for (v, rendered) in [&mut r[x], &mut g[x], &mut b[x]].into_iter().zip(rendered) {
+                    *v = rendered + share * (*v - rendered);
+                }
+            }
+        });
+}
+
 /// Adds `ms` to stage `name` (as [`Stages::time`] does).
 fn record(stages: &mut Stages, name: &str, ms: f64) {
     match stages.0.iter_mut().find(|(n, _)| n == name) {
@@ -1273,6 +1385,7 @@ impl Backend for Neural {
         }
         if !input.params.classical_post {
             let mut img = self.run_frame(input, progress, stages)?;
+            self.keep_covered(&mut img, input, stages);
             if self.model.manifest.stabilize {
                 // The model asks for temporal stabilization of its output.
                 crate::backend::classical::stabilize_with_history(&mut img, input, stages, None);
@@ -1286,6 +1399,7 @@ impl Backend for Neural {
         let mid = lo + 0.8 * (hi - lo);
         progress.set_span(lo, mid);
         let mut img = self.run_frame(input, progress, stages)?;
+        self.keep_covered(&mut img, input, stages);
         progress.set_span(mid, hi);
         let done = crate::backend::classical::run_ops(&mut img, input, carry, progress, stages);
         progress.set_span(lo, hi);
