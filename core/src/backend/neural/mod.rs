@@ -1166,34 +1166,44 @@ pub(crate) fn keep_covered(
         .with_min_len(4)
         .enumerate()
         .for_each(|(y, ((r, g), b))| {
-            let rows = y.saturating_sub(margin)..(y + margin + 1).min(h);
-            for x in 0..w {
-                let i = y * w + x;
-                let c = coverage[i];
-                if c < floor {
-                    continue;
+            // Chebyshev distance to the nearest hole, capped: the rows'
+            // distances within `margin` rows, each at least its row offset.
+            let mut dist = vec![cap as u16; w];
+            for yy in y.saturating_sub(margin)..(y + margin + 1).min(h) {
+                let dy = yy.abs_diff(y) as u16;
+                for (d, &s) in dist.iter_mut().zip(&row_dist[yy * w..(yy + 1) * w]) {
+                    *d = (*d).min(s.max(dy));
                 }
-                // Chebyshev distance to the nearest hole, capped.
-                let d = rows
-                    .clone()
-                    .map(|yy| (row_dist[yy * w + x] as usize).max(yy.abs_diff(y)))
-                    .min()
-                    .unwrap_or(cap);
-                let share = if d < margin {
-                    continue;
-                } else if d == margin {
-                    REPAIR_EDGE_SHARE
-                } else {
-                    0.0
-                };
-                let k = alpha[i] / c;
-                let rendered = [
-                    color.data[i] * k,
-                    color.data[n + i] * k,
-                    color.data[2 * n + i] * k,
-                ];
-                for (v, rendered) in [&mut r[x], &mut g[x], &mut b[x]].into_iter().zip(rendered) {
-                    *v = rendered + share * (*v - rendered);
+            }
+            // The network's share per pixel (holes are at distance 0, so
+            // every pixel with a share below 1 is covered), and the factor
+            // that turns the premultiplied rendered color into `out`'s alpha.
+            let share: Vec<f32> = dist
+                .iter()
+                .map(|&d| match (d as usize).cmp(&margin) {
+                    std::cmp::Ordering::Less => 1.0,
+                    std::cmp::Ordering::Equal => REPAIR_EDGE_SHARE,
+                    std::cmp::Ordering::Greater => 0.0,
+                })
+                .collect();
+            if share.iter().all(|&s| s >= 1.0) {
+                return;
+            }
+            let row = y * w..(y + 1) * w;
+            let k: Vec<f32> = alpha[row.clone()]
+                .iter()
+                .zip(&coverage[row.clone()])
+                .map(|(&a, &c)| if c > 0.0 { a / c } else { 0.0 })
+                .collect();
+            for (p, out) in [r, g, b].into_iter().enumerate() {
+                let src = &color.data[p * n + row.start..p * n + row.end];
+                for (((v, &s), &k), &c) in out.iter_mut().zip(&share).zip(&k).zip(src) {
+                    let rendered = c * k;
+                    *v = if s >= 1.0 {
+                        *v
+                    } else {
+                        rendered + s * (*v - rendered)
+                    };
                 }
             }
         });
