@@ -985,6 +985,7 @@ impl Neural {
         } else {
             frame.coverage.as_deref()
         };
+        let repair = stages.time("keep_covered", || Repair::for_frame(model, input));
         let mut tensor = model.buffer(cin * np);
         // The output comes from the session's recycled frame buffers (fresh
         // memory costs a page fault per 4 KiB on every frame): one tile
@@ -1064,7 +1065,7 @@ impl Neural {
                     origin: tile.origin,
                 };
                 if n_tiles == 1 {
-                    write_single(&mut out, &view, &codec, coverage, pool);
+                    write_single(&mut out, &view, &codec, coverage, repair.as_ref(), pool);
                 } else {
                     blend_tile(&mut out, &plan, tile, &view, &codec, pool);
                 }
@@ -1079,6 +1080,9 @@ impl Neural {
             stages.time("finish", || {
                 finish(&mut out, frame.coverage.as_deref(), input.params.fill_holes)
             });
+            if let Some(r) = &repair {
+                stages.time("keep_covered", || r.apply(&mut out, pool));
+            }
         }
         if let Some(f) = first {
             input.history.keep_reprojected(0, f);
@@ -1087,126 +1091,116 @@ impl Neural {
     }
 }
 
-impl Neural {
-    /// The manifest's `repair_margin` (with the session's `keep_covered`):
-    /// covered pixels far from holes get their rendered color back.
-    fn keep_covered(&self, out: &mut Image, input: &BackendInput<'_>, stages: &mut Stages) {
-        let (Some(margin), Some(coverage)) = (
-            self.model.manifest.repair_margin,
-            input.frame.coverage.as_deref(),
-        ) else {
-            return;
-        };
-        if !input.params.keep_covered {
-            return;
-        }
-        stages.time("keep_covered", || {
-            input.pool.install(|| {
-                keep_covered(
-                    out,
-                    &input.frame.color,
-                    coverage,
-                    input.params.coverage_floor,
-                    margin,
-                )
-            })
-        });
-    }
+/// The manifest's `repair_margin` for one frame: pixels covered at least
+/// `floor` get their rendered color (`color`, premultiplied by `coverage`)
+/// back where no hole (coverage below `floor`) lies within `margin` pixels
+/// (Chebyshev distance); at exactly `margin` they keep
+/// [`REPAIR_EDGE_SHARE`] of the network's output, nearer all of it.
+struct Repair<'a> {
+    color: &'a Image,
+    coverage: &'a [f32],
+    margin: usize,
+    /// Per pixel, the distance to the nearest hole in its row, capped at
+    /// `margin + 1`.
+    row_dist: Vec<u16>,
 }
 
-/// Gives pixels covered at least `floor` their rendered color (`color`,
-/// premultiplied by `coverage`) back where no hole (coverage below `floor`)
-/// lies within `margin` pixels (Chebyshev distance); at exactly `margin`
-/// they keep [`REPAIR_EDGE_SHARE`] of `out`, nearer all of it. `out` is
-/// premultiplied by its own alpha (plane 3), which is kept.
-pub(crate) fn keep_covered(
-    out: &mut Image,
-    color: &Image,
-    coverage: &[f32],
-    floor: f32,
-    margin: usize,
-) {
-    let (w, h) = (out.width, out.height);
-    let n = w * h;
-    let cap = margin + 1;
-    // Per row, the distance to the nearest hole in that row, capped.
-    let mut row_dist = vec![0u16; n];
-    row_dist
-        .par_chunks_mut(w)
-        .with_min_len(8)
-        .enumerate()
-        .for_each(|(y, d)| {
-            let cov = &coverage[y * w..(y + 1) * w];
-            let mut last = cap;
-            for x in 0..w {
-                last = if cov[x] < floor {
-                    0
-                } else {
-                    (last + 1).min(cap)
-                };
-                d[x] = last as u16;
-            }
-            let mut next = cap;
-            for x in (0..w).rev() {
-                next = if cov[x] < floor {
-                    0
-                } else {
-                    (next + 1).min(cap)
-                };
-                d[x] = d[x].min(next as u16);
-            }
-        });
-    let (rgb, alpha) = out.data.split_at_mut(3 * n);
-    let alpha = &alpha[..n];
-    let (r, rest) = rgb.split_at_mut(n);
-    let (g, b) = rest.split_at_mut(n);
-    r.par_chunks_mut(w)
-        .zip(g.par_chunks_mut(w))
-        .zip(b.par_chunks_mut(w))
-        .with_min_len(4)
-        .enumerate()
-        .for_each(|(y, ((r, g), b))| {
-            // Chebyshev distance to the nearest hole, capped: the rows'
-            // distances within `margin` rows, each at least its row offset.
-            let mut dist = vec![cap as u16; w];
-            for yy in y.saturating_sub(margin)..(y + margin + 1).min(h) {
-                let dy = yy.abs_diff(y) as u16;
-                for (d, &s) in dist.iter_mut().zip(&row_dist[yy * w..(yy + 1) * w]) {
-                    *d = (*d).min(s.max(dy));
-                }
-            }
-            // The network's share per pixel (holes are at distance 0, so
-            // every pixel with a share below 1 is covered), and the factor
-            // that turns the premultiplied rendered color into `out`'s alpha.
-            let share: Vec<f32> = dist
-                .iter()
-                .map(|&d| match (d as usize).cmp(&margin) {
-                    std::cmp::Ordering::Less => 1.0,
-                    std::cmp::Ordering::Equal => REPAIR_EDGE_SHARE,
-                    std::cmp::Ordering::Greater => 0.0,
+impl<'a> Repair<'a> {
+    /// `None` without a margin, without coverage or with `keep_covered` off.
+    fn for_frame(model: &NeuralModel, input: &BackendInput<'a>) -> Option<Repair<'a>> {
+        let margin = model.manifest.repair_margin?;
+        let coverage = input.frame.coverage.as_deref()?;
+        if !input.params.keep_covered {
+            return None;
+        }
+        let (w, floor) = (input.frame.width(), input.params.coverage_floor);
+        let cap = margin + 1;
+        let mut row_dist = vec![0u16; coverage.len()];
+        input.pool.install(|| {
+            row_dist
+                .par_chunks_mut(w)
+                .with_min_len(8)
+                .zip(coverage.par_chunks(w))
+                .for_each(|(d, cov)| {
+                    let mut last = cap;
+                    for (d, &c) in d.iter_mut().zip(cov) {
+                        last = if c < floor { 0 } else { (last + 1).min(cap) };
+                        *d = last as u16;
+                    }
+                    let mut next = cap;
+                    for (d, &c) in d.iter_mut().zip(cov).rev() {
+                        next = if c < floor { 0 } else { (next + 1).min(cap) };
+                        *d = (*d).min(next as u16);
+                    }
                 })
-                .collect();
-            if share.iter().all(|&s| s >= 1.0) {
-                return;
-            }
-            let row = y * w..(y + 1) * w;
-            let k: Vec<f32> = alpha[row.clone()]
-                .iter()
-                .zip(&coverage[row.clone()])
-                .map(|(&a, &c)| if c > 0.0 { a / c } else { 0.0 })
-                .collect();
-            for (p, out) in [r, g, b].into_iter().enumerate() {
-                let src = &color.data[p * n + row.start..p * n + row.end];
-                for (((v, &s), &k), &c) in out.iter_mut().zip(&share).zip(&k).zip(src) {
-                    let rendered = c * k;
-                    *v = if s >= 1.0 {
-                        *v
-                    } else {
-                        rendered + s * (*v - rendered)
-                    };
-                }
-            }
         });
+        Some(Repair {
+            color: &input.frame.color,
+            coverage,
+            margin,
+            row_dist,
+        })
+    }
+
+    /// The network's share of each pixel of row `y` (holes are at distance
+    /// 0, so every pixel with a share below 1 is covered); `false` when it
+    /// is all of every pixel.
+    fn shares(&self, y: usize, share: &mut Vec<f32>) -> bool {
+        let (w, margin) = (self.color.width, self.margin);
+        let h = self.color.height;
+        let mut dist = vec![(margin + 1) as u16; w];
+        for yy in y.saturating_sub(margin)..(y + margin + 1).min(h) {
+            let dy = yy.abs_diff(y) as u16;
+            for (d, &s) in dist.iter_mut().zip(&self.row_dist[yy * w..(yy + 1) * w]) {
+                *d = (*d).min(s.max(dy));
+            }
+        }
+        share.clear();
+        share.extend(dist.iter().map(|&d| match (d as usize).cmp(&margin) {
+            std::cmp::Ordering::Less => 1.0,
+            std::cmp::Ordering::Equal => REPAIR_EDGE_SHARE,
+            std::cmp::Ordering::Greater => 0.0,
+        }));
+        share.iter().any(|&s| s < 1.0)
+    }
+
+    /// Blends plane `c` of row `y` of the output (`row`, premultiplied by
+    /// `alpha`) toward the rendered color by `share`.
+    fn blend(&self, c: usize, y: usize, row: &mut [f32], alpha: Option<&[f32]>, share: &[f32]) {
+        let (w, n) = (self.color.width, self.color.width * self.color.height);
+        let src = &self.color.data[c * n + y * w..c * n + (y + 1) * w];
+        let cov = &self.coverage[y * w..(y + 1) * w];
+        for (x, (v, &s)) in row.iter_mut().zip(share).enumerate() {
+            if s >= 1.0 {
+                continue;
+            }
+            let a = alpha.map_or(1.0, |a| a[x]);
+            let rendered = if cov[x] > 0.0 {
+                src[x] * (a / cov[x])
+            } else {
+                0.0
+            };
+            *v = rendered + s * (*v - rendered);
+        }
+    }
+
+    /// The whole image (premultiplied by its plane 3), after the tiles.
+    fn apply(&self, out: &mut Image, pool: &rayon::ThreadPool) {
+        let (w, n) = (out.width, out.width * out.height);
+        let (rgb, alpha) = out.data.split_at_mut(3 * n);
+        let alpha = &alpha[..n];
+        pool.install(|| {
+            rgb.par_chunks_mut(w)
+                .with_min_len(4)
+                .enumerate()
+                .for_each_init(Vec::new, |share, (r, row)| {
+                    let (c, y) = (r / out.height.max(1), r % out.height.max(1));
+                    if self.shares(y, share) {
+                        self.blend(c, y, row, Some(&alpha[y * w..(y + 1) * w]), share);
+                    }
+                })
+        });
+    }
 }
 
 /// Adds `ms` to stage `name` (as [`Stages::time`] does).
@@ -1252,6 +1246,7 @@ fn write_single(
     view: &TileOutput<'_>,
     codec: &ColorCodec,
     coverage: Option<&[f32]>,
+    repair: Option<&Repair<'_>>,
     pool: &rayon::ThreadPool,
 ) {
     let (w, h) = (out.width, out.height);
@@ -1261,7 +1256,7 @@ fn write_single(
             .par_chunks_mut(w)
             .with_min_len(4)
             .enumerate()
-            .for_each(|(r, row)| {
+            .for_each_init(Vec::new, |share, (r, row)| {
                 let (c, y) = (r / h, r % h);
                 let alpha = coverage.map(|a| &a[y * w..(y + 1) * w]);
                 if c == 3 {
@@ -1274,6 +1269,11 @@ fn write_single(
                 view.decode_row(codec, c, y, 0, row);
                 if let Some(a) = alpha {
                     row.iter_mut().zip(a).for_each(|(v, &a)| *v *= a);
+                }
+                if let Some(rp) = repair {
+                    if rp.shares(y, share) {
+                        rp.blend(c, y, row, alpha, share);
+                    }
                 }
             });
     });
@@ -1395,7 +1395,6 @@ impl Backend for Neural {
         }
         if !input.params.classical_post {
             let mut img = self.run_frame(input, progress, stages)?;
-            self.keep_covered(&mut img, input, stages);
             if self.model.manifest.stabilize {
                 // The model asks for temporal stabilization of its output.
                 crate::backend::classical::stabilize_with_history(&mut img, input, stages, None);
@@ -1409,7 +1408,6 @@ impl Backend for Neural {
         let mid = lo + 0.8 * (hi - lo);
         progress.set_span(lo, mid);
         let mut img = self.run_frame(input, progress, stages)?;
-        self.keep_covered(&mut img, input, stages);
         progress.set_span(mid, hi);
         let done = crate::backend::classical::run_ops(&mut img, input, carry, progress, stages);
         progress.set_span(lo, hi);
