@@ -327,7 +327,8 @@ impl Session {
         let normals =
             shape.normal && (self.backend.uses_normals() || (aux && !shape.denoise_normal));
         let aovs = b(shape.coverage)
-            + b(shape.insert_mask)
+            + b(shape.insert_mask || shape.insert_id)
+            + b(shape.insert_id)
             + b(shape.depth)
             + 2 * b(shape.motion)
             + 3 * b(normals)
@@ -806,6 +807,7 @@ impl Session {
             motion,
             normal,
             insert_mask,
+            insert_id,
             camera,
             frame_index,
             scan,
@@ -818,8 +820,8 @@ impl Session {
         if let Some(mask) = insert_mask {
             crate::frame::recycle_mask(rec, mask, width, scan);
         }
-        if let Some(c) = coverage {
-            rec.give(c);
+        for b in [coverage, insert_id].into_iter().flatten() {
+            rec.give(b);
         }
         if let Some(n) = normal {
             rec.give(n.data);

@@ -167,6 +167,7 @@ impl Abi {
             motion_vector_scale: [1.0, 1.0],
             albedo: null(),
             denoise_normal: null(),
+            insert_id: null(),
         };
         // SAFETY: every buffer outlives the call and matches its description.
         assert_eq!(

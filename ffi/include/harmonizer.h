@@ -479,7 +479,8 @@ typedef struct hz_image {
  *
  * The struct grows only at its end: a host built against an older header
  * passes that header's `sizeof(hz_frame)` (without `albedo` and
- * `denoise_normal`), and the fields it lacks read as NULL.
+ * `denoise_normal`, or without `insert_id`), and the fields it lacks read
+ * as NULL.
  *
  * Conventions: color is scene-linear Linear Rec.709, premultiplied by
  * coverage. Depth is planar (distance along the view axis; set the session
@@ -565,6 +566,21 @@ typedef struct hz_frame {
      * passes an older `struct_size`.
      */
     const struct hz_image *denoise_normal;
+    /**
+     * Insert object ids, 1 channel, integer ids held as floats (0: not an
+     * inserted object): which inserted object each pixel belongs to, for
+     * example Blender's Object Index pass, an id per Cryptomatte match or
+     * a USD prim or instance id. Optional. Each distinct id above 0 among
+     * the insert's pixels is one object, harmonized with its own filter
+     * and followed over time by its id, whether or not its pixels touch
+     * another object's; insert pixels with id 0 are grouped by connected
+     * parts as without ids. With `insert_mask` NULL the mask is 1 where
+     * the id is above 0. Validated like the other inputs (size, channel
+     * count); NaN and infinite samples count as 0 (counted and reported
+     * as a warning), negative ones as 0. Appended: NULL for a host that
+     * passes an older `struct_size`.
+     */
+    const struct hz_image *insert_id;
 } hz_frame;
 
 /**

@@ -31,7 +31,8 @@ const KNOWN_FLAGS: u32 = HZ_FRAME_RESET | HZ_FRAME_HAS_INDEX;
 ///
 /// The struct grows only at its end: a host built against an older header
 /// passes that header's `sizeof(hz_frame)` (without `albedo` and
-/// `denoise_normal`), and the fields it lacks read as NULL.
+/// `denoise_normal`, or without `insert_id`), and the fields it lacks read
+/// as NULL.
 ///
 /// Conventions: color is scene-linear Linear Rec.709, premultiplied by
 /// coverage. Depth is planar (distance along the view axis; set the session
@@ -90,12 +91,32 @@ pub struct hz_frame {
     /// `normal`. Validated like `normal`. Appended: NULL for a host that
     /// passes an older `struct_size`.
     pub denoise_normal: *const hz_image,
+    /// Insert object ids, 1 channel, integer ids held as floats (0: not an
+    /// inserted object): which inserted object each pixel belongs to, for
+    /// example Blender's Object Index pass, an id per Cryptomatte match or
+    /// a USD prim or instance id. Optional. Each distinct id above 0 among
+    /// the insert's pixels is one object, harmonized with its own filter
+    /// and followed over time by its id, whether or not its pixels touch
+    /// another object's; insert pixels with id 0 are grouped by connected
+    /// parts as without ids. With `insert_mask` NULL the mask is 1 where
+    /// the id is above 0. Validated like the other inputs (size, channel
+    /// count); NaN and infinite samples count as 0 (counted and reported
+    /// as a warning), negative ones as 0. Appended: NULL for a host that
+    /// passes an older `struct_size`.
+    pub insert_id: *const hz_image,
 }
 
 /// `sizeof(hz_frame)` in the headers before `albedo` and `denoise_normal`.
 const FRAME_SIZE_V1: usize = crate::older_size::<hz_frame>(std::mem::offset_of!(hz_frame, albedo));
+/// `sizeof(hz_frame)` in the headers before `insert_id`.
+const FRAME_SIZE_V2: usize =
+    crate::older_size::<hz_frame>(std::mem::offset_of!(hz_frame, insert_id));
 /// The sizes of `hz_frame` a host may pass, oldest first.
-const FRAME_SIZES: [usize; 2] = [FRAME_SIZE_V1, std::mem::size_of::<hz_frame>()];
+const FRAME_SIZES: [usize; 3] = [
+    FRAME_SIZE_V1,
+    FRAME_SIZE_V2,
+    std::mem::size_of::<hz_frame>(),
+];
 
 /// Type of a named parameter.
 #[repr(u32)]
@@ -662,6 +683,7 @@ struct FrameDesc {
     denoise_normal: Option<Described>,
     coverage: Option<Described>,
     insert_mask: Option<Described>,
+    insert_id: Option<Described>,
     camera: Option<Camera>,
     frame_index: Option<i64>,
     reset: bool,
@@ -728,6 +750,7 @@ impl FrameDesc {
             denoise_normal: opt("denoise_normal", f.denoise_normal)?,
             coverage: opt("coverage", f.coverage)?,
             insert_mask: opt("insert_mask", f.insert_mask)?,
+            insert_id: opt("insert_id", f.insert_id)?,
             camera,
             frame_index: (f.flags & HZ_FRAME_HAS_INDEX != 0).then_some(f.frame_index),
             reset: f.flags & HZ_FRAME_RESET != 0,
@@ -748,6 +771,7 @@ impl FrameDesc {
             denoise_normal: self.denoise_normal.is_some(),
             coverage: self.coverage.is_some(),
             insert_mask: self.insert_mask.is_some(),
+            insert_id: self.insert_id.is_some(),
         }
     }
 
@@ -769,6 +793,7 @@ impl FrameDesc {
         input.denoise_normal = opt("denoise_normal", &self.denoise_normal)?;
         input.coverage = opt("coverage", &self.coverage)?;
         input.insert_mask = opt("insert_mask", &self.insert_mask)?;
+        input.insert_id = opt("insert_id", &self.insert_id)?;
         input.camera = self.camera;
         input.frame_index = self.frame_index;
         input.reset = self.reset;

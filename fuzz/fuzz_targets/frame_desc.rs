@@ -1,6 +1,6 @@
 //! Frame descriptions (sizes, strides, offsets, formats, which AOVs, the
-//! denoiser's albedo and normals included; `hz_frame` of this header's size
-//! or the older one without them) through
+//! denoiser's albedo and normals and the insert's object ids included;
+//! `hz_frame` of this header's size or an older one without them) through
 //! the C ABI's validation and a classical session, on buffers exactly as
 //! large as the description says. AddressSanitizer flags any read or write
 //! outside them.
@@ -178,8 +178,12 @@ fuzz_target!(|data: &[u8]| {
     let cameras = b.u8();
     let frame = hz_frame {
         // Also the size of the headers before `albedo`, which must not be read then.
+        // And the size of the headers before `insert_id`.
         struct_size: if cameras & 8 != 0 {
             std::mem::offset_of!(hz_frame, albedo)
+                .next_multiple_of(std::mem::align_of::<hz_frame>())
+        } else if cameras & 32 != 0 {
+            std::mem::offset_of!(hz_frame, insert_id)
                 .next_multiple_of(std::mem::align_of::<hz_frame>())
         } else {
             std::mem::size_of::<hz_frame>()
@@ -205,6 +209,12 @@ fuzz_target!(|data: &[u8]| {
         motion_vector_scale: [1.0, if cameras & 4 != 0 { -1.0 } else { 1.0 }],
         albedo: pick(6),
         denoise_normal: pick(7),
+        // The insert's object ids: the insert mask's description.
+        insert_id: if cameras & 16 != 0 {
+            pick(4)
+        } else {
+            ptr::null()
+        },
     };
     // The output: the sixth description when given, else the color's.
     let output: *const hz_image = if present & (1 << 5) != 0 {

@@ -15,11 +15,13 @@
 //!    ([`crate::temporal::HistoryView::sample`]), except for frames reached
 //!    by chained motion vectors (reprojected whole, stage `reproject`).
 //! 2. **harmonize** (`harmonize`, needs the insert mask): each inserted
-//!    object's (connected part of the mask) color statistics are matched
-//!    part of the way to a ring of background around it; each object's
-//!    filter is smoothed over time in the [`Carry`] (key [`TONE_KEY`], the
-//!    objects followed by their centroids) with the weight `temporal_blend`
-//!    on the past.
+//!    object's (the pixels of one of the host's object ids, else a
+//!    connected part of the mask; [`harmonize::objects`]) color statistics
+//!    are matched part of the way to a ring of background around it (the
+//!    other objects left out of it); each object's filter is smoothed over
+//!    time in the [`Carry`] (key [`TONE_KEY`], the objects followed by
+//!    their ids, [`ID_KEY`], else by their centroids) with the weight
+//!    `temporal_blend` on the past.
 //! 3. **shadow** (`contact_shadows`, needs mask and depth): a soft contact
 //!    shadow of strength `shadow_strength` under the insert.
 //! 4. **stabilize** (`stabilize`): blend with the reprojected previous result
@@ -44,6 +46,10 @@ use crate::temporal::ReprojectionMode;
 /// Carry key of the smoothed harmonization filters, one per inserted object
 /// ([`harmonize::tracks_to_vec`]).
 pub const TONE_KEY: &str = "classical.harmonize.tone";
+
+/// Carry key of the host's object id of each track of [`TONE_KEY`], in its
+/// order (0 for an object without one); absent when no track has an id.
+pub const ID_KEY: &str = "classical.harmonize.id";
 
 /// Carry key of the smoothed shading corrections
 /// ([`relight::Shade`]: target, current), one per track of [`TONE_KEY`] in
@@ -414,10 +420,12 @@ fn run_ops_on(
         .zip(frame.depth.as_deref());
     match insert {
         Some((mask, rect)) if params.harmonize => {
-            // Each inserted object (a connected part of the mask) gets its
-            // own filter, carried from frame to frame by where it is.
+            // Each inserted object (the pixels of one of the host's ids,
+            // else a connected part of the mask) gets its own filter,
+            // carried from frame to frame by its id, else by where it is.
+            let ids = frame.insert_id.as_deref();
             let parts = stages.time("harmonize", || {
-                pool.install(|| harmonize::components(mask, rect, w, h))
+                pool.install(|| harmonize::objects(mask, ids, rect, w, h))
             });
             let previous = carry
                 .values
@@ -438,11 +446,23 @@ fn run_ops_on(
                         .collect()
                 })
                 .unwrap_or_default();
-            let centroids: Vec<[f32; 2]> = parts.iter().map(|p| p.centroid).collect();
-            let seen: Vec<[f32; 2]> = previous.iter().map(|(c, _)| *c).collect();
+            // The id of each track of `previous` (0 without one).
+            let previous_ids: Vec<f32> = carry
+                .values
+                .get(ID_KEY)
+                .filter(|v| v.len() == previous.len() && v.iter().all(|x| x.is_finite()))
+                .cloned()
+                .unwrap_or_else(|| vec![0.0; previous.len()]);
+            let current: Vec<(f32, [f32; 2])> = parts.iter().map(|p| (p.id, p.centroid)).collect();
+            let seen: Vec<(f32, [f32; 2])> = previous_ids
+                .iter()
+                .zip(&previous)
+                .map(|(&id, (c, _))| (id, *c))
+                .collect();
             let reach = TRACK_REACH * w.max(h) as f32;
-            let matched = harmonize::match_tracks(&centroids, &seen, reach);
+            let matched = harmonize::match_objects(&current, &seen, reach);
             let mut tracks = Vec::with_capacity(parts.len());
+            let mut track_ids = Vec::with_capacity(parts.len());
             let mut shades = Vec::with_capacity(2 * parts.len());
             for (part, m) in parts.iter().zip(matched) {
                 let pmask: &[f32] = if part.mask.is_empty() {
@@ -487,9 +507,10 @@ fn run_ops_on(
                 };
                 let estimate = stages.time("harmonize", || {
                     pool.install(|| {
-                        harmonize::estimate(
+                        harmonize::estimate_among(
                             img,
                             pmask,
+                            Some(mask),
                             part.rect,
                             frame.coverage.as_deref(),
                             frame.depth.as_deref(),
@@ -505,6 +526,7 @@ fn run_ops_on(
                         pool.install(|| harmonize::apply(img, pmask, part.rect, &tone))
                     });
                     tracks.push((part.centroid, tone));
+                    track_ids.push(part.id);
                     let shade = shade.unwrap_or(relight::Shade::IDENTITY);
                     shades.extend([shade.target, shade.current]);
                     recolored |= !tone.is_near_identity(RECOLOR_TOLERANCE)
@@ -515,10 +537,16 @@ fn run_ops_on(
                 .values
                 .insert(TONE_KEY.to_string(), harmonize::tracks_to_vec(&tracks));
             carry.values.insert(SHADE_KEY.to_string(), shades);
+            if track_ids.iter().any(|&id| id > 0.0) {
+                carry.values.insert(ID_KEY.to_string(), track_ids);
+            } else {
+                carry.values.remove(ID_KEY);
+            }
         }
         _ => {
             carry.values.remove(TONE_KEY);
             carry.values.remove(SHADE_KEY);
+            carry.values.remove(ID_KEY);
         }
     }
     progress.report(0.6)?;

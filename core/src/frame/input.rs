@@ -312,6 +312,14 @@ pub struct FrameInput<'a> {
     pub coverage: Option<ImageView<'a>>,
     /// Insert mask in `[0,1]` (1 channel): where an inserted object is.
     pub insert_mask: Option<ImageView<'a>>,
+    /// Insert object ids (1 channel, integer ids held as floats; 0: not an
+    /// inserted object): which inserted object each pixel belongs to, for
+    /// example Blender's Object Index pass or a USD prim id. Each distinct
+    /// id above 0 among the insert's pixels is one object, whether or not
+    /// its pixels touch another's; insert pixels with id 0 are grouped by
+    /// connected parts as without ids. Without `insert_mask` the mask is 1
+    /// where the id is above 0.
+    pub insert_id: Option<ImageView<'a>>,
     /// The camera of this frame.
     pub camera: Option<Camera>,
     /// The host's frame number; a gap triggers the session's gap policy.
@@ -335,6 +343,7 @@ impl<'a> FrameInput<'a> {
             denoise_normal: None,
             coverage: None,
             insert_mask: None,
+            insert_id: None,
             camera: None,
             frame_index: None,
             reset: false,
@@ -377,8 +386,13 @@ pub struct PreparedFrame {
     /// The denoise stage's normals (3 planes, non-finite samples 0), from
     /// [`FrameInput::denoise_normal`]; prepared as `albedo` is.
     pub denoise_normal: Option<Image>,
-    /// Insert mask in `[0,1]`.
+    /// Insert mask in `[0,1]` (from [`FrameInput::insert_id`], 1 where the
+    /// id is above 0, when only the ids were given).
     pub insert_mask: Option<Vec<f32>>,
+    /// Insert object ids ([`FrameInput::insert_id`]): NaN, infinite and
+    /// negative samples are 0 (the non-finite ones counted in
+    /// `sanitized_aovs`).
+    pub insert_id: Option<Vec<f32>>,
     /// The frame's camera.
     pub camera: Option<Camera>,
     /// The host's frame number.
@@ -472,6 +486,7 @@ impl PreparedFrame {
             albedo: None,
             denoise_normal: None,
             insert_mask: None,
+            insert_id: None,
             camera: None,
             frame_index: None,
             sanitized: 0,
@@ -602,7 +617,10 @@ impl PreparedFrame {
         if let Some(mask) = self.insert_mask {
             recycle_mask(recycler, mask, width, self.scan);
         }
-        for b in [self.coverage, self.depth].into_iter().flatten() {
+        for b in [self.coverage, self.depth, self.insert_id]
+            .into_iter()
+            .flatten()
+        {
             recycler.give(b);
         }
         for img in [self.motion, self.normal, self.albedo, self.denoise_normal]
@@ -657,6 +675,7 @@ impl PreparedFrame {
         check("denoise_normal", &input.denoise_normal, 3)?;
         check("coverage", &input.coverage, 1)?;
         check("insert_mask", &input.insert_mask, 1)?;
+        check("insert_id", &input.insert_id, 1)?;
         let s = input.motion_vector_scale;
         if !s[0].is_finite() || !s[1].is_finite() {
             return Err(Error::invalid(format!(
@@ -698,6 +717,41 @@ impl PreparedFrame {
                 Ok(data)
             })
             .transpose()?;
+        // The insert's object ids: non-finite samples are 0 (counted),
+        // negative ones 0. Without a mask, the mask is 1 where an id is
+        // above 0, written only inside their box as above.
+        let insert_id = input
+            .insert_id
+            .as_ref()
+            .map(|v| -> Result<Vec<f32>> {
+                let mut img = take(1)?;
+                sanitized_aovs += read_image(pool, v, &mut img, |_, x| {
+                    let bad = !x.is_finite();
+                    *x = if bad { 0.0 } else { x.max(0.0) + 0.0 };
+                    bad
+                });
+                Ok(img.data)
+            })
+            .transpose()?;
+        let insert_mask = match (insert_mask, &insert_id) {
+            (None, Some(ids)) => {
+                insert = crate::ops::bbox_above(ids, w, h, 0.0).map(|(r, _)| r);
+                let mut data = match recycler {
+                    Some(r) => r.take_zeroed(w, h)?,
+                    None => super::try_zeros(super::sample_count(w, h, 1)?)?,
+                };
+                if let Some(r) = insert {
+                    for y in r.y0..r.y1 {
+                        let s = y * w + r.x0..y * w + r.x1;
+                        for (m, &id) in data[s.clone()].iter_mut().zip(&ids[s]) {
+                            *m = if id > 0.0 { 1.0 } else { 0.0 };
+                        }
+                    }
+                }
+                Some(data)
+            }
+            (mask, _) => mask,
+        };
         // NaN becomes `bad` (counted), everything else is clamped to [lo, hi].
         let mut read_planes = |v: &Option<ImageView<'_>>, ch: usize, lo: f32, hi: f32, bad: f32| {
             v.as_ref()
@@ -895,6 +949,7 @@ impl PreparedFrame {
             albedo,
             denoise_normal,
             insert_mask,
+            insert_id,
             scan: Some(Scan { holes, insert }),
             scene_samples: scene_rows.finish(),
             camera: input.camera,

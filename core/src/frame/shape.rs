@@ -25,6 +25,8 @@ pub struct FrameShape {
     pub coverage: bool,
     /// Insert mask given.
     pub insert_mask: bool,
+    /// Insert object ids given.
+    pub insert_id: bool,
 }
 
 impl FrameShape {
@@ -49,6 +51,7 @@ impl FrameShape {
             denoise_normal: input.denoise_normal.is_some(),
             coverage: input.coverage.is_some(),
             insert_mask: input.insert_mask.is_some(),
+            insert_id: input.insert_id.is_some(),
         }
     }
 }

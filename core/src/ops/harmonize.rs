@@ -322,6 +322,21 @@ pub fn measure(
     coverage: Option<&[f32]>,
     depth: Option<&[f32]>,
 ) -> Option<(Stats, Stats)> {
+    measure_among(img, mask, None, ring, coverage, depth)
+}
+
+/// [`measure`] of one of several inserted objects: `inserts`, the whole
+/// insert mask, keeps the other objects out of its ring (a ring pixel
+/// weighs `1 - max(mask, inserts)`). With `inserts` equal to `mask`, or
+/// `None`, the same as [`measure`].
+pub fn measure_among(
+    img: &Image,
+    mask: &[f32],
+    inserts: Option<&[f32]>,
+    ring: &Ring,
+    coverage: Option<&[f32]>,
+    depth: Option<&[f32]>,
+) -> Option<(Stats, Stats)> {
     let w = img.width;
     let area = ring.area;
     let planes = [img.plane(0), img.plane(1), img.plane(2), img.plane(3)];
@@ -347,7 +362,8 @@ pub fn measure(
                 let m = mask[p];
                 let wi = (2.0 * m - 1.0).clamp(0.0, 1.0) * cov;
                 let in_ring = ring.at(x, y) && depth.is_none_or(|d| d[p] < EMPTY_DEPTH);
-                let wb = if in_ring { (1.0 - m) * cov } else { 0.0 };
+                let taken = inserts.map_or(m, |a| m.max(a[p]));
+                let wb = if in_ring { (1.0 - taken) * cov } else { 0.0 };
                 if wi <= 0.0 && wb <= 0.0 {
                     continue;
                 }
@@ -455,7 +471,8 @@ pub fn tone_from_stats(insert: &Stats, ring: &Stats) -> Tone {
     }
 }
 
-/// One inserted object: a connected part of the insert mask (cells of
+/// One inserted object: the insert pixels of one of the host's object ids
+/// ([`objects`]), or a connected part of the insert mask (cells of
 /// [`RING_CELL`] pixels with mask above 0.02, 8-connected).
 #[derive(Debug, Clone, PartialEq)]
 pub struct Component {
@@ -467,6 +484,8 @@ pub struct Component {
     /// (only the cells around `rect` are ever written, the rest of the
     /// zeroed allocation is never touched).
     pub mask: Vec<f32>,
+    /// The host's object id; 0 for a connected part of the mask.
+    pub id: f32,
 }
 
 /// The inserted objects of `mask` (bounding box `insert`), in the order of
@@ -545,6 +564,7 @@ pub fn components(mask: &[f32], insert: Rect, width: usize, height: usize) -> Ve
                 rect: insert,
                 centroid: centroid(cells),
                 mask: Vec::new(),
+                id: 0.0,
             })
             .collect();
     }
@@ -565,6 +585,7 @@ pub fn components(mask: &[f32], insert: Rect, width: usize, height: usize) -> Ve
                 rect,
                 centroid: centroid(cells),
                 mask: m,
+                id: 0.0,
             }
         })
         .collect();
@@ -573,6 +594,104 @@ pub fn components(mask: &[f32], insert: Rect, width: usize, height: usize) -> Ve
             .partial_cmp(&b.centroid)
             .unwrap_or(std::cmp::Ordering::Equal)
     });
+    out
+}
+
+/// The inserted objects of `mask` (bounding box `insert`) told apart by the
+/// host's object ids `ids` (a frame-sized plane, 0 where a pixel has none):
+/// the insert pixels (mask above 0) of each distinct id above 0 are one
+/// object, in increasing order of id, whether or not they touch another
+/// object's or are split apart; the insert pixels without an id follow as
+/// [`components`] groups them. Without `ids`, or when no insert pixel has
+/// one, exactly [`components`]. A single object is not split off: one
+/// component with an empty `mask` stands for the whole insert mask.
+pub fn objects(
+    mask: &[f32],
+    ids: Option<&[f32]>,
+    insert: Rect,
+    width: usize,
+    height: usize,
+) -> Vec<Component> {
+    let Some(ids) = ids.filter(|_| !insert.is_empty()) else {
+        return components(mask, insert, width, height);
+    };
+    // Per id (its bits: ids are positive, so they order as the values):
+    // bounding box, summed pixel centres and count.
+    let mut found: std::collections::BTreeMap<u32, (Rect, [f64; 2], usize)> =
+        std::collections::BTreeMap::new();
+    let mut rest: Option<Rect> = None;
+    for y in insert.y0..insert.y1 {
+        for x in insert.x0..insert.x1 {
+            let p = y * width + x;
+            if mask[p] <= 0.0 {
+                continue;
+            }
+            let px = Rect {
+                x0: x,
+                y0: y,
+                x1: x + 1,
+                y1: y + 1,
+            };
+            let id = ids[p];
+            if id > 0.0 {
+                let e = found.entry(id.to_bits()).or_insert((px, [0.0; 2], 0));
+                e.0 = e.0.union(&px);
+                e.1[0] += x as f64 + 0.5;
+                e.1[1] += y as f64 + 0.5;
+                e.2 += 1;
+            } else {
+                rest = Some(rest.map_or(px, |r| r.union(&px)));
+            }
+        }
+    }
+    if found.is_empty() {
+        return components(mask, insert, width, height);
+    }
+    let centroid = |s: [f64; 2], n: usize| [(s[0] / n as f64) as f32, (s[1] / n as f64) as f32];
+    if found.len() == 1 && rest.is_none() {
+        let (&bits, &(_, sum, n)) = found.iter().next().expect("one id");
+        return vec![Component {
+            rect: insert,
+            centroid: centroid(sum, n),
+            mask: Vec::new(),
+            id: f32::from_bits(bits),
+        }];
+    }
+    // The part of `mask` inside `rect` where `keep(id)` holds, frame-sized.
+    let part = |rect: Rect, keep: &dyn Fn(f32) -> bool| {
+        let mut m = vec![0.0f32; width * height];
+        for y in rect.y0..rect.y1 {
+            let s = y * width + rect.x0..y * width + rect.x1;
+            for ((o, &v), &id) in m[s.clone()].iter_mut().zip(&mask[s.clone()]).zip(&ids[s]) {
+                *o = if keep(id) { v } else { 0.0 };
+            }
+        }
+        m
+    };
+    let mut out: Vec<Component> = found
+        .iter()
+        .map(|(&bits, &(rect, sum, n))| {
+            let id = f32::from_bits(bits);
+            Component {
+                rect,
+                centroid: centroid(sum, n),
+                mask: part(rect, &|v| v == id),
+                id,
+            }
+        })
+        .collect();
+    if let Some(rect) = rest {
+        let without = part(rect, &|v| v <= 0.0);
+        let parts = components(&without, rect, width, height);
+        let single = parts.len() == 1;
+        for mut c in parts {
+            if single {
+                c.mask = without.clone();
+                c.rect = rect;
+            }
+            out.push(c);
+        }
+    }
     out
 }
 
@@ -629,6 +748,42 @@ pub fn match_tracks(
     out
 }
 
+/// For each of this frame's objects (`current`: id and centroid, see
+/// [`Component`]), the index in `previous` (the tracks' ids and
+/// centroids) of the track it continues: an object with an id (above 0)
+/// the track of the same id, wherever it moved; one without the nearest
+/// unclaimed track without an id within `max_distance` pixels
+/// ([`match_tracks`]).
+pub fn match_objects(
+    current: &[(f32, [f32; 2])],
+    previous: &[(f32, [f32; 2])],
+    max_distance: f32,
+) -> Vec<Option<usize>> {
+    let mut out: Vec<Option<usize>> = current
+        .iter()
+        .map(|(id, _)| {
+            (*id > 0.0)
+                .then(|| previous.iter().position(|(p, _)| p == id))
+                .flatten()
+        })
+        .collect();
+    let free =
+        |v: &[(f32, [f32; 2])]| -> Vec<usize> { (0..v.len()).filter(|&i| v[i].0 <= 0.0).collect() };
+    let (cur, prev) = (free(current), free(previous));
+    let centroids = |v: &[(f32, [f32; 2])], at: &[usize]| -> Vec<[f32; 2]> {
+        at.iter().map(|&i| v[i].1).collect()
+    };
+    let matched = match_tracks(
+        &centroids(current, &cur),
+        &centroids(previous, &prev),
+        max_distance,
+    );
+    for (&i, m) in cur.iter().zip(matched) {
+        out[i] = m.map(|j| prev[j]);
+    }
+    out
+}
+
 /// Ring, statistics and filter in one call; `None` when there is no insert
 /// or too little of it or of its surroundings is visible.
 pub fn estimate(
@@ -638,8 +793,21 @@ pub fn estimate(
     coverage: Option<&[f32]>,
     depth: Option<&[f32]>,
 ) -> Option<Tone> {
+    estimate_among(img, mask, None, insert, coverage, depth)
+}
+
+/// [`estimate`] of one of several inserted objects (`inserts`: the whole
+/// insert mask, kept out of its ring, see [`measure_among`]).
+pub fn estimate_among(
+    img: &Image,
+    mask: &[f32],
+    inserts: Option<&[f32]>,
+    insert: Rect,
+    coverage: Option<&[f32]>,
+    depth: Option<&[f32]>,
+) -> Option<Tone> {
     let ring = ring(mask, insert, img.width, img.height)?;
-    let (si, sb) = measure(img, mask, &ring, coverage, depth)?;
+    let (si, sb) = measure_among(img, mask, inserts, &ring, coverage, depth)?;
     Some(tone_from_stats(&si, &sb))
 }
 
@@ -890,5 +1058,64 @@ mod tests {
         )];
         assert_eq!(tracks_from_slice(&tracks_to_vec(&t)), Some(t));
         assert_eq!(tracks_from_slice(&[1.0, 2.0, 3.0]), None);
+    }
+
+    #[test]
+    fn objects_are_told_apart_by_their_ids() {
+        let (w, h) = (120, 80);
+        let mut mask = vec![0.0; w * h];
+        let mut ids = vec![0.0; w * h];
+        for y in 20..50 {
+            // Touching: id 4 at 10..40, id 9 at 40..60; id 4 again at
+            // 80..90 (the same object seen on both sides of an occluder);
+            // a part without an id at 100..110.
+            for x in (10..60).chain(80..90).chain(100..110) {
+                mask[y * w + x] = 1.0;
+                ids[y * w + x] = match x {
+                    40..60 => 9.0,
+                    100.. => 0.0,
+                    _ => 4.0,
+                };
+            }
+        }
+        let rect = insert_rect(&mask, w, h).unwrap();
+        // Without ids, or ids that name no insert pixel: the connected parts.
+        let parts = components(&mask, rect, w, h);
+        assert_eq!(parts.len(), 3);
+        assert_eq!(objects(&mask, None, rect, w, h), parts);
+        assert_eq!(objects(&mask, Some(&vec![0.0; w * h]), rect, w, h), parts);
+        let found = objects(&mask, Some(&ids), rect, w, h);
+        let got: Vec<(f32, usize, usize)> =
+            found.iter().map(|c| (c.id, c.rect.x0, c.rect.x1)).collect();
+        assert_eq!(got, vec![(4.0, 10, 90), (9.0, 40, 60), (0.0, 100, 110)]);
+        assert_eq!(found[0].mask[30 * w + 85], 1.0);
+        assert_eq!(found[0].mask[30 * w + 45], 0.0);
+        assert_eq!(found[1].mask[30 * w + 45], 1.0);
+        assert_eq!(found[2].mask[30 * w + 105], 1.0);
+        assert_eq!(found[2].mask[30 * w + 15], 0.0);
+        // One id for the whole insert: the whole mask stands for it.
+        let one = objects(&mask, Some(&vec![5.0; w * h]), rect, w, h);
+        assert_eq!(one.len(), 1);
+        assert!(one[0].mask.is_empty() && one[0].id == 5.0);
+        // Objects with ids follow their ids wherever they moved; those
+        // without, the nearest track without an id.
+        let m = match_objects(
+            &[
+                (9.0, [20.0, 30.0]),
+                (4.0, [85.0, 35.0]),
+                (0.0, [100.0, 30.0]),
+            ],
+            &[
+                (4.0, [20.0, 30.0]),
+                (0.0, [95.0, 30.0]),
+                (9.0, [85.0, 35.0]),
+            ],
+            20.0,
+        );
+        assert_eq!(m, vec![Some(2), Some(0), Some(1)]);
+        assert_eq!(
+            match_objects(&[(3.0, [0.0, 0.0])], &[(0.0, [0.0, 0.0])], 20.0),
+            vec![None]
+        );
     }
 }

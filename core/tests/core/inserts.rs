@@ -3,7 +3,9 @@
 //! says, is not added again where the render already has it, and without a
 //! light no cast shadow is made; frames without holes keep every pixel the
 //! enhancer did not change (do no harm); an insert lit only by the sky gets
-//! the scene's sun on its faces toward it, a correctly lit one is kept.
+//! the scene's sun on its faces toward it, a correctly lit one is kept;
+//! touching inserts told apart by the host's object ids are harmonized
+//! each with its own filter, followed by their ids when they swap places.
 //!
 //! The scene is ray cast here: a textured ground plane y = 0 (+y up), a
 //! 1 x 1 x 1 box standing at the origin (the insert), a camera looking down
@@ -414,4 +416,180 @@ fn an_insert_lit_only_by_the_sky_gets_the_scene_s_sun() {
         }
     }
     assert!(insert_log_error(&lit, &truth) < 0.02);
+}
+
+/// Two touching boxes over a textured ground (no camera): `wrong` is
+/// rendered 16 times too bright (4 stops) and with 3 times the blue of the
+/// ground's grade, `right` has the ground's grade. `wrong_left`: the wrong
+/// box on the left. Returns the color, the insert mask, the ids (the wrong
+/// box 7, the right one 2) and each box's pixels.
+struct Pair {
+    rgb: Vec<f32>,
+    mask: Vec<f32>,
+    ids: Vec<f32>,
+    wrong: Vec<usize>,
+    right: Vec<usize>,
+}
+
+fn pair(wrong_left: bool) -> Pair {
+    let n = W * H;
+    let (mut rgb, mut mask, mut ids) = (vec![0.0; 3 * n], vec![0.0; n], vec![0.0; n]);
+    let (mut wrong, mut right) = (Vec::new(), Vec::new());
+    let (left_x0, right_x0, rows) = (56, 96, 40..88);
+    for y in 0..H {
+        for x in 0..W {
+            let i = y * W + x;
+            let (xf, yf) = (x as f32, y as f32);
+            let t = 0.5 + 0.3 * (xf * 0.13).sin() * (yf * 0.11).cos();
+            let mut c = [0.55 * t, 0.5 * t, 0.45 * t];
+            let in_box = |x0: usize| (x0..x0 + 40).contains(&x) && rows.contains(&y);
+            for (x0, is_wrong) in [(left_x0, wrong_left), (right_x0, !wrong_left)] {
+                if !in_box(x0) {
+                    continue;
+                }
+                // Each box's own pattern, fixed to the box.
+                let u = 0.45 + 0.25 * (((x - x0) as f32) * 0.4).sin() * (yf * 0.3).cos();
+                c = [0.55 * u, 0.5 * u, 0.45 * u];
+                mask[i] = 1.0;
+                if is_wrong {
+                    c = [16.0 * c[0], 16.0 * c[1], 48.0 * c[2]];
+                    ids[i] = 7.0;
+                    wrong.push(i);
+                } else {
+                    ids[i] = 2.0;
+                    right.push(i);
+                }
+            }
+            rgb[3 * i..3 * i + 3].copy_from_slice(&c);
+        }
+    }
+    Pair {
+        rgb,
+        mask,
+        ids,
+        wrong,
+        right,
+    }
+}
+
+/// Processes `p` (mask, and ids when `with_ids`) as frame `index`.
+fn process_pair(s: &mut Session, p: &Pair, index: i64, with_ids: bool) -> Image {
+    let mut input = FrameInput::new(ImageView::from_f32("color", &p.rgb, W, H, 3).unwrap());
+    input.insert_mask = Some(ImageView::from_f32("insert", &p.mask, W, H, 1).unwrap());
+    if with_ids {
+        input.insert_id = Some(ImageView::from_f32("insert_id", &p.ids, W, H, 1).unwrap());
+    }
+    input.frame_index = Some(index);
+    let (out, report) = s.process(&input, None).unwrap();
+    assert!(index == 0 || report.reset.is_none(), "frame {index}: reset");
+    out
+}
+
+/// Mean log2 change (output over input, mean of the channels) over `px`.
+fn log_change(out: &Image, p: &Pair, px: &[usize]) -> f64 {
+    let n = W * H;
+    let sum: f64 = px
+        .iter()
+        .map(|&i| {
+            (0..3)
+                .map(|c| ((out.data[c * n + i] + 1e-3) / (p.rgb[3 * i + c] + 1e-3)).log2() as f64)
+                .sum::<f64>()
+                / 3.0
+        })
+        .sum();
+    sum / px.len() as f64
+}
+
+/// Mean absolute log2 change over `px` and channels.
+fn abs_log_change(out: &Image, p: &Pair, px: &[usize]) -> f64 {
+    let n = W * H;
+    let sum: f64 = px
+        .iter()
+        .map(|&i| {
+            (0..3)
+                .map(|c| {
+                    ((out.data[c * n + i] + 1e-3) / (p.rgb[3 * i + c] + 1e-3))
+                        .log2()
+                        .abs() as f64
+                })
+                .sum::<f64>()
+        })
+        .sum();
+    sum / (3 * px.len()) as f64
+}
+
+#[test]
+fn touching_inserts_with_ids_are_harmonized_apart() {
+    let p = pair(true);
+    let plain = || {
+        session(&[
+            ("contact_shadows", ParamValue::Bool(false)),
+            ("stabilize", ParamValue::Bool(false)),
+        ])
+    };
+    // Without ids the two boxes are one connected insert: one filter,
+    // which darkens and shifts the correct box too.
+    let merged = process_pair(&mut plain(), &p, 0, false);
+    let (m_wrong, m_right) = (
+        log_change(&merged, &p, &p.wrong),
+        abs_log_change(&merged, &p, &p.right),
+    );
+    // With ids each has its own: the wrong box is darkened further, the
+    // correct one left as it came.
+    let apart = process_pair(&mut plain(), &p, 0, true);
+    let (a_wrong, a_right) = (
+        log_change(&apart, &p, &p.wrong),
+        abs_log_change(&apart, &p, &p.right),
+    );
+    eprintln!(
+        "merged: wrong {m_wrong:.3} stops, right |{m_right:.3}|; \
+         ids: wrong {a_wrong:.3}, right |{a_right:.3}|"
+    );
+    assert!(
+        m_right > 0.15,
+        "merged: the correct box changed {m_right:.3} stops"
+    );
+    assert!(
+        a_right < 0.02,
+        "ids: the correct box changed {a_right:.3} stops"
+    );
+    assert!(
+        a_wrong < -0.5,
+        "ids: the wrong box changed {a_wrong:.3} stops"
+    );
+    assert!(a_wrong < m_wrong, "ids {a_wrong:.3}, merged {m_wrong:.3}");
+    // The ids alone (no mask) make the same mask: the same result.
+    let mut s = plain();
+    let mut input = FrameInput::new(ImageView::from_f32("color", &p.rgb, W, H, 3).unwrap());
+    input.insert_id = Some(ImageView::from_f32("insert_id", &p.ids, W, H, 1).unwrap());
+    input.frame_index = Some(0);
+    assert_eq!(s.process(&input, None).unwrap().0.data, apart.data);
+}
+
+#[test]
+fn inserts_with_ids_keep_their_filters_when_they_swap_places() {
+    // A heavily smoothed filter (temporal_blend 0.8): the frame after the
+    // boxes swap places, each still carries its own. Followed by where
+    // they are, the wrong box would continue the correct one's identity
+    // filter (corrected by a fifth) and the correct box the wrong one's.
+    let mut s = session(&[
+        ("contact_shadows", ParamValue::Bool(false)),
+        ("stabilize", ParamValue::Bool(false)),
+        ("temporal_blend", ParamValue::Float(0.8)),
+    ]);
+    let before = pair(true);
+    let out = process_pair(&mut s, &before, 0, true);
+    let first = log_change(&out, &before, &before.wrong);
+    let after = pair(false);
+    let out = process_pair(&mut s, &after, 1, true);
+    let (wrong, right) = (
+        log_change(&out, &after, &after.wrong),
+        abs_log_change(&out, &after, &after.right),
+    );
+    eprintln!("wrong box {first:.3} -> {wrong:.3} stops, right box |{right:.3}|");
+    assert!(
+        (wrong - first).abs() < 0.1,
+        "the wrong box's correction went from {first:.3} to {wrong:.3} stops"
+    );
+    assert!(right < 0.02, "the correct box changed {right:.3} stops");
 }

@@ -263,6 +263,7 @@ fn frame(color: &hz_image, coverage: Option<&hz_image>, index: i64) -> hz_frame 
         motion_vector_scale: [1.0, 1.0],
         albedo: null(),
         denoise_normal: null(),
+        insert_id: null(),
     }
 }
 
@@ -587,8 +588,9 @@ fn bad_input_is_refused_with_a_message() {
             "output is NULL",
         );
     }
+    // Not a size any header gave (8 less is the size before `insert_id`).
     let mut bad = f;
-    bad.struct_size -= 8;
+    bad.struct_size -= 4;
     expect(
         api.process(s, &bad, &o),
         HZ_ERROR_INVALID_ARGUMENT,
@@ -692,6 +694,15 @@ struct hz_frame_0_1_0 {
     motion_vector_scale: [f32; 2],
 }
 
+/// `hz_frame` as the headers before `insert_id` declared it.
+#[repr(C)]
+#[allow(non_camel_case_types, dead_code)]
+struct hz_frame_0_2_0 {
+    old: hz_frame_0_1_0,
+    albedo: *const hz_image,
+    denoise_normal: *const hz_image,
+}
+
 /// `hz_report` as the headers before `denoised`, `has_noise_level` and
 /// `noise_level` declared it.
 #[repr(C)]
@@ -747,6 +758,7 @@ fn older_struct_sizes_still_work() {
     );
     f.struct_size = old_frame;
     assert_eq!(api.process(s, &f, &o), HZ_OK, "{}", api.last_error());
+    f.struct_size = old_frame;
     for (i, (a, b)) in out
         .iter()
         .zip(&rgba)
@@ -791,6 +803,30 @@ fn older_struct_sizes_still_work() {
         decision.starts_with("denoise auto: off (backend bypass"),
         "{decision}"
     );
+    // The header before `insert_id`: its fields are read, `insert_id` not
+    // (here an id image that would be refused).
+    let before_ids = std::mem::size_of::<hz_frame_0_2_0>();
+    assert!(old_frame < before_ids && before_ids < std::mem::size_of::<hz_frame>());
+    let mut small = vec![1.0f32; w * h];
+    let bad_ids = image(&mut small, w / 2, h, 1, 0);
+    f.insert_id = &bad_ids;
+    f.frame_index = 4;
+    f.struct_size = before_ids;
+    expect_error(
+        &api,
+        api.process(s, &f, &o),
+        "albedo: needs 3 channel(s), got 1",
+    );
+    f.albedo = null();
+    f.denoise_normal = null();
+    f.struct_size = std::mem::size_of::<hz_frame>();
+    expect_error(
+        &api,
+        api.process(s, &f, &o),
+        "insert_id: size 8x8 differs from color 16x8",
+    );
+    f.struct_size = before_ids;
+    assert_eq!(api.process(s, &f, &o), HZ_OK, "{}", api.last_error());
     api.free(s, d);
 }
 
@@ -845,6 +881,77 @@ fn albedo_and_denoise_normal_are_validated() {
             api.last_error()
         );
     }
+    api.free(s, d);
+}
+
+/// `insert_id` is validated like the other images (the errors name it),
+/// its NaN samples are counted as AOV samples, and alone it makes the
+/// insert mask (1 where the id is above 0): the classical backend then
+/// harmonizes the objects it names.
+#[test]
+fn insert_id_is_validated_and_makes_the_mask() {
+    let api = Api::load();
+    let d = api.device(1);
+    let s = api.session(d, c"classical");
+    let (w, h) = (48, 32);
+    let mut rgba = vec![0.0f32; w * h * 4];
+    let mut ids = vec![0.0f32; w * h];
+    let mut mask = vec![0.0f32; w * h];
+    for y in 0..h {
+        for x in 0..w {
+            let i = y * w + x;
+            // A grey ground, a box 8 times too bright on it (id 3).
+            let inside = (16..32).contains(&x) && (8..24).contains(&y);
+            let v = if inside { 4.0 } else { 0.5 };
+            rgba[4 * i..4 * i + 4].copy_from_slice(&[v, v, v, 1.0]);
+            ids[i] = if inside { 3.0 } else { 0.0 };
+            mask[i] = if inside { 1.0 } else { 0.0 };
+        }
+    }
+    ids[0] = f32::NAN;
+    let mut out = vec![0.0f32; w * h * 4];
+    let c = image(&mut rgba, w, h, 4, 0);
+    let o = image(&mut out, w, h, 4, 0);
+    let id_img = image(&mut ids, w, h, 1, 0);
+    let mut no_channels = id_img;
+    no_channels.channels = 0;
+    let mut small = id_img;
+    small.width = w / 2;
+    let mut no_data = id_img;
+    no_data.data = null_mut();
+    let with = |img: &hz_image| {
+        let mut f = frame(&c, None, 0);
+        f.flags |= HZ_FRAME_RESET;
+        f.insert_id = img;
+        f
+    };
+    for (img, text) in [
+        (&no_channels, "insert_id"),
+        (&small, "insert_id: size 24x32 differs from color 48x32"),
+        (&no_data, "insert_id: data is NULL"),
+    ] {
+        let st = api.process(s, &with(img), &o);
+        assert_ne!(st, HZ_OK, "{text}");
+        expect_error(&api, st, text);
+    }
+    assert_eq!(
+        api.process(s, &with(&id_img), &o),
+        HZ_OK,
+        "{}",
+        api.last_error()
+    );
+    let from_ids = out.clone();
+    let warnings = api.report(s).warning_count;
+    assert!(warnings >= 1, "the NaN id was not reported");
+    // The box was darkened, as with the same mask given.
+    let box_px = 4 * (16 * w + 24);
+    assert!(from_ids[box_px] < 3.5, "{}", from_ids[box_px]);
+    let m = image(&mut mask, w, h, 1, 0);
+    let mut f = frame(&c, None, 0);
+    f.flags |= HZ_FRAME_RESET;
+    f.insert_mask = &m;
+    assert_eq!(api.process(s, &f, &o), HZ_OK, "{}", api.last_error());
+    assert_eq!(out, from_ids);
     api.free(s, d);
 }
 
