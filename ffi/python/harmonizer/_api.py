@@ -322,6 +322,7 @@ class Session:
         denoise_normal: np.ndarray | None = None,
         coverage: np.ndarray | None = None,
         insert_mask: np.ndarray | None = None,
+        insert_id: np.ndarray | None = None,
         world_to_camera: Any = None,
         world_to_ndc: Any = None,
         frame_index: int | None = None,
@@ -343,6 +344,11 @@ class Session:
         denoiser's normals, any space (Cycles' Denoising Normal; when absent
         the denoiser uses ``normal``), read only by the denoise stage
         (parameter ``denoise``) and validated as ``normal`` is.
+        ``insert_id``: (H, W) or (H, W, 1) integer object ids as floats (0:
+        not an inserted object, for example Blender's Object Index pass):
+        each distinct id above 0 among the insert's pixels is one object,
+        harmonized with its own filter and followed over time by its id;
+        without ``insert_mask`` the mask is 1 where the id is above 0.
         ``world_to_camera`` / ``world_to_ndc``: 4x4 OpenEXR row-vector
         matrices.
         ``out``: float32/float16 (H, W, 3|4) to write into (may be ``color``
@@ -366,6 +372,7 @@ class Session:
             ("denoise_normal", denoise_normal),
             ("coverage", coverage),
             ("insert_mask", insert_mask),
+            ("insert_id", insert_id),
         ):
             if arr is not None:
                 img, a = _array_image(arr, name)

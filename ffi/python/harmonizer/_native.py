@@ -84,6 +84,7 @@ class hz_frame(Structure):  # noqa: N801
         # refuses this struct_size).
         ("albedo", POINTER(hz_image)),
         ("denoise_normal", POINTER(hz_image)),
+        ("insert_id", POINTER(hz_image)),
     ]
 
 

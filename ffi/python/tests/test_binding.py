@@ -263,6 +263,58 @@ def test_albedo_and_denoise_normal_errors(device):
         assert s.last_report["denoised"] is False
 
 
+def two_boxes():
+    """Two touching boxes on a grey ground (float32 (H, W, 3)), ids 7 and 2:
+    box 7 is 16 times too bright and blue, box 2 has the ground's color."""
+    h, w = 64, 96
+    y, x = np.mgrid[0:h, 0:w].astype(np.float32)
+    t = 0.5 + 0.3 * np.sin(x * 0.13) * np.cos(y * 0.11)
+    color = np.stack([0.55 * t, 0.5 * t, 0.45 * t], -1)
+    ids = np.zeros((h, w), np.float32)
+    ids[16:48, 16:48] = 7.0
+    ids[16:48, 48:80] = 2.0
+    color[ids == 7.0] *= np.array([16.0, 16.0, 48.0], np.float32)
+    return color.astype(np.float32), ids
+
+
+def test_insert_id_tells_touching_objects_apart(device):
+    """``insert_id=``: each id is its own object (the correct box 2 is left
+    as it came, the wrong box 7 darkened); as one connected mask both share
+    one filter and box 2 changes too. The ids alone make the mask."""
+    color, ids = two_boxes()
+    mask = (ids > 0).astype(np.float32)
+    right = ids == 2.0
+    params = dict(backend="classical", contact_shadows=False, stabilize=False)
+    with hz.Session(device, **params) as s:
+        merged = s.process(color, insert_mask=mask, frame_index=0)
+    with hz.Session(device, **params) as s:
+        apart = s.process(color, insert_mask=mask, insert_id=ids, frame_index=0)
+    with hz.Session(device, **params) as s:
+        alone = s.process(color, insert_id=ids[..., None], frame_index=0)
+    change = lambda out: np.abs(np.log2((out[..., :3][right] + 1e-3) / (color[right] + 1e-3))).mean()  # noqa: E731
+    assert change(merged) > 0.1, change(merged)
+    assert change(apart) < 0.02, change(apart)
+    assert (apart[ids == 7.0][:, :3] < 0.8 * color[ids == 7.0]).all()
+    np.testing.assert_array_equal(alone, apart)
+
+
+def test_insert_id_errors_and_warnings(device):
+    c, *_ = frame(hole=False)
+    h, w = c.shape[:2]
+    with hz.Session(device, backend="classical") as s:
+        with pytest.raises(hz.InvalidArgumentError, match="insert_id: size 16x24 differs from color 32x24"):
+            s.process(c, insert_id=np.ones((h, 16), np.float32))
+        with pytest.raises(hz.InvalidArgumentError, match="insert_id: dtype complex64"):
+            s.process(c, insert_id=np.ones((h, w), np.complex64))
+        ids = np.zeros((h, w), np.float32)
+        ids[4:12, 4:12] = 3.0
+        ids[0, 0] = np.nan
+        ids[0, 1] = np.inf
+        s.process(c, insert_id=ids, frame_index=0)
+        warnings = s.last_report["warnings"]
+        assert any("2 AOV samples" in m for m in warnings), warnings
+
+
 def _run(session, frames, cancel=None):
     outs = []
     for t, (c, cov, m, d) in enumerate(frames):
