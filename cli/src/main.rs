@@ -67,12 +67,13 @@ enum Command {
         #[arg(long, default_value = "auto")]
         layout: String,
         /// Map a role to channels: color=R,G,B; coverage=A; depth=Z; motion=X,Y
-        /// (prefix `-` negates); normal=X,Y,Z; insert=M. Repeatable.
+        /// (prefix `-` negates); normal=X,Y,Z; insert=M; insert_id=ID. Repeatable.
         #[arg(long = "channel", value_name = "ROLE=CH[,CH...]")]
         channel: Vec<String>,
-        /// Blender layout: the object index (Object Index pass) of the inserted object.
-        #[arg(long)]
-        insert_index: Option<i64>,
+        /// Blender layout: the object index (Object Index pass) of the
+        /// inserted object; several (`3,5`): each index is one object.
+        #[arg(long, value_name = "N[,N...]")]
+        insert_index: Option<String>,
         /// Only frames A-B (all must exist).
         #[arg(long)]
         frames: Option<String>,
@@ -286,19 +287,53 @@ fn write_json(path: &Path, v: &Value) -> Result<()> {
     harmonizer_core::io::exr::write_atomic(path, |tmp| std::fs::write(tmp, text.as_bytes()))
 }
 
+/// `--insert-index N[,N...]`: the Object Index value of the inserted
+/// object(s), or of several objects (each then one object, its index its
+/// id: above 0 and named once).
+fn insert_indices(arg: &str) -> Result<Vec<i64>> {
+    let bad = |why: String| {
+        harmonizer_core::Error::invalid(format!(
+            "--insert-index {arg:?}: {why} (expected N, or N,N,... with Object Index values above 0)"
+        ))
+    };
+    let mut out: Vec<i64> = Vec::new();
+    for part in arg.split(',').map(str::trim) {
+        let n: i64 = part
+            .parse()
+            .map_err(|_| bad(format!("{part:?} is not an integer")))?;
+        if out.contains(&n) {
+            return Err(bad(format!("{n} is named twice")));
+        }
+        out.push(n);
+    }
+    if out.len() > 1 {
+        if let Some(n) = out.iter().find(|&&n| n <= 0) {
+            return Err(bad(format!("{n} is not above 0")));
+        }
+    }
+    Ok(out)
+}
+
 fn layout_options(
     layout: &str,
     channel: &[String],
-    insert_index: Option<i64>,
+    insert_index: Option<&str>,
 ) -> Result<LayoutOptions> {
     let mut mapping = ChannelMapping::default();
     for c in channel {
         mapping.add(c)?;
     }
+    let indices = insert_index.map(insert_indices).transpose()?;
+    let (insert_index, insert_indices) = match indices.as_deref() {
+        Some([one]) => (Some(*one), Vec::new()),
+        Some(many) => (None, many.to_vec()),
+        None => (None, Vec::new()),
+    };
     Ok(LayoutOptions {
         preset: LayoutPreset::parse(layout)?,
         mapping,
         insert_index,
+        insert_indices,
     })
 }
 
@@ -351,7 +386,7 @@ fn cmd_run(
     output: String,
     layout: String,
     channel: Vec<String>,
-    insert_index: Option<i64>,
+    insert_index: Option<String>,
     frames: Option<String>,
     preroll: usize,
     gap: String,
@@ -361,7 +396,7 @@ fn cmd_run(
     let options = RunOptions {
         input,
         output: output.clone(),
-        layout: layout_options(&layout, &channel, insert_index)?,
+        layout: layout_options(&layout, &channel, insert_index.as_deref())?,
         frames: frames.as_deref().map(FrameRange::parse).transpose()?,
         preroll,
     };

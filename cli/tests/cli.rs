@@ -1177,3 +1177,195 @@ mod preroll {
         }
     }
 }
+
+/// Several inserted objects told apart by the host's object ids: the
+/// generic layout's `mask.id` channel and the Blender layout's
+/// `--insert-index 3,5`.
+mod object_ids {
+    use super::*;
+    use harmonizer_core::io::exr::{write_channels, OutChannel};
+
+    const W: usize = 96;
+    const H: usize = 64;
+
+    /// Two touching boxes on a textured grey ground: the left one 16 times
+    /// too bright and blue (Object Index 3), the right one the ground's
+    /// color (Object Index 5). Planes R, G, B, the mask and the indices.
+    fn two_boxes() -> (Vec<Vec<f32>>, Vec<f32>, Vec<f32>) {
+        let mut rgb = vec![vec![0.0; W * H]; 3];
+        let (mut mask, mut index) = (vec![0.0; W * H], vec![0.0; W * H]);
+        for y in 0..H {
+            for x in 0..W {
+                let i = y * W + x;
+                let (xf, yf) = (x as f32, y as f32);
+                let t = 0.5 + 0.3 * (xf * 0.13).sin() * (yf * 0.11).cos();
+                let mut c = [0.55 * t, 0.5 * t, 0.45 * t];
+                if (16..48).contains(&y) && (16..80).contains(&x) {
+                    mask[i] = 1.0;
+                    if x < 48 {
+                        c = [16.0 * c[0], 16.0 * c[1], 48.0 * c[2]];
+                        index[i] = 3.0;
+                    } else {
+                        index[i] = 5.0;
+                    }
+                }
+                for k in 0..3 {
+                    rgb[k][i] = c[k];
+                }
+            }
+        }
+        (rgb, mask, index)
+    }
+
+    fn write(path: &Path, channels: &[(&str, &[f32])]) {
+        let list: Vec<OutChannel> = channels
+            .iter()
+            .map(|(name, data)| OutChannel {
+                name,
+                data,
+                half: false,
+            })
+            .collect();
+        write_channels(path, W, H, &list, None).unwrap();
+    }
+
+    fn run(input: &str, out: &str, extra: &[&str]) -> Output {
+        let mut args = vec![
+            "run",
+            input,
+            "-o",
+            out,
+            "--backend",
+            "classical",
+            "--threads",
+            "2",
+        ];
+        args.extend(extra);
+        harmonize(&args)
+    }
+
+    /// The output's mean absolute log2 change against the input over the
+    /// pixels whose index is `which`, and the mean (signed) change.
+    fn change(out: &Path, rgb: &[Vec<f32>], index: &[f32], which: f32) -> (f64, f64) {
+        let f = LoadedFrame::read(out, Some(1), &LayoutOptions::default()).unwrap();
+        let (mut abs, mut signed, mut n) = (0.0, 0.0, 0);
+        for i in (0..W * H).filter(|&i| index[i] == which) {
+            for (k, plane) in rgb.iter().enumerate() {
+                let d = ((f.color[3 * i + k] + 1e-3) / (plane[i] + 1e-3)).log2() as f64;
+                abs += d.abs();
+                signed += d;
+                n += 1;
+            }
+        }
+        (abs / n as f64, signed / n as f64)
+    }
+
+    #[test]
+    fn ids_harmonize_touching_objects_apart() {
+        let dir = tempfile::tempdir().unwrap();
+        let (rgb, mask, index) = two_boxes();
+        let d = |name: &str| dir.path().join(name).to_string_lossy().to_string();
+        let base = [("R", &rgb[0][..]), ("G", &rgb[1][..]), ("B", &rgb[2][..])];
+        // Generic: the mask alone (one connected object), then with `mask.id`.
+        let mut merged = base.to_vec();
+        merged.push(("mask.insert", &mask));
+        write(Path::new(&d("merged.0001.exr")), &merged);
+        let mut ids = merged.clone();
+        ids.push(("mask.id", &index));
+        write(Path::new(&d("ids.0001.exr")), &ids);
+        // Blender: the view layer's Combined and Object Index passes.
+        let ones = vec![1.0; W * H];
+        write(
+            Path::new(&d("layer.0001.exr")),
+            &[
+                ("ViewLayer.Combined.R", &rgb[0]),
+                ("ViewLayer.Combined.G", &rgb[1]),
+                ("ViewLayer.Combined.B", &rgb[2]),
+                ("ViewLayer.Combined.A", &ones),
+                ("ViewLayer.Object Index.X", &index),
+            ],
+        );
+        for (input, out, extra) in [
+            ("merged.####.exr", "o_merged.####.exr", &[][..]),
+            ("ids.####.exr", "o_ids.####.exr", &[][..]),
+            (
+                "layer.####.exr",
+                "o_layer.####.exr",
+                &["--insert-index", "3,5"][..],
+            ),
+            (
+                "layer.####.exr",
+                "o_one.####.exr",
+                &["--insert-index", "3"][..],
+            ),
+        ] {
+            let o = run(&d(input), &d(out), extra);
+            assert!(o.status.success(), "{input} {extra:?}: {:?}", text(&o));
+        }
+        let at = |name: &str| dir.path().join(name);
+        let merged_right = change(&at("o_merged.0001.exr"), &rgb, &index, 5.0).0;
+        let (ids_right, _) = change(&at("o_ids.0001.exr"), &rgb, &index, 5.0);
+        let (_, ids_wrong) = change(&at("o_ids.0001.exr"), &rgb, &index, 3.0);
+        let (layer_right, _) = change(&at("o_layer.0001.exr"), &rgb, &index, 5.0);
+        let (_, layer_wrong) = change(&at("o_layer.0001.exr"), &rgb, &index, 3.0);
+        let (one_right, _) = change(&at("o_one.0001.exr"), &rgb, &index, 5.0);
+        eprintln!(
+            "right box changed: merged {merged_right:.3}, mask.id {ids_right:.3}, \
+             --insert-index 3,5 {layer_right:.3}, 3 {one_right:.3} stops; wrong box: \
+             mask.id {ids_wrong:.3}, --insert-index 3,5 {layer_wrong:.3}"
+        );
+        assert!(merged_right > 0.1, "{merged_right}");
+        assert!(ids_right < 0.02 && layer_right < 0.02 && one_right < 0.02);
+        assert!(ids_wrong < -0.5 && layer_wrong < -0.5);
+        assert!((ids_wrong - layer_wrong).abs() < 1e-3);
+    }
+
+    #[test]
+    fn bad_indices_and_missing_id_channels_are_named() {
+        let dir = tempfile::tempdir().unwrap();
+        let (rgb, mask, _) = two_boxes();
+        let input = dir.path().join("in.0001.exr");
+        write(
+            &input,
+            &[
+                ("R", &rgb[0]),
+                ("G", &rgb[1]),
+                ("B", &rgb[2]),
+                ("mask.insert", &mask),
+            ],
+        );
+        let pattern = dir.path().join("in.####.exr").to_string_lossy().to_string();
+        let out = dir.path().join("o.####.exr").to_string_lossy().to_string();
+        for (extra, want) in [
+            (
+                &["--insert-index", "3,x"][..],
+                &["--insert-index", "\"x\""][..],
+            ),
+            (
+                &["--insert-index", "3,0"],
+                &["--insert-index", "0 is not above 0"],
+            ),
+            (&["--insert-index", "3,3"], &["3 is named twice"]),
+            (
+                &["--layout", "blender", "--insert-index", "3,5"],
+                &[
+                    "in.0001.exr",
+                    "frame 1",
+                    "--insert-index 3,5",
+                    "Object Index",
+                ],
+            ),
+            (
+                &["--channel", "insert_id=objid.X"],
+                &["in.0001.exr", "frame 1", "objid.X"],
+            ),
+        ] {
+            let o = run(&pattern, &out, extra);
+            let (_, e) = text(&o);
+            assert!(!o.status.success(), "{extra:?} succeeded");
+            for w in want {
+                assert!(e.contains(w), "{extra:?}: {w:?} not in {e}");
+            }
+        }
+    }
+}

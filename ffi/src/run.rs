@@ -143,6 +143,7 @@ unsafe fn read_options(o: *const hz_run_options) -> Result<Read, Error> {
             preset: LayoutPreset::parse(&layout)?,
             mapping,
             insert_index: (o.flags & HZ_RUN_HAS_INSERT_INDEX != 0).then_some(o.insert_index),
+            insert_indices: Vec::new(),
         },
         frames,
         preroll: o.preroll,

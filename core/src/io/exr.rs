@@ -453,6 +453,9 @@ pub struct LoadedFrame {
     pub denoise_normal: Option<Vec<f32>>,
     /// Insert mask in `[0,1]`.
     pub insert_mask: Option<Vec<f32>>,
+    /// The insert's object ids (0 where none): the layout's `mask.id`
+    /// channel, or the Object Index values of several inserted objects.
+    pub insert_id: Option<Vec<f32>>,
     /// The camera, from the header.
     pub camera: Option<Camera>,
     /// Things worth telling the user (camera dropped, ...).
@@ -595,6 +598,7 @@ impl LoadedFrame {
             .as_ref()
             .map(|m| many(m, "denoise_normal"))
             .transpose()?;
+        let mut index_ids = None;
         let insert_mask = match &layout.insert {
             None => None,
             Some(InsertSource::Channel(r)) => Some(read1(r, "insert")?.1),
@@ -612,6 +616,31 @@ impl LoadedFrame {
                         .collect(),
                 )
             }
+            Some(InsertSource::ObjectIndices { channel, indices }) => {
+                // Each index one object, its value the object's id.
+                let v = read1(channel, "insert (object index)")?.1;
+                let ids: Vec<f32> = v
+                    .iter()
+                    .map(|&x| {
+                        indices
+                            .iter()
+                            .find(|&&i| (x - i as f32).abs() < 0.5)
+                            .map_or(0.0, |&i| i as f32)
+                    })
+                    .collect();
+                let mask = ids
+                    .iter()
+                    .map(|&id| f32::from(u8::from(id > 0.0)))
+                    .collect();
+                index_ids = Some(ids);
+                Some(mask)
+            }
+        };
+        // The object ids: the layout's channel, else the Object Index
+        // values of several inserted objects.
+        let insert_id = match &layout.insert_id {
+            Some(r) => Some(read1(r, "insert_id")?.1),
+            None => index_ids,
         };
         let mut camera = file.camera(color_ids[0].part);
         if camera.is_some() {
@@ -639,6 +668,7 @@ impl LoadedFrame {
             albedo,
             denoise_normal,
             insert_mask,
+            insert_id,
             camera,
             warnings,
             color_ids,
@@ -689,6 +719,11 @@ impl LoadedFrame {
             .insert_mask
             .as_deref()
             .map(|d| view("insert_mask", d, 1))
+            .transpose()?;
+        f.insert_id = self
+            .insert_id
+            .as_deref()
+            .map(|d| view("insert_id", d, 1))
             .transpose()?;
         f.camera = self.camera;
         f.frame_index = self.frame;
@@ -1074,6 +1109,7 @@ pub fn info(path: &Path) -> Result<FileInfo> {
         ("motion", l.motion.is_some()),
         ("normal", l.normal.is_some()),
         ("insert", l.insert.is_some()),
+        ("insert_id", l.insert_id.is_some()),
         ("albedo", l.albedo.is_some()),
         ("denoise_normal", l.denoise_normal.is_some()),
     ] {

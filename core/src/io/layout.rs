@@ -1,15 +1,20 @@
 //! Channel layouts: which EXR channels hold color, coverage, depth, motion,
-//! normals, the insert mask and the denoise stage's albedo and normals.
+//! normals, the insert mask and object ids and the denoise stage's albedo
+//! and normals.
 //! Channels are always found by name.
 //!
 //! - `generic` (single part): `R,G,B` (premultiplied), `A` (coverage), `Z`
 //!   (planar depth), `motion.X`, `motion.Y`, `N.X`, `N.Y`, `N.Z`,
-//!   `mask.insert`, `albedo.R`, `albedo.G`, `albedo.B`, `denoise_normal.X`,
+//!   `mask.insert`, `mask.id` (the insert's object ids, integers held as
+//!   floats, 0 where none; see [`crate::frame::FrameInput::insert_id`]),
+//!   `albedo.R`, `albedo.G`, `albedo.B`, `denoise_normal.X`,
 //!   `denoise_normal.Y`, `denoise_normal.Z`.
 //! - `blender`: the multi-part multilayer EXR of Blender 5: `<layer>.Combined`
 //!   (.R .G .B .A), `<layer>.Depth` (.Z), `<layer>.Vector` (.X .Y, +y up: the
 //!   y component is negated), `<layer>.Normal` (.X .Y .Z), `<layer>.Object
-//!   Index` (.X, the insert mask is `Object Index == --insert-index`),
+//!   Index` (.X, the insert mask is `Object Index == --insert-index`; with
+//!   several indices, `--insert-index 3,5`, the mask is the Object Index
+//!   in that set and each index is one object, its value the object's id),
 //!   `<layer>.Denoising Albedo` (.R .G .B, the albedo) and `<layer>.Denoising
 //!   Normal` (.X .Y .Z, the denoiser's normals: Cycles writes them in camera
 //!   space, consistent with its albedo, so they do not replace `Normal`).
@@ -98,6 +103,14 @@ pub enum InsertSource {
         /// The index of the inserted object(s).
         index: i64,
     },
+    /// 1 where an object-index channel holds one of `indices`; each index
+    /// is one object, its value the object's id.
+    ObjectIndices {
+        /// The object-index channel.
+        channel: ChannelRef,
+        /// The indices of the inserted objects (above 0).
+        indices: Vec<i64>,
+    },
 }
 
 /// A user mapping given on the command line: `role=CH[,CH...]`.
@@ -115,6 +128,8 @@ pub struct ChannelMapping {
     pub normal: Option<[ChannelRef; 3]>,
     /// Insert mask channel.
     pub insert: Option<ChannelRef>,
+    /// The insert's object ids channel.
+    pub insert_id: Option<ChannelRef>,
     /// Albedo (R, G, B).
     pub albedo: Option<[ChannelRef; 3]>,
     /// The denoise stage's normals (x, y, z).
@@ -123,7 +138,7 @@ pub struct ChannelMapping {
 
 impl ChannelMapping {
     /// Adds one `role=CH[,CH...]` entry (roles: color, coverage, depth,
-    /// motion, normal, insert, albedo, denoise_normal).
+    /// motion, normal, insert, insert_id, albedo, denoise_normal).
     pub fn add(&mut self, spec: &str) -> Result<()> {
         let bad = |why: String| Error::invalid(format!("--channel {spec:?}: {why}"));
         let (role, list) = spec
@@ -169,6 +184,10 @@ impl ChannelMapping {
                 want(1)?;
                 self.insert = Some(chans[0].clone());
             }
+            "insert_id" | "id" => {
+                want(1)?;
+                self.insert_id = Some(chans[0].clone());
+            }
             "albedo" => {
                 want(3)?;
                 self.albedo = Some([chans[0].clone(), chans[1].clone(), chans[2].clone()]);
@@ -179,8 +198,8 @@ impl ChannelMapping {
             }
             other => {
                 return Err(bad(format!(
-                    "unknown role {other:?} (expected color, coverage, depth, motion, normal, insert, albedo or \
-                     denoise_normal)"
+                    "unknown role {other:?} (expected color, coverage, depth, motion, normal, insert, insert_id, \
+                     albedo or denoise_normal)"
                 )))
             }
         }
@@ -203,6 +222,11 @@ pub struct LayoutOptions {
     pub mapping: ChannelMapping,
     /// Blender: pixels whose `Object Index` equals this are the insert mask.
     pub insert_index: Option<i64>,
+    /// Blender: the Object Index values of several inserted objects
+    /// (`--insert-index 3,5`): the insert mask is the Object Index in this
+    /// set and each index is one object (its value the object's id). When
+    /// not empty it replaces `insert_index`.
+    pub insert_indices: Vec<i64>,
 }
 
 /// The channels a frame is read from, after detection.
@@ -224,6 +248,9 @@ pub struct ResolvedLayout {
     pub normal: Option<[ChannelRef; 3]>,
     /// Insert mask.
     pub insert: Option<InsertSource>,
+    /// The insert's object ids (a channel; [`InsertSource::ObjectIndices`]
+    /// gives them too).
+    pub insert_id: Option<ChannelRef>,
     /// Albedo, for the denoise stage.
     pub albedo: Option<[ChannelRef; 3]>,
     /// Normals for the denoise stage.
@@ -288,16 +315,28 @@ pub fn resolve(
             ]
             .into_iter()
             .find(|n| has(n));
-            let insert = match (options.insert_index, index_channel) {
-                (Some(index), Some(ch)) => Some(InsertSource::ObjectIndex {
-                    channel: ChannelRef::new(ch),
-                    index,
+            let wanted = match options.insert_indices.as_slice() {
+                [] => options.insert_index.map(|i| vec![i]),
+                many => Some(many.to_vec()),
+            };
+            let insert = match (wanted, index_channel) {
+                (Some(indices), Some(ch)) => Some(match indices.as_slice() {
+                    [index] => InsertSource::ObjectIndex {
+                        channel: ChannelRef::new(ch),
+                        index: *index,
+                    },
+                    _ => InsertSource::ObjectIndices {
+                        channel: ChannelRef::new(ch),
+                        indices,
+                    },
                 }),
-                (Some(index), None) if options.mapping.insert.is_none() => {
+                (Some(indices), None) if options.mapping.insert.is_none() => {
+                    let list: Vec<String> = indices.iter().map(i64::to_string).collect();
                     return Err(Error::invalid(format!(
-                        "--insert-index {index}: view layer {layer:?} has no Object Index pass \
-                         (channel {layer}.Object Index.X); enable the Object Index pass in Blender"
-                    )))
+                        "--insert-index {}: view layer {layer:?} has no Object Index pass \
+                         (channel {layer}.Object Index.X); enable the Object Index pass in Blender",
+                        list.join(",")
+                    )));
                 }
                 _ => None,
             };
@@ -310,6 +349,7 @@ pub fn resolve(
                 motion,
                 normal,
                 insert,
+                insert_id: None,
                 albedo,
                 denoise_normal,
                 required: vec![],
@@ -326,6 +366,7 @@ pub fn resolve(
                 motion: Some(refs("", ["motion.X", "motion.Y"])).filter(|m| all(m)),
                 normal: Some(refs("", ["N.X", "N.Y", "N.Z"])).filter(|m| all(m)),
                 insert: opt1("mask.insert").map(InsertSource::Channel),
+                insert_id: opt1("mask.id"),
                 albedo: Some(refs("", ["albedo.R", "albedo.G", "albedo.B"])).filter(|m| all(m)),
                 denoise_normal: Some(refs(
                     "",
@@ -360,6 +401,10 @@ pub fn resolve(
     if let Some(c) = &m.insert {
         out.insert = Some(InsertSource::Channel(c.clone()));
         out.required.push("insert");
+    }
+    if let Some(c) = &m.insert_id {
+        out.insert_id = Some(c.clone());
+        out.required.push("insert_id");
     }
     if let Some(c) = &m.albedo {
         out.albedo = Some(c.clone());
@@ -413,6 +458,40 @@ mod tests {
             r.insert,
             Some(InsertSource::ObjectIndex { index: 3, .. })
         ));
+        // Several indices: each one object.
+        let opts = LayoutOptions {
+            insert_indices: vec![3, 5],
+            ..Default::default()
+        };
+        let r = resolve(&opts, &n, &has).unwrap();
+        match r.insert {
+            Some(InsertSource::ObjectIndices { channel, indices }) => {
+                assert_eq!(channel.name, "Shot.Object Index.X");
+                assert_eq!(indices, vec![3, 5]);
+            }
+            other => panic!("{other:?}"),
+        }
+        let plain = names(&["Shot.Combined.R", "Shot.Combined.G", "Shot.Combined.B"]);
+        let e = resolve(&opts, &plain, &|s: &str| plain.iter().any(|x| x == s))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("--insert-index 3,5") && e.contains("Object Index"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn generic_object_ids() {
+        let n = names(&["R", "G", "B", "mask.insert", "mask.id", "objid.X"]);
+        let has = |s: &str| n.iter().any(|x| x == s);
+        let r = resolve(&LayoutOptions::default(), &n, &has).unwrap();
+        assert_eq!(r.insert_id.map(|c| c.name), Some("mask.id".to_string()));
+        let mut opts = LayoutOptions::default();
+        opts.mapping.add("insert_id=objid.X").unwrap();
+        let r = resolve(&opts, &n, &has).unwrap();
+        assert_eq!(r.insert_id.map(|c| c.name), Some("objid.X".to_string()));
+        assert!(r.required.contains(&"insert_id"));
     }
 
     #[test]
