@@ -11,7 +11,8 @@
  * (refused, state unchanged); frame numbers that would wrap; tile settings
  * refused at commit and bad models refused by hz_device_new; normals
  * validated and their NaN/Inf warned; hz_frame and hz_report of an older
- * header's size; albedo and denoise_normal validated; a noisy frame with
+ * header's size; albedo and denoise_normal validated; insert_id (the size
+ * before it, validated, alone making the mask); a noisy frame with
  * its albedo denoised by Open Image Denoise (the real library: the pyoidn
  * wheel in the repository's .venv or HARMONIZER_OIDN_LIB; missing, the
  * test fails) and the report's denoise fields; hz_run_sequence over an EXR
@@ -22,6 +23,7 @@
 #include "harmonizer.h"
 
 #include <math.h>
+#include <stddef.h>
 #include <pthread.h>
 #include <stdio.h>
 #include <stdlib.h>
@@ -962,6 +964,62 @@ static void test_older_struct_sizes(hz_device *device) {
     CHECK_OK(hz_session_free(s));
 }
 
+/* insert_id, appended to hz_frame: a host passing the size before it is
+ * not read (here an id image that would be refused); it is validated like
+ * the other images; alone it makes the insert mask (1 where the id is above
+ * 0), so a classical session gives the same output as with that mask. */
+static void test_insert_id(hz_device *device) {
+    size_t w = 48, h = 32, x, y;
+    size_t before_ids = offsetof(hz_frame, insert_id);
+    hz_session *s = new_session(device, "classical");
+    float *rgba = alloc_floats(w * h * 4), *ids = alloc_floats(w * h), *mask = alloc_floats(w * h);
+    float *out = alloc_floats(w * h * 4), *with_mask = alloc_floats(w * h * 4);
+    hz_image c = image(rgba, w, h, 4, 0), o = image(out, w, h, 4, 0), id_img = image(ids, w, h, 1, 0);
+    hz_image m = image(mask, w, h, 1, 0), small = id_img;
+    hz_frame fr;
+    int darker;
+    for (y = 0; y < h; y++) {
+        for (x = 0; x < w; x++) {
+            /* A grey ground, a box 8 times too bright on it (id 3). */
+            int inside = x >= 16 && x < 32 && y >= 8 && y < 24;
+            float v = inside ? 4.0f : 0.5f;
+            size_t i = y * w + x;
+            rgba[4 * i] = rgba[4 * i + 1] = rgba[4 * i + 2] = v;
+            rgba[4 * i + 3] = 1.0f;
+            ids[i] = inside ? 3.0f : 0.0f;
+            mask[i] = inside ? 1.0f : 0.0f;
+        }
+    }
+    CHECK(before_ids < sizeof(hz_frame), "insert_id is appended: %zu of %zu", before_ids, sizeof(hz_frame));
+    small.width = w / 2;
+    memset(&fr, 0, sizeof fr);
+    fr.struct_size = sizeof fr;
+    fr.color = &c;
+    fr.flags = HZ_FRAME_RESET;
+    fr.insert_id = &small;
+    CHECK(hz_session_process(s, &fr, &o) == HZ_ERROR_INVALID_ARGUMENT, "a 24x32 insert_id");
+    CHECK(strstr(hz_last_error_message(), "insert_id: size 24x32 differs from color 48x32") != NULL, "%s",
+          hz_last_error_message());
+    fr.struct_size = before_ids;
+    CHECK_OK(hz_session_process(s, &fr, &o));
+    fr.struct_size = sizeof fr;
+    fr.insert_id = &id_img;
+    CHECK_OK(hz_session_process(s, &fr, &o));
+    darker = out[4 * (16 * w + 24)] < 3.5f;
+    CHECK(darker, "the box named by its id is harmonized: %f", out[4 * (16 * w + 24)]);
+    fr.insert_id = NULL;
+    fr.insert_mask = &m;
+    o = image(with_mask, w, h, 4, 0);
+    CHECK_OK(hz_session_process(s, &fr, &o));
+    CHECK(same_bits(out, with_mask, w * h * 4), "ids alone give the output of the same mask");
+    free(rgba);
+    free(ids);
+    free(mask);
+    free(out);
+    free(with_mask);
+    CHECK_OK(hz_session_free(s));
+}
+
 /* albedo and denoise_normal are validated like the other images; the errors
  * name the field. */
 static void test_albedo_validated(hz_device *device) {
@@ -1210,6 +1268,7 @@ int main(void) {
     test_normals(device);
     test_older_struct_sizes(device);
     test_albedo_validated(device);
+    test_insert_id(device);
     test_denoise(device);
     test_run_sequence(device);
     CHECK_OK(hz_device_free(device));
