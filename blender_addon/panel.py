@@ -67,6 +67,7 @@ class RENDER_PT_harmonizer(bpy.types.Panel):
             col.prop(s, "mask_collection")
         elif s.mask_source == "OBJECT_INDEX":
             col.prop(s, "mask_index")
+            col.prop(s, "mask_more_indices")
         elif s.mask_source == "CRYPTOMATTE":
             col.prop(s, "mask_crypto_layer")
             col.prop(s, "mask_names")

@@ -31,6 +31,20 @@ def mask_names(scene: bpy.types.Scene) -> list[str]:
     return []
 
 
+def mask_indices(scene: bpy.types.Scene) -> list[int]:
+    """The pass indices of the inserted objects when there are several (the
+    Pass Index, then More Indices, each once), else an empty list."""
+    s = scene.harmonizer
+    if s.mask_source != "OBJECT_INDEX":
+        return []
+    out = [s.mask_index]
+    for part in s.mask_more_indices.split(","):
+        part = part.strip()
+        if part.lstrip("-").isdigit() and int(part) not in out:
+            out.append(int(part))
+    return out if len(out) > 1 else []
+
+
 def check(
     scene: bpy.types.Scene, *, apply: bool, denoising_data: bool = False, at_render: bool = False
 ) -> list[tuple[str, str]]:
@@ -99,6 +113,12 @@ def check(
         out.append(("WARNING", "Harmonizer: insert mask source is Object but no object is set"))
     if s.mask_source == "COLLECTION" and s.mask_collection is None:
         out.append(("WARNING", "Harmonizer: insert mask source is Collection but no collection is set"))
+    if s.mask_source == "OBJECT_INDEX":
+        bad = [p.strip() for p in s.mask_more_indices.split(",") if p.strip() and not p.strip().isdigit()]
+        if bad:
+            out.append(("WARNING", f"Harmonizer: More Indices {', '.join(map(repr, bad))} are not pass indices"))
+        if mask_indices(scene) and 0 in mask_indices(scene):
+            out.append(("WARNING", "Harmonizer: pass index 0 is every object without one; it cannot name an object"))
     out += denoise.check_guides(scene, vl, apply=apply and denoising_data, at_render=at_render)
     return out
 

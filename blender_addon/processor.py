@@ -40,6 +40,9 @@ class Options:
     #: Cryptomatte names all resolve to Cryptomatte names).
     mask_source: str = "NONE"
     mask_index: int = 0
+    #: Several pass indices (``mask_index`` among them): each index is one
+    #: object, its value the object's id. Empty: ``mask_index`` alone.
+    mask_indices: list[int] = field(default_factory=list)
     mask_names: list[str] = field(default_factory=list)
     #: Cryptomatte layer: 'CryptoObject', 'CryptoMaterial' or 'CryptoAsset'.
     mask_crypto_layer: str = "CryptoObject"
@@ -117,9 +120,23 @@ def _cryptomatte_ids(exr: exrio.MultiPartExr, layer_name: str, names: list[str])
 
 def insert_mask(exr: exrio.MultiPartExr, opts: Options, frame: int) -> np.ndarray | None:
     """The insert mask (H, W) in [0, 1] from the configured source, or None."""
+    return insert_mask_and_ids(exr, opts, frame)[0]
+
+
+def insert_mask_and_ids(
+    exr: exrio.MultiPartExr, opts: Options, frame: int
+) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The insert mask (H, W) in [0, 1] from the configured source and the
+    inserted objects' ids (H, W), float32, 0 where none; either may be None.
+
+    Several pass indices: each index is one object, its value its id. One
+    index: no ids (the library cuts the mask into connected objects).
+    Cryptomatte: each matched name is one object, its id its place in the
+    list plus 1, a pixel's id the name that covers most of it.
+    """
     layer = opts.view_layer
     if opts.mask_source == "NONE":
-        return None
+        return None, None
     if opts.mask_source == "OBJECT_INDEX":
         name = f"{layer}.Object Index.X"
         if not exr.has(name):
@@ -127,10 +144,14 @@ def insert_mask(exr: exrio.MultiPartExr, opts: Options, frame: int) -> np.ndarra
                 f"{exr.path}: frame {frame}: insert mask from Object Index needs channel {name!r}; "
                 "enable the Object Index pass"
             )
-        return (np.rint(exr.channel(name)) == opts.mask_index).astype(np.float32)
+        index = np.rint(exr.channel(name))
+        if not opts.mask_indices:
+            return (index == opts.mask_index).astype(np.float32), None
+        ids = np.where(np.isin(index, opts.mask_indices), index, 0.0).astype(np.float32)
+        return (ids > 0).astype(np.float32), ids
     if opts.mask_source == "CRYPTOMATTE":
         if not opts.mask_names:
-            return None
+            return None, None
         base = f"{layer}.{opts.mask_crypto_layer}"
         ranks = []
         k = 0
@@ -144,11 +165,18 @@ def insert_mask(exr: exrio.MultiPartExr, opts: Options, frame: int) -> np.ndarra
             )
         ids = np.array(_cryptomatte_ids(exr, f"{layer}.{opts.mask_crypto_layer}", opts.mask_names), dtype=np.float32)
         mask = np.zeros((exr.height, exr.width), dtype=np.float32)
+        # Each name's coverage of each pixel, summed over the ranks.
+        per_name = np.zeros((len(ids), exr.height, exr.width), dtype=np.float32)
         for rank in ranks:
             for id_ch, cov_ch in ((0, 1), (2, 3)):
                 hit = np.isin(rank[:, :, id_ch], ids)
                 mask += np.where(hit, rank[:, :, cov_ch], 0.0)
-        return np.clip(mask, 0.0, 1.0)
+                for k, matte in enumerate(ids):
+                    per_name[k] += np.where(rank[:, :, id_ch] == matte, rank[:, :, cov_ch], 0.0)
+        mask = np.clip(mask, 0.0, 1.0)
+        best = per_name.argmax(axis=0)
+        object_ids = np.where(per_name.max(axis=0) > 0.0, best + 1, 0).astype(np.float32)
+        return mask, object_ids
     raise FrameError(f"insert mask source {opts.mask_source!r} is not one of NONE, OBJECT_INDEX, CRYPTOMATTE")
 
 
@@ -368,9 +396,11 @@ class FrameProcessor:
         if all(exr.has(f"{layer}.Normal.{c}") for c in "XYZ"):
             kwargs["normal"] = exr.channels([f"{layer}.Normal.{c}" for c in "XYZ"])
         kwargs.update(denoise_guides(exr, layer, conv, raw_path, frame))
-        mask = insert_mask(exr, opts, frame)
+        mask, ids = insert_mask_and_ids(exr, opts, frame)
         if mask is not None:
             kwargs["insert_mask"] = mask
+        if ids is not None:
+            kwargs["insert_id"] = ids
         if camera is None:
             w2c = _header_matrix(exr, "worldToCamera", "worldtocamera")
             w2n = _header_matrix(exr, "worldToNDC", "worldtondc", "worldtoscreen")

@@ -24,7 +24,7 @@ MASK_SOURCES = [
     ("NONE", "None", "No inserted element"),
     ("OBJECT", "Object", "The inserted element is one object (uses the Cryptomatte Object pass)"),
     ("COLLECTION", "Collection", "The inserted element is every object of a collection (Cryptomatte Object pass)"),
-    ("OBJECT_INDEX", "Object Index", "Pixels whose Object Index (pass index) equals a value"),
+    ("OBJECT_INDEX", "Object Index", "Pixels whose Object Index (pass index) equals a value, or one of several"),
     ("CRYPTOMATTE", "Cryptomatte", "Cryptomatte matte names, comma separated"),
 ]
 
@@ -108,6 +108,13 @@ class HarmonizerSceneSettings(bpy.types.PropertyGroup):
     mask_object: PointerProperty(name="Object", type=bpy.types.Object)
     mask_collection: PointerProperty(name="Collection", type=bpy.types.Collection)
     mask_index: IntProperty(name="Pass Index", default=1, min=0, max=32767)
+    mask_more_indices: StringProperty(
+        name="More Indices",
+        description=(
+            "Pass indices of further inserted objects, comma separated: with them each index is one object "
+            "(its own harmonization, followed by its index, even where objects touch)"
+        ),
+    )
     mask_names: StringProperty(name="Mattes", description="Cryptomatte names, comma separated")
     mask_crypto_layer: EnumProperty(name="Cryptomatte Layer", items=CRYPTO_LAYERS, default="CryptoObject")
     light_source: EnumProperty(

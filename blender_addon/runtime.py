@@ -85,6 +85,7 @@ class Runner:
             coverage=s.coverage,
             mask_source=mask_source,
             mask_index=s.mask_index,
+            mask_indices=passes.mask_indices(scene),
             mask_names=names,
             mask_crypto_layer=crypto_layer,
             working_space=bpy.data.colorspace.working_space,

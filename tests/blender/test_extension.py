@@ -342,6 +342,34 @@ def test_insert_mask_from_collection_matches_object_index(addon, classical_run):
     assert processor.cryptomatte_hash("InsertedSphere") == want
 
 
+def test_insert_ids_from_cryptomatte_names_and_pass_indices(addon, classical_run):
+    """Several inserted objects: each Cryptomatte name is one object (ids 1, 2 in
+    the list's order) and several pass indices give each index as its id; one
+    index gives the mask alone, as before."""
+    _scene, out, _log = classical_run
+    processor, exrio, deps = addon.processor, addon.exrio, addon.deps
+    exr = exrio.read(deps.oiio(), os.path.join(out, "raw", "frame_0004.exr"))
+    one = processor.Options(mask_source="OBJECT_INDEX", mask_index=fixture.INSERT_PASS_INDEX)
+    by_index, no_ids = processor.insert_mask_and_ids(exr, one, 4)
+    assert no_ids is None and by_index.sum() > 50
+    several = processor.Options(
+        mask_source="OBJECT_INDEX", mask_index=fixture.INSERT_PASS_INDEX, mask_indices=[fixture.INSERT_PASS_INDEX, 9]
+    )
+    mask, ids = processor.insert_mask_and_ids(exr, several, 4)
+    np.testing.assert_array_equal(mask, by_index)
+    assert set(np.unique(ids)) == {0.0, float(fixture.INSERT_PASS_INDEX)}
+    np.testing.assert_array_equal(ids > 0, by_index > 0)
+    crypto = processor.Options(mask_source="CRYPTOMATTE", mask_names=["InsertedSphere", "Cube"])
+    mask, ids = processor.insert_mask_and_ids(exr, crypto, 4)
+    sphere_only = processor.insert_mask(
+        exr, processor.Options(mask_source="CRYPTOMATTE", mask_names=["InsertedSphere"]), 4
+    )
+    assert (ids == 2.0).sum() > 50, "the cube has no pixels of its own id"
+    assert ((ids == 1.0) == (by_index > 0.5)).mean() > 0.995
+    assert ((ids > 0) == (mask > 0)).all()
+    assert (mask >= sphere_only - 1e-6).all() and mask[ids == 2.0].min() > 0.0
+
+
 def test_before_after_image(addon, classical_run, tmp_root):
     """Side by side: raw render | enhanced frame (display sRGB), for the docs.
 
