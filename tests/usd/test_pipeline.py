@@ -194,6 +194,35 @@ def test_cli_classical_enhances_with_history(shot: Path, tmp_path: Path) -> None
     assert stage.GetRootLayer().subLayerPaths[0] == os.path.relpath(shot, layer.parent)
 
 
+def test_insert_ids_are_passed_through(shot: Path, tmp_path: Path) -> None:
+    """A var with role ``insert_id`` (here the Object Index, mapped by name as
+    ``insertId``) reaches the library beside the insert mask: the run names
+    the input and its output differs from the run without ids only on the
+    inserts (the rest of the frame comes out the same)."""
+    outs = {}
+    for name, extra in (("ids", ["--map", "objectIndex=insertId"]), ("plain", [])):
+        out_dir = tmp_path / name
+        r = run_cli(
+            str(shot),
+            "--backend",
+            "classical",
+            "--product",
+            "beauty",
+            "--out-dir",
+            str(out_dir),
+            "--layer",
+            str(tmp_path / f"{name}.usda"),
+            *extra,
+        )
+        assert r.returncode == 0, r.stderr
+        want = "insert_mask+insert_id+camera" if extra else "insert_mask+camera"
+        assert f"inputs color+depth+motion+normal+coverage+{want}" in r.stdout, r.stdout
+        outs[name] = read_exr(out_dir / "beauty/beauty.1001.exr", name).stack(["R", "G", "B"])
+    src = read_exr(shot.parent / "render/beauty.1001.exr", "src")
+    far = src.channel("mask.insert") == 0.0
+    np.testing.assert_allclose(outs["ids"][far], outs["plain"][far], atol=1e-6)
+
+
 def test_frames_option_and_in_place(shot: Path) -> None:
     assert (
         main(

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import pytest
@@ -228,6 +229,12 @@ def test_var_roles(tmp_path: Path) -> None:
         role_of(VarInfo.from_prim(stage.GetPrimAtPath("/Render/Vars/a")))
         == "insert_mask"
     )
+    # The inserted objects' ids: by role name or by the names pipelines give them.
+    assert map_vars(prod, {"a": "insertId"})["insert_id"].name == "a"
+    plain = VarInfo.from_prim(stage.GetPrimAtPath("/Render/Vars/z"))
+    for name in ("primId", "instanceId", "objectId", "insert_id", "mask.id"):
+        var = dataclasses.replace(plain, source_name=name, name=name)
+        assert role_of(var) == "insert_id", name
     with pytest.raises(VarError, match=r"both map to depth"):
         map_vars(prod, {"a": "depth"})
     with pytest.raises(VarError, match=r"--map a: unknown role 'specular'"):

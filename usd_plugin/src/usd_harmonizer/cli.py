@@ -140,7 +140,7 @@ def add_cmdline_args(parser: argparse.ArgumentParser) -> None:
         action="append",
         default=[],
         metavar="VAR=ROLE",
-        help="map a RenderVar to color, depth, motion, normal, coverage, insert_mask, albedo, "
+        help="map a RenderVar to color, depth, motion, normal, coverage, insert_mask, insert_id, albedo, "
         "denoise_normal or ignore",
     )
     parser.add_argument(

@@ -421,6 +421,11 @@ class ProductRunner:
                 img.channel(b["insert_mask"].channels[0]), 0.0, 1.0
             ).astype(np.float32)
             inputs.append("insert_mask")
+        if "insert_id" in b:
+            # Integer object ids held as floats: passed as they are (the
+            # library counts non-finite ones as 0 and warns).
+            kw["insert_id"] = img.channel(b["insert_id"].channels[0]).astype(np.float32)
+            inputs.append("insert_id")
         if self.options.always_cameras or "motion" not in b:
             if self.camera is not None:
                 w2c, w2n = exr_matrices(

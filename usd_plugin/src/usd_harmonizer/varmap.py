@@ -6,6 +6,13 @@ Cycles' Denoising Albedo, Karma's and Arnold's albedo AOVs) and
 space, such as Cycles' camera-space Denoising Normal; without it the denoiser
 reads the ``normal`` var).
 
+The inserted objects' ids are the role ``insert_id`` (integer ids held as
+floats, 0 where a pixel is no inserted object; Hydra's ``primId`` and
+``instanceId`` AOVs, an object id AOV): each id is then one object with its
+own harmonization, even where objects touch. Without an ``insert_mask`` var
+the mask is 1 where the id is above 0, so an id var that names every prim
+(Hydra's ``primId``) wants the mask beside it.
+
 A var's role comes from (first match): the user mapping (``--map VAR=ROLE``),
 the var's ``harmonizer:role`` attribute, its ``sourceName``, its prim name.
 Channels come from the var's ``harmonizer:channels`` attribute, else from the
@@ -30,6 +37,7 @@ ROLES: dict[str, int] = {
     "normal": 3,
     "coverage": 1,
     "insert_mask": 1,
+    "insert_id": 1,
     "albedo": 3,
     "denoise_normal": 3,
 }
@@ -63,6 +71,18 @@ _ALIASES: dict[str, set[str]] = {
         "insert_mask",
         "mask.insert",
         "mask_insert",
+    },
+    "insert_id": {
+        "insert_id",
+        "insertid",
+        "mask.id",
+        "mask_id",
+        "objectid",
+        "object_id",
+        "primid",
+        "prim_id",
+        "instanceid",
+        "instance_id",
     },
     "albedo": {
         "albedo",
@@ -112,7 +132,13 @@ _SUFFIXES: dict[int, list[tuple[str, ...]]] = {
 
 def parse_role(text: str, where: str) -> str:
     """Normalizes a role name (``insert-mask`` -> ``insert_mask``)."""
-    r = text.strip().lower().replace("-", "_").replace("insertmask", "insert_mask")
+    r = (
+        text.strip()
+        .lower()
+        .replace("-", "_")
+        .replace("insertmask", "insert_mask")
+        .replace("insertid", "insert_id")
+    )
     if r == "mask":
         r = "insert_mask"
     if r not in ROLES and r != "ignore":
