@@ -17,11 +17,11 @@
 //! 2. **harmonize** (`harmonize`, needs the insert mask): each inserted
 //!    object's (the pixels of one of the host's object ids, else a
 //!    connected part of the mask; [`harmonize::objects`]) color statistics
-//!    are matched part of the way to a ring of background around it (the
-//!    other objects left out of it); each object's filter is smoothed over
-//!    time in the [`Carry`] (key [`TONE_KEY`], the objects followed by
-//!    their ids, [`ID_KEY`], else by their centroids) with the weight
-//!    `temporal_blend` on the past.
+//!    are matched part of the way to a ring of background around it (with
+//!    ids, the other objects left out of it); each object's filter is
+//!    smoothed over time in the [`Carry`] (key [`TONE_KEY`], the objects
+//!    followed by their ids, [`ID_KEY`], else by their centroids) with the
+//!    weight `temporal_blend` on the past.
 //! 3. **shadow** (`contact_shadows`, needs mask and depth): a soft contact
 //!    shadow of strength `shadow_strength` under the insert.
 //! 4. **stabilize** (`stabilize`): blend with the reprojected previous result
@@ -423,6 +423,9 @@ fn run_ops_on(
             // Each inserted object (the pixels of one of the host's ids,
             // else a connected part of the mask) gets its own filter,
             // carried from frame to frame by its id, else by where it is.
+            // With ids, objects may touch: each one's ring leaves the
+            // others out (without ids, objects are apart and their rings
+            // are as they always were).
             let ids = frame.insert_id.as_deref();
             let parts = stages.time("harmonize", || {
                 pool.install(|| harmonize::objects(mask, ids, rect, w, h))
@@ -510,7 +513,7 @@ fn run_ops_on(
                         harmonize::estimate_among(
                             img,
                             pmask,
-                            Some(mask),
+                            ids.map(|_| &mask[..]),
                             part.rect,
                             frame.coverage.as_deref(),
                             frame.depth.as_deref(),
