@@ -40,7 +40,7 @@ def mask_indices(scene: bpy.types.Scene) -> list[int]:
     out = [s.mask_index]
     for part in s.mask_more_indices.split(","):
         part = part.strip()
-        if part.lstrip("-").isdigit() and int(part) not in out:
+        if part.isdigit() and int(part) not in out:
             out.append(int(part))
     return out if len(out) > 1 else []
 

@@ -370,6 +370,18 @@ def test_insert_ids_from_cryptomatte_names_and_pass_indices(addon, classical_run
     assert (mask >= sphere_only - 1e-6).all() and mask[ids == 2.0].min() > 0.0
 
 
+def test_more_indices_in_the_panel(addon, tmp_root):
+    """The panel's Pass Index and More Indices become the library's several
+    objects (each index once); what is not a pass index is warned about."""
+    scene = fixture.build(os.path.join(tmp_root, "indices", "frame_####.exr"))
+    configure(scene, mask_source="OBJECT_INDEX", mask_index=fixture.INSERT_PASS_INDEX)
+    assert addon.passes.mask_indices(scene) == []
+    scene.harmonizer.mask_more_indices = " 9, 7,x,-2"
+    assert addon.passes.mask_indices(scene) == [fixture.INSERT_PASS_INDEX, 9]
+    warnings = [t for level, t in addon.passes.check(scene, apply=False) if level == "WARNING"]
+    assert any("'x', '-2' are not pass indices" in t for t in warnings), warnings
+
+
 def test_before_after_image(addon, classical_run, tmp_root):
     """Side by side: raw render | enhanced frame (display sRGB), for the docs.
 
