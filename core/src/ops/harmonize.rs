@@ -617,31 +617,50 @@ pub fn objects(
     };
     // Per id (its bits: ids are positive, so they order as the values):
     // bounding box, summed pixel centres and count.
+    // Walked in runs of one id along each row (an id's pixels lie in
+    // runs, so the map is touched once per run, not per pixel).
     let mut found: std::collections::BTreeMap<u32, (Rect, [f64; 2], usize)> =
         std::collections::BTreeMap::new();
     let mut rest: Option<Rect> = None;
+    // The run `xs..xe` of row `y` with id bits `key` (`None`: no id).
+    let mut flush = |key: Option<u32>, xs: usize, xe: usize, y: usize| {
+        let run = Rect {
+            x0: xs,
+            y0: y,
+            x1: xe,
+            y1: y + 1,
+        };
+        match key {
+            Some(bits) => {
+                let n = xe - xs;
+                let e = found.entry(bits).or_insert((run, [0.0; 2], 0));
+                e.0 = e.0.union(&run);
+                // The pixel centres x + 0.5 of the run, summed.
+                e.1[0] += n as f64 * (xs + xe) as f64 / 2.0;
+                e.1[1] += n as f64 * (y as f64 + 0.5);
+                e.2 += n;
+            }
+            None => rest = Some(rest.map_or(run, |r| r.union(&run))),
+        }
+    };
     for y in insert.y0..insert.y1 {
+        let row = y * width;
+        let mut run: Option<(Option<u32>, usize)> = None;
         for x in insert.x0..insert.x1 {
-            let p = y * width + x;
-            if mask[p] <= 0.0 {
-                continue;
+            let p = row + x;
+            let key = (mask[p] > 0.0).then(|| (ids[p] > 0.0).then(|| ids[p].to_bits()));
+            match (run, key) {
+                (Some((k, _)), Some(now)) if k == now => {}
+                _ => {
+                    if let Some((k, xs)) = run {
+                        flush(k, xs, x, y);
+                    }
+                    run = key.map(|k| (k, x));
+                }
             }
-            let px = Rect {
-                x0: x,
-                y0: y,
-                x1: x + 1,
-                y1: y + 1,
-            };
-            let id = ids[p];
-            if id > 0.0 {
-                let e = found.entry(id.to_bits()).or_insert((px, [0.0; 2], 0));
-                e.0 = e.0.union(&px);
-                e.1[0] += x as f64 + 0.5;
-                e.1[1] += y as f64 + 0.5;
-                e.2 += 1;
-            } else {
-                rest = Some(rest.map_or(px, |r| r.union(&px)));
-            }
+        }
+        if let Some((k, xs)) = run {
+            flush(k, xs, insert.x1, y);
         }
     }
     if found.is_empty() {
@@ -1088,6 +1107,13 @@ mod tests {
         let got: Vec<(f32, usize, usize)> =
             found.iter().map(|c| (c.id, c.rect.x0, c.rect.x1)).collect();
         assert_eq!(got, vec![(4.0, 10, 90), (9.0, 40, 60), (0.0, 100, 110)]);
+        // Centroids of the pixel centres: id 4 has 30 columns at 10..40
+        // and 10 at 80..90.
+        assert_eq!(found[1].centroid, [50.0, 35.0]);
+        assert_eq!(
+            found[0].centroid,
+            [(30.0 * 25.0 + 10.0 * 85.0) / 40.0, 35.0]
+        );
         assert_eq!(found[0].mask[30 * w + 85], 1.0);
         assert_eq!(found[0].mask[30 * w + 45], 0.0);
         assert_eq!(found[1].mask[30 * w + 45], 1.0);
