@@ -1145,10 +1145,11 @@ impl<'a> Repair<'a> {
     /// The network's share of each pixel of row `y` (holes are at distance
     /// 0, so every pixel with a share below 1 is covered); `false` when it
     /// is all of every pixel.
-    fn shares(&self, y: usize, share: &mut Vec<f32>) -> bool {
+    fn shares(&self, y: usize, (dist, share): &mut (Vec<u16>, Vec<f32>)) -> bool {
         let (w, margin) = (self.color.width, self.margin);
         let h = self.color.height;
-        let mut dist = vec![(margin + 1) as u16; w];
+        dist.clear();
+        dist.resize(w, (margin + 1) as u16);
         for yy in y.saturating_sub(margin)..(y + margin + 1).min(h) {
             let dy = yy.abs_diff(y) as u16;
             for (d, &s) in dist.iter_mut().zip(&self.row_dist[yy * w..(yy + 1) * w]) {
@@ -1193,10 +1194,10 @@ impl<'a> Repair<'a> {
             rgb.par_chunks_mut(w)
                 .with_min_len(4)
                 .enumerate()
-                .for_each_init(Vec::new, |share, (r, row)| {
+                .for_each_init(Default::default, |scratch, (r, row)| {
                     let (c, y) = (r / out.height.max(1), r % out.height.max(1));
-                    if self.shares(y, share) {
-                        self.blend(c, y, row, Some(&alpha[y * w..(y + 1) * w]), share);
+                    if self.shares(y, scratch) {
+                        self.blend(c, y, row, Some(&alpha[y * w..(y + 1) * w]), &scratch.1);
                     }
                 })
         });
@@ -1256,7 +1257,7 @@ fn write_single(
             .par_chunks_mut(w)
             .with_min_len(4)
             .enumerate()
-            .for_each_init(Vec::new, |share, (r, row)| {
+            .for_each_init(Default::default, |scratch, (r, row)| {
                 let (c, y) = (r / h, r % h);
                 let alpha = coverage.map(|a| &a[y * w..(y + 1) * w]);
                 if c == 3 {
@@ -1271,8 +1272,8 @@ fn write_single(
                     row.iter_mut().zip(a).for_each(|(v, &a)| *v *= a);
                 }
                 if let Some(rp) = repair {
-                    if rp.shares(y, share) {
-                        rp.blend(c, y, row, alpha, share);
+                    if rp.shares(y, scratch) {
+                        rp.blend(c, y, row, alpha, &scratch.1);
                     }
                 }
             });
