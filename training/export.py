@@ -206,6 +206,11 @@ def weights_from_onnx(path: Path, **changes) -> Enhancer:
     stem_w = folded[0]
     context = int(manifest["context_frames"])
     changes.setdefault("prior_frames", int(manifest.get("history_read", 0)))
+    if "blend.down.weight" in init:
+        # A history blend: its width from its first layer. (An in-graph
+        # margin leaves no weights: pass `graph_margin` as a change.)
+        changes.setdefault("history_blend", True)
+        changes.setdefault("blend_width", int(init["blend.down.weight"].shape[0]))
     cfg = ModelConfig(
         context_frames=context,
         widths=widths,
@@ -229,6 +234,11 @@ def weights_from_onnx(path: Path, **changes) -> Enhancer:
         hist = torch.zeros(stem_w.shape[0], 4 * context, *stem_w.shape[2:], dtype=stem_w.dtype)
         stem_w = torch.cat([stem_w[:, :5], hist, stem_w[:, 5:]], 1)
     weights["stem.0.weight"] = stem_w.reshape(own["stem.0.weight"].shape)
+    fresh = sorted(k for k in set(own) - set(weights) if k.startswith("blend."))
+    if fresh:
+        # A history blend added to a model exported without one starts at its
+        # initialization (`HistoryBlend`), to be trained.
+        weights.update({k: own[k] for k in fresh})
     missing = sorted(set(own) - set(weights))
     if missing:
         # The exporter shares equal initializers (fresh zero biases): only

@@ -75,6 +75,20 @@ class ModelConfig:
     # + (1 - coverage) * fill` blends soft edges correctly (premultiplied input
     # darkened every soft edge twice and pulled the darkening into the holes).
     premultiplied: bool = False
+    # Learned history rectification (`HistoryBlend`): after the correction, a
+    # small network weighs, per pixel, the spatial estimate against history
+    # frame 0 (the previous enhanced frame, reprojected), clamped toward the
+    # estimate's 3x3 color range. The blend is convex, so feeding back its own
+    # outputs cannot amplify them (the drift of 1.1's history-reading
+    # correction); with no valid history it returns the estimate unchanged.
+    history_blend: bool = False
+    blend_width: int = 8
+    # Covered pixels (coverage >= prior_floor) farther than this many pixels
+    # (Chebyshev) from a hole keep their input color inside the graph, at
+    # exactly this distance 0.4 of the network's (the runtime's
+    # `repair_margin`, moved before the history blend so the blend also
+    # steadies covered pixels; 0: none).
+    graph_margin: int = 0
     # Width of a 1x1 convolution on the unshuffled input (0: none); it replaces the
     # first 3x3 layer's many input channels with a cheap mix.
     stem: int = 32
@@ -137,6 +151,70 @@ def act() -> nn.Module:
     """Leaky ReLU: plain ReLU layers died in training (the last decoder layer
     went inactive); ONNX Runtime fuses LeakyRelu into Conv like Relu."""
     return nn.LeakyReLU(NEGATIVE_SLOPE, inplace=True)
+
+
+# The runtime's `REPAIR_EDGE_SHARE` (core/src/model/manifest.rs): the share of
+# the network's output at exactly the margin's distance.
+REPAIR_EDGE_SHARE = 0.4
+# The history blend's nearness-to-a-hole feature: `margin_share` at 2 px.
+BLEND_MARGIN = 2
+# The history blend's layers run at 1 / BLEND_STRIDE^2 of the pixels.
+BLEND_STRIDE = 4
+
+
+class HistoryBlend(nn.Module):
+    """Per-pixel blend of the spatial estimate with history frame 0.
+
+    Features at full resolution: the estimate (3), the history clamped to the
+    estimate's 3x3 min/max box (3), history minus estimate (3), the history's
+    validity, the coverage and the nearness to a hole (``margin_share`` with a
+    margin of 2: 1 in and next to holes, 0 from 3 px). A 4x4 convolution of stride 4 (an unshuffle and
+    a 1x1 layer), a 3x3 layer and a 1x1 layer, all at 1/16 of the pixels, give,
+    pixel-shuffled back, two weights per pixel: ``beta`` moves the history from its clamped toward its
+    raw color (noise the box cannot hold), ``alpha`` (times the validity)
+    moves the output from the estimate toward that history."""
+
+    def __init__(self, width: int):
+        super().__init__()
+        # At 1/16 of the pixels: at 1/4 (a 2x2 stride) its layers and their
+        # layout changes took 60 of ONNX Runtime's 446 ms at 1920x1088.
+        self.down = nn.Conv2d(12, width, BLEND_STRIDE, stride=BLEND_STRIDE)
+        self.mid = nn.Conv2d(width, width, 3, padding=1)
+        self.out = nn.Conv2d(width, 2 * BLEND_STRIDE**2, 1)
+        for m in (self.down, self.mid):
+            nn.init.kaiming_normal_(m.weight, a=NEGATIVE_SLOPE, nonlinearity="leaky_relu")
+            nn.init.zeros_(m.bias)
+        # Starts as a fixed blend: alpha = sigmoid(0) = 0.5 of the clamped
+        # history (beta = sigmoid(-4) ~ 0.02), close to the runtime's
+        # stabilization (0.6 of the clamped history).
+        nn.init.zeros_(self.out.weight)
+        with torch.no_grad():
+            n = BLEND_STRIDE**2
+            self.out.bias.copy_(torch.tensor([0.0] * n + [-4.0] * n))
+
+    def forward(
+        self, est: torch.Tensor, hist: torch.Tensor, valid: torch.Tensor, cov: torch.Tensor, near: torch.Tensor
+    ) -> torch.Tensor:
+        lo = -F.max_pool2d(-est, 3, stride=1, padding=1)
+        hi = F.max_pool2d(est, 3, stride=1, padding=1)
+        clamped = torch.minimum(torch.maximum(hist, lo), hi)
+        f = torch.cat([est, clamped, hist - est, valid, cov, near], 1)
+        h = F.leaky_relu(self.down(f), NEGATIVE_SLOPE)
+        h = F.leaky_relu(self.mid(h), NEGATIVE_SLOPE)
+        w = torch.sigmoid(F.pixel_shuffle(self.out(h), BLEND_STRIDE))
+        alpha = w[:, 0:1] * valid
+        target = clamped + w[:, 1:2] * (hist - clamped)
+        return est + alpha * (target - est)
+
+
+def margin_share(cov: torch.Tensor, floor: float, margin: int) -> torch.Tensor:
+    """The network's share per pixel under a repair margin: 1 in holes
+    (coverage below ``floor``) and within ``margin - 1`` pixels of one,
+    ``REPAIR_EDGE_SHARE`` at exactly ``margin``, 0 farther (Chebyshev)."""
+    hole = (cov < floor).to(cov.dtype)
+    near = F.max_pool2d(hole, 2 * margin - 1, stride=1, padding=margin - 1) if margin > 1 else hole
+    edge = F.max_pool2d(hole, 2 * margin + 1, stride=1, padding=margin)
+    return torch.maximum(near, REPAIR_EDGE_SHARE * edge)
 
 
 def conv(cin: int, cout: int) -> nn.Module:
@@ -240,6 +318,7 @@ class Enhancer(nn.Module):
                 nn.init.zeros_(mod.bias)
         nn.init.zeros_(self.head.weight)
         nn.init.zeros_(self.head.bias)
+        self.blend = HistoryBlend(cfg.blend_width) if cfg.history_blend else None
 
     def _folds_history_out(self) -> bool:
         """Whether the correction drops the history channels in its stem's
@@ -257,8 +336,25 @@ class Enhancer(nn.Module):
             seen = torch.cat([x[:, :5], torch.zeros_like(x[:, 5:])], 1)
         if self.cfg.prior:
             p = self.prior(x)
-            return p + self.correction(torch.cat([seen, p], 1))
-        return x[:, 0:3] + self.correction(seen)
+            est = p + self.correction(torch.cat([seen, p], 1))
+        else:
+            est = x[:, 0:3] + self.correction(seen)
+        return self.after_network(est, x)
+
+    def after_network(self, est: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        """The in-graph repair margin and the history blend on the network's
+        estimate (identity without them)."""
+        cov = x[:, 3:4].clamp(0, 1)
+        near = None
+        if self.cfg.graph_margin > 0:
+            share = margin_share(cov, self.cfg.prior_floor, self.cfg.graph_margin)
+            est = x[:, 0:3] + share * (est - x[:, 0:3])
+            near = share if self.cfg.graph_margin == BLEND_MARGIN else None
+        if self.blend is not None:
+            if near is None:
+                near = margin_share(cov, self.cfg.prior_floor, BLEND_MARGIN)
+            est = self.blend(est, x[:, 5:8], x[:, 8:9].clamp(0, 1), cov, near)
+        return est
 
     def history_frames_read(self) -> int:
         """History frames the prior reads (``prior_frames``, else all)."""
@@ -385,6 +481,10 @@ def activation_bytes_per_pixel(model: Enhancer) -> int:
     cfg = model.cfg
     r2 = cfg.unshuffle**2
     total = len(cfg.input_channels()) + 3
+    if cfg.history_blend:
+        # Its features, box, clamped history and weights at full resolution,
+        # its layers at a quarter of the pixels.
+        total += 3 * 3 + 12 + 2 + 2 * cfg.blend_width / 16
     if cfg.prior:
         # The prior, its push-pull pyramid (color and weight, 4/3 of a level) and
         # the concatenated network input.

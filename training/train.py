@@ -334,6 +334,30 @@ def add_args(ap: argparse.ArgumentParser) -> None:
         type=Path,
         help="start from this checkpoint's weights and architecture (fine-tuning; --prior-fill still applies)",
     )
+    ap.add_argument(
+        "--init-onnx",
+        type=Path,
+        help="start from the weights of an exported model (its .json beside it), e.g. core/models/default.onnx",
+    )
+    ap.add_argument(
+        "--history-blend",
+        action="store_true",
+        help="add the learned history blend (ModelConfig.history_blend) to the model started from",
+    )
+    ap.add_argument(
+        "--fresh-blend",
+        action="store_true",
+        help="with --init: the history blend starts from its initialization (the rest from the checkpoint)",
+    )
+    ap.add_argument(
+        "--graph-margin", type=int, default=0, help="in-graph repair margin in px (ModelConfig.graph_margin; 0: none)"
+    )
+    ap.add_argument(
+        "--train-only",
+        choices=("all", "blend"),
+        default="all",
+        help="blend: only the history blend learns; the rest keeps the weights it started from",
+    )
     ap.add_argument("--rescan-every", type=int, default=200, help="pick up newly rendered scenes every N steps")
     ap.add_argument("--context-frames", type=int, default=4)
     ap.add_argument("--p-no-history", type=float, default=0.3, help="share of non-temporal batches")
@@ -413,6 +437,7 @@ def main(argv: list[str] | None = None) -> int:
         "w_hole": args.w_hole,
         "lr": args.lr,
         "seed": args.seed,
+        "train_only": args.train_only,
     }
     ckpt_path = args.run / "ckpt_last.pt"
     torch.manual_seed(args.seed)
@@ -431,10 +456,28 @@ def main(argv: list[str] | None = None) -> int:
     elif args.init:
         init = load_checkpoint(args.init)
         mcfg = ModelConfig.from_dict({**init["model_cfg"], "prior_fill": args.prior_fill})
+        weights = init["model"]
+        if args.fresh_blend:
+            # The rest of the weights, with a history blend from its initialization.
+            mcfg.history_blend = True
+            mcfg.blend_width = ModelConfig.blend_width
+            weights = {k: v for k, v in weights.items() if not k.startswith("blend.")}
         model = Enhancer(mcfg)
-        model.load_state_dict(init["model"])
+        if args.fresh_blend:
+            weights |= {k: v for k, v in model.state_dict().items() if k.startswith("blend.")}
+        model.load_state_dict(weights)
         cfg["init"] = str(args.init)
         print(f"train: starting from the weights of {args.init} (step {init['step']})", flush=True)
+    elif args.init_onnx:
+        from training.export import weights_from_onnx
+
+        changes = {"graph_margin": args.graph_margin}
+        if args.history_blend:
+            changes["history_blend"] = True
+        model = weights_from_onnx(args.init_onnx, **changes)
+        mcfg = model.cfg
+        cfg["init"] = str(args.init_onnx)
+        print(f"train: starting from the weights of {args.init_onnx}", flush=True)
     else:
         mcfg = ModelConfig(
             context_frames=args.context_frames,
@@ -452,8 +495,14 @@ def main(argv: list[str] | None = None) -> int:
         # Few distinct shapes (the crop and the patch sizes): let cuDNN pick its kernels.
         torch.backends.cudnn.benchmark = True
     model.to(device)
+    if cfg.get("train_only", "all") == "blend":
+        if model.blend is None:
+            print("train: --train-only blend needs a model with a history blend (--history-blend)", file=sys.stderr)
+            return 2
+        for name, prm in model.named_parameters():
+            prm.requires_grad_(name.startswith("blend."))
     # Made after the move, so a resumed optimizer state lands on the parameters' device.
-    opt = torch.optim.Adam(model.parameters(), lr=args.lr)
+    opt = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=args.lr)
     if ck is not None:
         opt.load_state_dict(ck["opt"])
     cache = SampleCache(scenes, args.cache_samples)
@@ -503,7 +552,7 @@ def main(argv: list[str] | None = None) -> int:
         loss, parts, _ = run_window(model, batch, cfg, rng)
         opt.zero_grad(set_to_none=True)
         loss.backward()
-        torch.nn.utils.clip_grad_norm_(model.parameters(), args.clip)
+        torch.nn.utils.clip_grad_norm_([p for p in model.parameters() if p.requires_grad], args.clip)
         opt.step()
         step += 1
         loss_value = loss.item()

@@ -320,3 +320,129 @@ def test_flicker_changes_the_input_per_frame_and_not_the_target():
     ratio = (flicker["input"][:, :, :3] / steady["input"][:, :, :3]).mean(dim=(3, 4))  # [1, F, 3]
     assert (ratio.std(dim=1) > 1e-3).all()  # a different gain every frame
     assert torch.equal(flicker["input"][:, :, 3], steady["input"][:, :, 3])  # coverage untouched
+
+
+def _blend_model(**kw):
+    torch.manual_seed(4)
+    m = Enhancer(ModelConfig(widths=(8, 8, 12, 16), history_blend=True, **kw))
+    with torch.no_grad():
+        for p in m.parameters():
+            p.normal_(std=0.1)
+    return m
+
+
+def test_the_history_blend_is_convex_and_silent_without_history():
+    """The blend returns the network's estimate where history frame 0 is not
+    valid, and elsewhere a point between the estimate and the history (never
+    beyond either: fed back, it cannot amplify)."""
+    m = _blend_model()
+    x = torch.rand(2, 21, 32, 48)
+    x[:, 3] = 1.0
+    x[:, 8] = 0.0  # no valid history frame 0
+    with torch.no_grad():
+        est = m.prior(x) + m.correction(torch.cat([x[:, :5], m.prior(x)], 1))
+        assert torch.allclose(m(x), est, atol=1e-6)
+        x[:, 8] = 1.0
+        x[:, 5:8] = est + 0.5  # history brighter than the estimate everywhere
+        out = m(x)
+    assert not torch.allclose(out, est, atol=1e-4)
+    lo = torch.minimum(est, x[:, 5:8]) - 1e-6
+    hi = torch.maximum(est, x[:, 5:8]) + 1e-6
+    assert bool(((out >= lo) & (out <= hi)).all())
+
+
+def test_an_in_graph_margin_keeps_covered_colors_away_from_holes():
+    """With `graph_margin` 2: covered pixels 3+ px from a hole keep the input
+    color, 2 px take 0.4 of the network, holes and 1 px the network's."""
+    m = Enhancer(ModelConfig(widths=(8, 8, 12, 16), graph_margin=2))
+    plain = Enhancer(ModelConfig(widths=(8, 8, 12, 16)))
+    torch.manual_seed(5)
+    with torch.no_grad():
+        for p in m.parameters():
+            p.normal_(std=0.1)
+    plain.load_state_dict(m.state_dict())
+    x = torch.rand(1, 21, 32, 48)
+    x[:, 3] = 1.0
+    x[:, 3, 10:14, 20:26] = 0.0
+    with torch.no_grad():
+        out, net = m(x), plain(x)
+    inp = x[:, :3]
+    assert torch.equal(out[..., 0:7, :], inp[..., 0:7, :])  # rows 3+ px above the hole
+    assert torch.allclose(out[..., 10:14, 20:26], net[..., 10:14, 20:26])
+    assert torch.allclose(out[..., 9, 21], net[..., 9, 21])  # 1 px
+    assert torch.allclose(out[..., 8, 22], inp[..., 8, 22] + 0.4 * (net[..., 8, 22] - inp[..., 8, 22]), atol=1e-6)
+
+
+def test_a_blend_model_exports_and_its_weights_come_back(tmp_path):
+    pytest.importorskip("onnxruntime")
+    from training.export import export, verify, weights_from_onnx
+
+    m = _blend_model(graph_margin=2, prior_frames=2)
+    manifest = export(m, tmp_path / "b", stabilize=False)
+    assert manifest["history_read"] == 2 and manifest["stabilize"] is False and "repair_margin" not in manifest
+    assert verify(m, tmp_path / "b.onnx", sizes=((48, 64), (144, 256))) < 1e-4
+    back = weights_from_onnx(tmp_path / "b.onnx", graph_margin=2)
+    assert back.cfg.history_blend and back.cfg.blend_width == m.cfg.blend_width
+    x = torch.rand(1, 21, 32, 48)
+    with torch.no_grad():
+        assert torch.allclose(back(x), m(x), atol=1e-6)
+    # A model exported without a blend comes back with a fresh one to train.
+    plain = _blend_model()
+    plain.blend = None
+    plain.cfg.history_blend = False
+    export(plain, tmp_path / "p")
+    fresh = weights_from_onnx(tmp_path / "p.onnx", history_blend=True)
+    assert fresh.blend is not None
+
+
+def test_blend_only_training_leaves_the_rest_of_the_network_as_it_was(tmp_path):
+    """`--train-only blend` from an exported model: the blend's weights move,
+    every other weight stays bit for bit (the model without history is the one
+    it started from)."""
+    pytest.importorskip("onnxruntime")
+    from training.export import export
+    from training.synth import dataset
+    from training.train import main
+
+    start = _blend_model()
+    start.blend = None
+    start.cfg.history_blend = False
+    export(start, tmp_path / "start")
+    # One tiny scene in the dataset layout, with a hole and camera motion.
+    scene = tmp_path / "data" / "train" / "scene_000000"
+    scene.mkdir(parents=True)
+    rng = np.random.default_rng(0)
+    t, h, w = 6, 32, 48
+    target = rng.random((t, h, w, 3)).astype(np.float16) + 0.1
+    cov = np.ones((t, h, w, 1), np.float16)
+    cov[:, 8:16, 10:30] = 0
+    np.savez(
+        scene / "scene.npz",
+        target=target,
+        depth=np.full((t, h, w), 3.0, np.float32),
+        motion=np.zeros((t, h, w, 2), np.float16),
+        normal=np.zeros((t, h, w, 3), np.float16),
+        mask_insert=np.zeros((t, h, w), np.float16),
+        mask_shadow=np.zeros((t, h, w), np.float16),
+        world_to_camera=np.tile(np.eye(4, dtype=np.float32), (t, 1, 1)),
+        world_to_ndc=np.tile(np.eye(4, dtype=np.float32), (t, 1, 1)),
+    )
+    noisy = (target * (1 + 0.2 * rng.standard_normal((t, 1, 1, 3)))).astype(np.float16)
+    np.savez(scene / "s1_recon.npz", input=np.concatenate([noisy * cov, cov], -1))
+    (scene / "meta.json").write_text(json.dumps({"streams": {"s1_recon": {}}}))
+    assert dataset.list_scenes(tmp_path / "data", "train")
+    run = tmp_path / "run"
+    args = ["--data", str(tmp_path / "data"), "--run", str(run), "--init-onnx", str(tmp_path / "start.onnx")]
+    args += ["--history-blend", "--graph-margin", "2", "--train-only", "blend", "--steps", "4", "--batch", "2"]
+    args += ["--crop", "32", "48", "--p-no-history", "0", "--log-every", "2"]
+    assert main(args) == 0
+    ck = torch.load(run / "ckpt_last.pt", weights_only=False)
+    assert ck["model_cfg"]["history_blend"] and ck["model_cfg"]["graph_margin"] == 2
+    fresh = Enhancer(ModelConfig.from_dict(ck["model_cfg"])).state_dict()
+    # As exported (the stem's unread history rows come back as zeros).
+    ref = hz_export.weights_from_onnx(tmp_path / "start.onnx").state_dict()
+    for k, v in ck["model"].items():
+        if k.startswith("blend."):
+            continue
+        assert torch.equal(v, ref[k]), k
+    assert any(not torch.equal(ck["model"][k], fresh[k]) for k in fresh if k.startswith("blend."))
