@@ -248,6 +248,21 @@ def weights_from_onnx(path: Path, **changes) -> Enhancer:
     return model.eval()
 
 
+def drop_blend_beta(weights: dict, model: Enhancer) -> dict:
+    """Checkpoints whose history blend had a second weight per pixel (the
+    share of the raw history, trained in the first runs of 2026-11-26)
+    load with it left out: it stayed near zero, and the blend without it
+    is ``HistoryBlend`` now."""
+    if model.blend is None or "blend.out.bias" not in weights:
+        return weights
+    n = model.blend.out.out_channels
+    if weights["blend.out.bias"].shape[0] == 2 * n:
+        weights = dict(weights)
+        for k in ("blend.out.weight", "blend.out.bias"):
+            weights[k] = weights[k][:n].clone()
+    return weights
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     src = ap.add_mutually_exclusive_group(required=True)
@@ -307,7 +322,7 @@ def main(argv: list[str] | None = None) -> int:
     else:
         ck = torch.load(args.ckpt, map_location="cpu", weights_only=False)
         model = Enhancer(ModelConfig.from_dict(ck["model_cfg"]))
-        model.load_state_dict(ck["model"])
+        model.load_state_dict(drop_blend_beta(ck["model"], model))
         if args.history_read is not None:
             model.cfg.prior_frames = args.history_read
         model.eval()
