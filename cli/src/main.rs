@@ -301,16 +301,9 @@ fn insert_indices(arg: &str) -> Result<Vec<i64>> {
         let n: i64 = part
             .parse()
             .map_err(|_| bad(format!("{part:?} is not an integer")))?;
-        if out.contains(&n) {
-            return Err(bad(format!("{n} is named twice")));
-        }
         out.push(n);
     }
-    if out.len() > 1 {
-        if let Some(n) = out.iter().find(|&&n| n <= 0) {
-            return Err(bad(format!("{n} is not above 0")));
-        }
-    }
+    harmonizer_core::io::layout::check_insert_indices(&format!("--insert-index {arg:?}"), &out)?;
     Ok(out)
 }
 

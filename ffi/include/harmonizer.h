@@ -397,6 +397,18 @@ typedef struct hz_run_options {
      * writes; also after a failed run, with its `error`). NULL = none.
      */
     const char *report;
+    /**
+     * Blender layout: the Object Indices of several inserted objects,
+     * `insert_index_count` of them (`harmonize run --insert-index 3,5`):
+     * each is harmonized as an object of its own, by its index. Replaces
+     * `insert_index` when the count is not zero. NULL with a count of 0 =
+     * none. (Appended after `report`; an older header's size is accepted.)
+     */
+    const int64_t *insert_indices;
+    /**
+     * How many values `insert_indices` holds.
+     */
+    size_t insert_index_count;
 } hz_run_options;
 
 /**

@@ -6,13 +6,15 @@
 use std::ffi::{c_char, c_void, CString};
 use std::path::PathBuf;
 
-use harmonizer_core::io::layout::{ChannelMapping, LayoutOptions, LayoutPreset};
+use harmonizer_core::io::layout::{
+    check_insert_indices, ChannelMapping, LayoutOptions, LayoutPreset,
+};
 use harmonizer_core::io::pattern::FrameRange;
 use harmonizer_core::io::run::{plan, report_json, run_sequence, FrameResult, RunOptions};
 use harmonizer_core::{Error, ParamValue, Params};
 
 use crate::session::{hz_session, lock, uncommitted};
-use crate::{check_null, check_struct_size, ffi_guard, hz_status, read_str};
+use crate::{check_null, check_struct_sizes, ffi_guard, hz_status, read_prefix, read_str};
 
 /// Only the frames `frame_first..=frame_last` (`hz_run_options.flags`);
 /// without it every existing frame of the input pattern.
@@ -25,6 +27,9 @@ pub const HZ_RUN_HAS_INSERT_INDEX: u32 = 2;
 /// pass `denoise temporal`), as `harmonize run` does when the user set
 /// neither (`hz_run_options.flags`).
 pub const HZ_RUN_RENDER_HINTS: u32 = 4;
+/// The most Object Indices `hz_run_options.insert_indices` may hold (a
+/// count past it is a wrong count, not a scene).
+const MAX_INSERT_INDICES: usize = 65536;
 const KNOWN_RUN_FLAGS: u32 = HZ_RUN_HAS_FRAMES | HZ_RUN_HAS_INSERT_INDEX | HZ_RUN_RENDER_HINTS;
 
 /// What `hz_run_sequence` runs. Zero-initialize, set `struct_size =
@@ -63,7 +68,19 @@ pub struct hz_run_options {
     /// Where to write the run's JSON report (what `harmonize run --report`
     /// writes; also after a failed run, with its `error`). NULL = none.
     pub report: *const c_char,
+    /// Blender layout: the Object Indices of several inserted objects,
+    /// `insert_index_count` of them (`harmonize run --insert-index 3,5`):
+    /// each is harmonized as an object of its own, by its index. Replaces
+    /// `insert_index` when the count is not zero. NULL with a count of 0 =
+    /// none. (Appended after `report`; an older header's size is accepted.)
+    pub insert_indices: *const i64,
+    /// How many values `insert_indices` holds.
+    pub insert_index_count: usize,
 }
+
+/// `sizeof(hz_run_options)` in headers before `insert_indices`.
+const RUN_OPTIONS_SIZE_V1: usize =
+    crate::older_size::<hz_run_options>(std::mem::offset_of!(hz_run_options, insert_indices));
 
 /// Called after each frame of `hz_run_sequence` (pre-roll frames too) with
 /// the frame's report as JSON (`{"frame", "preroll", "input", "output",
@@ -89,13 +106,14 @@ unsafe fn read_options(o: *const hz_run_options) -> Result<Read, Error> {
     check_null!(o);
     // SAFETY: non-NULL; only the first field is read before the size check.
     let size = unsafe { std::ptr::addr_of!((*o).struct_size).read_unaligned() };
-    check_struct_size(
+    check_struct_sizes(
         "hz_run_options",
         size,
-        std::mem::size_of::<hz_run_options>(),
+        &[RUN_OPTIONS_SIZE_V1, std::mem::size_of::<hz_run_options>()],
     )?;
-    // SAFETY: the struct has this library's size.
-    let o = unsafe { o.read_unaligned() };
+    // SAFETY: readable for `size` bytes (an accepted size); the fields an
+    // older header lacks read as zero (no `insert_indices`).
+    let o = unsafe { read_prefix(o, size) };
     if o.flags & !KNOWN_RUN_FLAGS != 0 {
         return Err(Error::invalid(format!(
             "hz_run_options.flags has unknown bits {:#x}",
@@ -136,6 +154,22 @@ unsafe fn read_options(o: *const hz_run_options) -> Result<Read, Error> {
     } else {
         None
     };
+    let insert_indices = match (o.insert_indices.is_null(), o.insert_index_count) {
+        (_, 0) => Vec::new(),
+        (true, n) => {
+            return Err(Error::invalid(format!(
+                "options.insert_indices is NULL with insert_index_count {n}"
+            )))
+        }
+        (false, n) if n > MAX_INSERT_INDICES => {
+            return Err(Error::invalid(format!(
+                "options.insert_index_count {n} is over {MAX_INSERT_INDICES}"
+            )))
+        }
+        // SAFETY: non-NULL and readable for `n` values per the contract.
+        (false, n) => unsafe { std::slice::from_raw_parts(o.insert_indices, n) }.to_vec(),
+    };
+    check_insert_indices("options.insert_indices", &insert_indices)?;
     let options = RunOptions {
         input,
         output,
@@ -143,7 +177,7 @@ unsafe fn read_options(o: *const hz_run_options) -> Result<Read, Error> {
             preset: LayoutPreset::parse(&layout)?,
             mapping,
             insert_index: (o.flags & HZ_RUN_HAS_INSERT_INDEX != 0).then_some(o.insert_index),
-            insert_indices: Vec::new(),
+            insert_indices,
         },
         frames,
         preroll: o.preroll,

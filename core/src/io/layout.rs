@@ -229,6 +229,30 @@ pub struct LayoutOptions {
     pub insert_indices: Vec<i64>,
 }
 
+/// Checks the Object Index values of several inserted objects
+/// ([`LayoutOptions::insert_indices`]): each named once and, when there are
+/// several, above 0 (each is an object's id, and 0 is "no object"). `what`
+/// names the argument in the error (`--insert-index "3,3"`,
+/// `options.insert_indices`).
+pub fn check_insert_indices(what: &str, indices: &[i64]) -> Result<()> {
+    let bad = |why: String| {
+        Error::invalid(format!(
+            "{what}: {why} (expected N, or N,N,... with Object Index values above 0)"
+        ))
+    };
+    for (i, n) in indices.iter().enumerate() {
+        if indices[..i].contains(n) {
+            return Err(bad(format!("{n} is named twice")));
+        }
+    }
+    if indices.len() > 1 {
+        if let Some(n) = indices.iter().find(|&&n| n <= 0) {
+            return Err(bad(format!("{n} is not above 0")));
+        }
+    }
+    Ok(())
+}
+
 /// The channels a frame is read from, after detection.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct ResolvedLayout {

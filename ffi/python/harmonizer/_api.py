@@ -7,7 +7,7 @@ import json
 import logging
 import os
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from ctypes import byref, c_bool, c_double, c_int64, c_size_t, c_uint32, c_void_p
 from typing import Any, Union
 
@@ -451,7 +451,7 @@ class Session:
         preroll: int = 0,
         layout: str = "auto",
         channels: list[str] | None = None,
-        insert_index: int | None = None,
+        insert_index: int | Sequence[int] | None = None,
         render_hints: bool = False,
         report: PathLike | None = None,
         on_frame: Callable[[dict[str, Any]], bool | None] | None = None,
@@ -468,7 +468,10 @@ class Session:
         starts with the temporal state of a sequential run (needs
         ``frames``). ``layout``: ``auto``, ``generic`` or ``blender``;
         ``channels``: ``harmonize run --channel`` entries (``"color=R,G,B"``);
-        ``insert_index``: the Blender layout's Object Index of the insert.
+        ``insert_index``: the Blender layout's Object Index of the insert,
+        or a sequence of several (each then an object of its own, harmonized
+        by its index; above 0, each named once), as ``harmonize run
+        --insert-index 3,5``.
         ``render_hints``: when this session's ``denoise`` and ``samples``
         are the defaults, take what the first file's headers say (as
         ``harmonize run`` does). ``report``: a JSON report file (the CLI's
@@ -501,6 +504,18 @@ class Session:
         if not isinstance(preroll, (int, np.integer)) or isinstance(preroll, bool) or preroll < 0:
             raise InvalidArgumentError(f"run_sequence: preroll must be an integer >= 0, got {preroll!r}")
         opts.preroll = int(preroll)
+        keep_indices = None
+        if isinstance(insert_index, (list, tuple, np.ndarray)):
+            values = [int(v) for v in insert_index]
+            if len(values) == 1:
+                insert_index = values[0]
+            elif values:
+                keep_indices = (ctypes.c_int64 * len(values))(*values)
+                opts.insert_indices = ctypes.cast(keep_indices, ctypes.POINTER(ctypes.c_int64))
+                opts.insert_index_count = len(values)
+                insert_index = None
+            else:
+                insert_index = None
         if insert_index is not None:
             opts.insert_index = int(insert_index)
             flags |= N.HZ_RUN_HAS_INSERT_INDEX

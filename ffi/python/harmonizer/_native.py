@@ -119,6 +119,8 @@ class hz_run_options(Structure):  # noqa: N801
         ("preroll", c_size_t),
         ("insert_index", c_int64),
         ("report", c_char_p),
+        ("insert_indices", POINTER(c_int64)),
+        ("insert_index_count", c_size_t),
     ]
 
 

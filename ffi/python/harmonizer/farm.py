@@ -144,6 +144,9 @@ class Settings:
     #: Library threads per task (0 = one per core).
     library_threads: int = 1
     model: str | None = None
+    #: Blender layout: the Object Index of the insert, or of several inserts
+    #: (each harmonized by its own index), as ``harmonize run --insert-index``.
+    insert_index: list[int] = field(default_factory=list)
     #: Folder for the attempt markers (the job's own scratch folder).
     scratch: str = ""
     #: Testing only: ``{chunk key: frames}`` makes the first attempt of that
@@ -268,6 +271,7 @@ def run_chunk(chunk: Chunk, settings: Settings) -> dict[str, Any]:
                     s.output,
                     frames=(chunk.first, chunk.last),
                     preroll=chunk.preroll,
+                    insert_index=settings.insert_index or None,
                     render_hints=True,
                     on_frame=on_frame,
                 )
@@ -468,6 +472,14 @@ def _frames(text: str) -> tuple[int, int]:
     return int(m.group(1)), int(m.group(2))
 
 
+def _indices(text: str) -> list[int]:
+    """``N`` or ``N,N,...`` (``--insert-index``); the library checks the values."""
+    try:
+        return [int(v) for v in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not N or N,N,... (integers)") from None
+
+
 def add_cmdline_args(parser: argparse.ArgumentParser) -> None:
     """The farm's options (shared with tools that wrap it)."""
     parser.add_argument("shots", nargs="+", metavar="SHOT", help="[NAME=]PATTERN (frame files) or [NAME=]STAGE.usd")
@@ -488,6 +500,13 @@ def add_cmdline_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--backend", default="auto", choices=["auto", "neural", "classical", "bypass"])
     parser.add_argument("--context", type=int, default=4, help="previous enhanced frames used (default 4, as harmonize run)")
     parser.add_argument("--model", help="ONNX model file (default: the embedded one)")
+    parser.add_argument(
+        "--insert-index",
+        type=_indices,
+        default=[],
+        metavar="N[,N...]",
+        help="Blender files: the Object Index of the insert, or of several inserts (each harmonized on its own)",
+    )
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="any session parameter (repeatable)")
     parser.add_argument("--summary", type=Path, help="job summary JSON (default OUT_DIR/farm-summary.json)")
 
@@ -513,6 +532,7 @@ def main(argv: list[str] | None = None) -> int:
             params=params,
             library_threads=args.threads,
             model=args.model,
+            insert_index=args.insert_index,
         )
         summary_path = args.summary or args.out_dir / "farm-summary.json"
         result = run_job(

@@ -242,3 +242,26 @@ def test_run_sequence_reports_stops_and_reraises(shots: dict, tmp_path: Path, de
             s.run_sequence(pattern, out, frames="11-12", on_frame=boom)
         with pytest.raises(hz.InvalidArgumentError, match="--preroll needs --frames"):
             s.run_sequence(pattern, out, preroll=2)
+
+
+def test_several_insert_indices_reach_the_library(shots: dict, tmp_path: Path, device, capsys: pytest.CaptureFixture[str]) -> None:
+    """``run_sequence(insert_index=[3, 5])`` and ``harmonize-farm
+    --insert-index 3,5`` pass every index to the library (its checks and
+    its messages name them); one index in a list is the single index."""
+    import harmonizer as hz
+
+    pattern = shots["a"][0]
+    out = str(tmp_path / "o.####.exr")
+    with hz.Session(device, backend="classical") as s:
+        with pytest.raises(hz.InvalidArgumentError, match="options.insert_indices: 3 is named twice"):
+            s.run_sequence(pattern, out, frames=(1, 1), insert_index=[3, 3])
+        # These frames have no Object Index: the message names what was asked.
+        with pytest.raises(hz.HarmonizerError, match="--insert-index 3,5"):
+            s.run_sequence(pattern, out, frames=(1, 1), layout="blender", insert_index=(3, 5))
+        with pytest.raises(hz.HarmonizerError, match="--insert-index 3[^,]"):
+            s.run_sequence(pattern, out, frames=(1, 1), layout="blender", insert_index=[3])
+    assert not Path(farm.frame_path(out, 1)).exists()
+    rc = farm.main([pattern, "-o", str(tmp_path / "farm"), "--backend", "classical", "--insert-index", "3,0", "--workers", "1", "--chunk", "20", "--frames", "1-2", "--quiet"])
+    assert rc == 1 and "0 is not above 0" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        farm.main([pattern, "-o", str(tmp_path / "farm"), "--insert-index", "3,x"])

@@ -9,7 +9,7 @@ use std::ptr::{null, null_mut};
 use harmonizer::device::{hz_device, hz_device_options};
 use harmonizer::hz_status::{self, *};
 use harmonizer::image::{hz_format, hz_image};
-use harmonizer::run::{hz_run_options, HZ_RUN_HAS_FRAMES};
+use harmonizer::run::{hz_run_options, HZ_RUN_HAS_FRAMES, HZ_RUN_HAS_INSERT_INDEX};
 use harmonizer::session::{
     hz_frame, hz_report, hz_reset_reason, hz_session, HZ_FRAME_HAS_INDEX, HZ_FRAME_RESET,
 };
@@ -1179,6 +1179,8 @@ fn run_sequence_writes_a_chunk_with_its_preroll() {
         preroll: 4,
         insert_index: 0,
         report: c_report.as_ptr(),
+        insert_indices: null(),
+        insert_index_count: 0,
     };
     let mut seen = Seen {
         frames: Vec::new(),
@@ -1292,5 +1294,192 @@ fn run_sequence_writes_a_chunk_with_its_preroll() {
     // SAFETY: as above.
     let st = unsafe { run(s, &opts, None, null_mut()) };
     expect_error(&api, st, "options.input is NULL");
+    api.free(s, d);
+}
+
+/// Issue 19: `hz_run_options.insert_indices` names several inserted
+/// objects by their Object Index (`harmonize run --insert-index 3,5`): the
+/// bytes the library's runner writes with those indices, which differ from
+/// a run without them; a NULL array with a count, an index named twice and
+/// 0 among several are refused by name; an older header's size (without the
+/// array) still runs, as a single index.
+#[test]
+fn run_sequence_takes_several_insert_indices() {
+    use harmonizer_core::io::exr::{write_channels, OutChannel};
+    use harmonizer_core::io::layout::LayoutOptions;
+    use harmonizer_core::io::pattern::FramePattern;
+    use harmonizer_core::io::run::{plan, run_sequence, RunOptions};
+
+    let (w, h) = (96usize, 64usize);
+    // Two touching boxes on a textured ground: the left one too bright and
+    // blue (Object Index 3), the right one the ground's color (5).
+    let mut rgb = vec![vec![0.0f32; w * h]; 3];
+    let mut index = vec![0.0f32; w * h];
+    for y in 0..h {
+        for x in 0..w {
+            let i = y * w + x;
+            let t = 0.5 + 0.3 * (x as f32 * 0.13).sin() * (y as f32 * 0.11).cos();
+            let mut c = [0.55 * t, 0.5 * t, 0.45 * t];
+            if (16..48).contains(&y) && (16..80).contains(&x) {
+                if x < 48 {
+                    c = [16.0 * c[0], 16.0 * c[1], 48.0 * c[2]];
+                    index[i] = 3.0;
+                } else {
+                    index[i] = 5.0;
+                }
+            }
+            for k in 0..3 {
+                rgb[k][i] = c[k];
+            }
+        }
+    }
+    let ones = vec![1.0f32; w * h];
+    let dir = TempDir::new("run-ids");
+    let named: [(&str, &[f32]); 5] = [
+        ("ViewLayer.Combined.R", &rgb[0]),
+        ("ViewLayer.Combined.G", &rgb[1]),
+        ("ViewLayer.Combined.B", &rgb[2]),
+        ("ViewLayer.Combined.A", &ones),
+        ("ViewLayer.Object Index.X", &index),
+    ];
+    let list: Vec<OutChannel> = named
+        .iter()
+        .map(|(name, data)| OutChannel {
+            name,
+            data,
+            half: false,
+        })
+        .collect();
+    write_channels(&dir.0.join("layer.0001.exr"), w, h, &list, None).unwrap();
+    let input = dir.0.join("layer.####.exr").to_string_lossy().to_string();
+    let cstr = |s: &str| std::ffi::CString::new(s).unwrap();
+    let c_in = cstr(&input);
+
+    let api = Api::load();
+    let run = sym!(
+        api,
+        "hz_run_sequence",
+        unsafe extern "C" fn(
+            *mut hz_session,
+            *const hz_run_options,
+            RunFrameFn,
+            *mut c_void,
+        ) -> hz_status
+    );
+    let d = api.device(2);
+    let s = api.session(d, c"classical");
+    let abi_out = dir.0.join("abi").join("o.####.exr");
+    let c_out = cstr(abi_out.to_str().unwrap());
+    let indices = [3i64, 5];
+    let mut opts = hz_run_options {
+        struct_size: std::mem::size_of::<hz_run_options>(),
+        input: c_in.as_ptr(),
+        output: c_out.as_ptr(),
+        layout: c"blender".as_ptr(),
+        channels: null(),
+        flags: 0,
+        frame_first: 0,
+        frame_last: 0,
+        preroll: 0,
+        insert_index: 0,
+        report: null(),
+        insert_indices: indices.as_ptr(),
+        insert_index_count: indices.len(),
+    };
+    // SAFETY: valid options; `indices` outlives the call.
+    let st = unsafe { run(s, &opts, None, null_mut()) };
+    assert_eq!(st, HZ_OK, "{}", api.last_error());
+
+    // The library's runner directly, with and without the indices.
+    let direct = |name: &str, insert_indices: Vec<i64>| -> Vec<u8> {
+        let out = dir.0.join(name).join("o.####.exr");
+        let options = RunOptions {
+            input: input.clone(),
+            output: out.to_string_lossy().to_string(),
+            layout: LayoutOptions {
+                preset: harmonizer_core::io::layout::LayoutPreset::parse("blender").unwrap(),
+                insert_indices,
+                ..Default::default()
+            },
+            frames: None,
+            preroll: 0,
+        };
+        let device = harmonizer_core::Device::new(harmonizer_core::DeviceOptions {
+            threads: 2,
+            ..Default::default()
+        })
+        .unwrap();
+        let mut params = harmonizer_core::Params::default();
+        params
+            .set(
+                "backend",
+                &harmonizer_core::ParamValue::Str("classical".into()),
+            )
+            .unwrap();
+        let mut session = harmonizer_core::Session::new(device, params).unwrap();
+        let planned = plan(&options).unwrap();
+        run_sequence(&mut session, &options, &planned, false, &mut |_| Ok(())).unwrap();
+        std::fs::read(FramePattern::parse(&options.output).unwrap().path(1)).unwrap()
+    };
+    let got = std::fs::read(
+        FramePattern::parse(abi_out.to_str().unwrap())
+            .unwrap()
+            .path(1),
+    )
+    .unwrap();
+    assert!(
+        got == direct("ids", vec![3, 5]),
+        "not the runner's bytes with indices 3,5"
+    );
+    assert!(
+        got != direct("none", Vec::new()),
+        "the indices changed nothing (the test could not fail)"
+    );
+
+    // Refused by name, nothing written.
+    let refused = dir.0.join("refused").join("o.####.exr");
+    let c_refused = cstr(refused.to_str().unwrap());
+    opts.output = c_refused.as_ptr();
+    opts.insert_indices = null();
+    // SAFETY: as above (the NULL array is what is tested).
+    let st = unsafe { run(s, &opts, None, null_mut()) };
+    expect_error(
+        &api,
+        st,
+        "options.insert_indices is NULL with insert_index_count 2",
+    );
+    for (bad, want) in [
+        ([3i64, 3], "3 is named twice"),
+        ([3, 0], "0 is not above 0"),
+    ] {
+        opts.insert_indices = bad.as_ptr();
+        // SAFETY: as above; `bad` outlives the call.
+        let st = unsafe { run(s, &opts, None, null_mut()) };
+        expect_error(&api, st, want);
+        assert!(
+            api.last_error().contains("options.insert_indices"),
+            "{}",
+            api.last_error()
+        );
+    }
+    assert!(!refused.parent().unwrap().join("o.0001.exr").exists());
+
+    // An older header's size: the array is not read (garbage there is
+    // ignored), the single index is.
+    let older = dir.0.join("older").join("o.####.exr");
+    let c_older = cstr(older.to_str().unwrap());
+    opts.output = c_older.as_ptr();
+    opts.struct_size = std::mem::offset_of!(hz_run_options, insert_indices);
+    opts.insert_indices = std::ptr::dangling::<i64>();
+    opts.insert_index_count = 7;
+    opts.insert_index = 3;
+    opts.flags = HZ_RUN_HAS_INSERT_INDEX;
+    // SAFETY: the library reads only the older header's fields.
+    let st = unsafe { run(s, &opts, None, null_mut()) };
+    assert_eq!(st, HZ_OK, "{}", api.last_error());
+    assert!(FramePattern::parse(older.to_str().unwrap())
+        .unwrap()
+        .path(1)
+        .exists());
     api.free(s, d);
 }
