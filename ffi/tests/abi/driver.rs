@@ -1125,6 +1125,27 @@ impl Drop for TempDir {
     }
 }
 
+/// The library's own runner (what `harmonize run` calls) with a classical
+/// session of 2 threads: the bytes `hz_run_sequence` must match.
+fn run_classical_directly(options: &harmonizer_core::io::run::RunOptions) {
+    use harmonizer_core::io::run::{plan, run_sequence};
+    let device = harmonizer_core::Device::new(harmonizer_core::DeviceOptions {
+        threads: 2,
+        ..Default::default()
+    })
+    .unwrap();
+    let mut params = harmonizer_core::Params::default();
+    params
+        .set(
+            "backend",
+            &harmonizer_core::ParamValue::Str("classical".into()),
+        )
+        .unwrap();
+    let mut session = harmonizer_core::Session::new(device, params).unwrap();
+    let planned = plan(options).unwrap();
+    run_sequence(&mut session, options, &planned, false, &mut |_| Ok(())).unwrap();
+}
+
 /// Issue 22: `hz_run_sequence` runs a chunk with its pre-roll from files,
 /// writes only the chunk's frames, the same bytes as the library's own
 /// runner (what `harmonize run --frames A-B --preroll N` calls) gives, and
@@ -1133,7 +1154,7 @@ impl Drop for TempDir {
 #[test]
 fn run_sequence_writes_a_chunk_with_its_preroll() {
     use harmonizer_core::io::pattern::FramePattern;
-    use harmonizer_core::io::run::{plan, run_sequence, RunOptions};
+    use harmonizer_core::io::run::RunOptions;
     use harmonizer_core::synth::{Sequence, SynthConfig};
 
     let dir = TempDir::new("run");
@@ -1231,21 +1252,7 @@ fn run_sequence_writes_a_chunk_with_its_preroll() {
         frames: Some(harmonizer_core::io::pattern::FrameRange::parse("8-12").unwrap()),
         preroll: 4,
     };
-    let device = harmonizer_core::Device::new(harmonizer_core::DeviceOptions {
-        threads: 2,
-        ..Default::default()
-    })
-    .unwrap();
-    let mut params = harmonizer_core::Params::default();
-    params
-        .set(
-            "backend",
-            &harmonizer_core::ParamValue::Str("classical".into()),
-        )
-        .unwrap();
-    let mut session = harmonizer_core::Session::new(device, params).unwrap();
-    let planned = plan(&options).unwrap();
-    run_sequence(&mut session, &options, &planned, false, &mut |_| Ok(())).unwrap();
+    run_classical_directly(&options);
     let dp = FramePattern::parse(&options.output).unwrap();
     for n in 8..=12 {
         assert_eq!(
@@ -1308,7 +1315,7 @@ fn run_sequence_takes_several_insert_indices() {
     use harmonizer_core::io::exr::{write_channels, OutChannel};
     use harmonizer_core::io::layout::LayoutOptions;
     use harmonizer_core::io::pattern::FramePattern;
-    use harmonizer_core::io::run::{plan, run_sequence, RunOptions};
+    use harmonizer_core::io::run::RunOptions;
 
     let (w, h) = (96usize, 64usize);
     // Two touching boxes on a textured ground: the left one too bright and
@@ -1404,21 +1411,7 @@ fn run_sequence_takes_several_insert_indices() {
             frames: None,
             preroll: 0,
         };
-        let device = harmonizer_core::Device::new(harmonizer_core::DeviceOptions {
-            threads: 2,
-            ..Default::default()
-        })
-        .unwrap();
-        let mut params = harmonizer_core::Params::default();
-        params
-            .set(
-                "backend",
-                &harmonizer_core::ParamValue::Str("classical".into()),
-            )
-            .unwrap();
-        let mut session = harmonizer_core::Session::new(device, params).unwrap();
-        let planned = plan(&options).unwrap();
-        run_sequence(&mut session, &options, &planned, false, &mut |_| Ok(())).unwrap();
+        run_classical_directly(&options);
         std::fs::read(FramePattern::parse(&options.output).unwrap().path(1)).unwrap()
     };
     let got = std::fs::read(
