@@ -109,6 +109,31 @@ impl Api {
         }
         s
     }
+    /// `hz_run_sequence`.
+    ///
+    /// # Safety
+    /// `opts`' strings and arrays, and `user` for `on_frame`, are valid
+    /// for the call.
+    unsafe fn run_sequence(
+        &self,
+        s: *mut hz_session,
+        opts: &hz_run_options,
+        on_frame: RunFrameFn,
+        user: *mut c_void,
+    ) -> hz_status {
+        let f = sym!(
+            self,
+            "hz_run_sequence",
+            unsafe extern "C" fn(
+                *mut hz_session,
+                *const hz_run_options,
+                RunFrameFn,
+                *mut c_void,
+            ) -> hz_status
+        );
+        // SAFETY: per this function's contract.
+        unsafe { f(s, opts, on_frame, user) }
+    }
     fn process(&self, s: *mut hz_session, frame: &hz_frame, out: &hz_image) -> hz_status {
         let f = sym!(
             self,
@@ -1176,16 +1201,6 @@ fn run_sequence_writes_a_chunk_with_its_preroll() {
     );
 
     let api = Api::load();
-    let run = sym!(
-        api,
-        "hz_run_sequence",
-        unsafe extern "C" fn(
-            *mut hz_session,
-            *const hz_run_options,
-            RunFrameFn,
-            *mut c_void,
-        ) -> hz_status
-    );
     let d = api.device(2);
     let s = api.session(d, c"classical");
     let mut opts = hz_run_options {
@@ -1209,7 +1224,7 @@ fn run_sequence_writes_a_chunk_with_its_preroll() {
     };
     // SAFETY: valid options and callback; `seen` outlives the call.
     let st = unsafe {
-        run(
+        api.run_sequence(
             s,
             &opts,
             Some(on_run_frame),
@@ -1275,7 +1290,7 @@ fn run_sequence_writes_a_chunk_with_its_preroll() {
     };
     // SAFETY: as above.
     let st = unsafe {
-        run(
+        api.run_sequence(
             s,
             &opts,
             Some(on_run_frame),
@@ -1295,11 +1310,11 @@ fn run_sequence_writes_a_chunk_with_its_preroll() {
     opts.flags = 0;
     opts.preroll = 2;
     // SAFETY: as above, no callback.
-    let st = unsafe { run(s, &opts, None, null_mut()) };
+    let st = unsafe { api.run_sequence(s, &opts, None, null_mut()) };
     expect_error(&api, st, "--preroll needs --frames");
     opts.input = null();
     // SAFETY: as above.
-    let st = unsafe { run(s, &opts, None, null_mut()) };
+    let st = unsafe { api.run_sequence(s, &opts, None, null_mut()) };
     expect_error(&api, st, "options.input is NULL");
     api.free(s, d);
 }
@@ -1363,16 +1378,6 @@ fn run_sequence_takes_several_insert_indices() {
     let c_in = cstr(&input);
 
     let api = Api::load();
-    let run = sym!(
-        api,
-        "hz_run_sequence",
-        unsafe extern "C" fn(
-            *mut hz_session,
-            *const hz_run_options,
-            RunFrameFn,
-            *mut c_void,
-        ) -> hz_status
-    );
     let d = api.device(2);
     let s = api.session(d, c"classical");
     let abi_out = dir.0.join("abi").join("o.####.exr");
@@ -1394,7 +1399,7 @@ fn run_sequence_takes_several_insert_indices() {
         insert_index_count: indices.len(),
     };
     // SAFETY: valid options; `indices` outlives the call.
-    let st = unsafe { run(s, &opts, None, null_mut()) };
+    let st = unsafe { api.run_sequence(s, &opts, None, null_mut()) };
     assert_eq!(st, HZ_OK, "{}", api.last_error());
 
     // The library's runner directly, with and without the indices.
@@ -1435,7 +1440,7 @@ fn run_sequence_takes_several_insert_indices() {
     opts.output = c_refused.as_ptr();
     opts.insert_indices = null();
     // SAFETY: as above (the NULL array is what is tested).
-    let st = unsafe { run(s, &opts, None, null_mut()) };
+    let st = unsafe { api.run_sequence(s, &opts, None, null_mut()) };
     expect_error(
         &api,
         st,
@@ -1447,7 +1452,7 @@ fn run_sequence_takes_several_insert_indices() {
     ] {
         opts.insert_indices = bad.as_ptr();
         // SAFETY: as above; `bad` outlives the call.
-        let st = unsafe { run(s, &opts, None, null_mut()) };
+        let st = unsafe { api.run_sequence(s, &opts, None, null_mut()) };
         expect_error(&api, st, want);
         assert!(
             api.last_error().contains("options.insert_indices"),
@@ -1468,7 +1473,7 @@ fn run_sequence_takes_several_insert_indices() {
     opts.insert_index = 3;
     opts.flags = HZ_RUN_HAS_INSERT_INDEX;
     // SAFETY: the library reads only the older header's fields.
-    let st = unsafe { run(s, &opts, None, null_mut()) };
+    let st = unsafe { api.run_sequence(s, &opts, None, null_mut()) };
     assert_eq!(st, HZ_OK, "{}", api.last_error());
     assert!(FramePattern::parse(older.to_str().unwrap())
         .unwrap()
