@@ -1188,33 +1188,10 @@ mod object_ids {
     const W: usize = 96;
     const H: usize = 64;
 
-    /// Two touching boxes on a textured grey ground: the left one 16 times
-    /// too bright and blue (Object Index 3), the right one the ground's
-    /// color (Object Index 5). Planes R, G, B, the mask and the indices.
+    /// The touching boxes of `synth::touching_boxes` (Object Indices 3, 5).
     fn two_boxes() -> (Vec<Vec<f32>>, Vec<f32>, Vec<f32>) {
-        let mut rgb = vec![vec![0.0; W * H]; 3];
-        let (mut mask, mut index) = (vec![0.0; W * H], vec![0.0; W * H]);
-        for y in 0..H {
-            for x in 0..W {
-                let i = y * W + x;
-                let (xf, yf) = (x as f32, y as f32);
-                let t = 0.5 + 0.3 * (xf * 0.13).sin() * (yf * 0.11).cos();
-                let mut c = [0.55 * t, 0.5 * t, 0.45 * t];
-                if (16..48).contains(&y) && (16..80).contains(&x) {
-                    mask[i] = 1.0;
-                    if x < 48 {
-                        c = [16.0 * c[0], 16.0 * c[1], 48.0 * c[2]];
-                        index[i] = 3.0;
-                    } else {
-                        index[i] = 5.0;
-                    }
-                }
-                for k in 0..3 {
-                    rgb[k][i] = c[k];
-                }
-            }
-        }
-        (rgb, mask, index)
+        let (rgb, mask, index) = harmonizer_core::synth::touching_boxes(W, H);
+        (rgb.to_vec(), mask, index)
     }
 
     fn write(path: &Path, channels: &[(&str, &[f32])]) {

@@ -888,6 +888,41 @@ impl Sequence {
     }
 }
 
+/// Two touching boxes on a textured grey ground, `width` x `height` (at
+/// least 96 x 64), for tests of inserted objects told apart by their ids:
+/// rows 16..48, the left box (columns 16..48) 16 times too bright and 3x
+/// bluer (Object Index 3), the right one (48..80) the ground's own color
+/// (Object Index 5). Returns the R, G, B planes, the insert mask (1 on both
+/// boxes) and the Object Index plane.
+pub fn touching_boxes(width: usize, height: usize) -> ([Vec<f32>; 3], Vec<f32>, Vec<f32>) {
+    let mut rgb = [
+        vec![0.0; width * height],
+        vec![0.0; width * height],
+        vec![0.0; width * height],
+    ];
+    let (mut mask, mut index) = (vec![0.0; width * height], vec![0.0; width * height]);
+    for y in 0..height {
+        for x in 0..width {
+            let i = y * width + x;
+            let t = 0.5 + 0.3 * (x as f32 * 0.13).sin() * (y as f32 * 0.11).cos();
+            let mut c = [0.55 * t, 0.5 * t, 0.45 * t];
+            if (16..48).contains(&y) && (16..80).contains(&x) {
+                mask[i] = 1.0;
+                if x < 48 {
+                    c = [16.0 * c[0], 16.0 * c[1], 48.0 * c[2]];
+                    index[i] = 3.0;
+                } else {
+                    index[i] = 5.0;
+                }
+            }
+            for k in 0..3 {
+                rgb[k][i] = c[k];
+            }
+        }
+    }
+    (rgb, mask, index)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

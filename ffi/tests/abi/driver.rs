@@ -1335,26 +1335,7 @@ fn run_sequence_takes_several_insert_indices() {
     let (w, h) = (96usize, 64usize);
     // Two touching boxes on a textured ground: the left one too bright and
     // blue (Object Index 3), the right one the ground's color (5).
-    let mut rgb = vec![vec![0.0f32; w * h]; 3];
-    let mut index = vec![0.0f32; w * h];
-    for y in 0..h {
-        for x in 0..w {
-            let i = y * w + x;
-            let t = 0.5 + 0.3 * (x as f32 * 0.13).sin() * (y as f32 * 0.11).cos();
-            let mut c = [0.55 * t, 0.5 * t, 0.45 * t];
-            if (16..48).contains(&y) && (16..80).contains(&x) {
-                if x < 48 {
-                    c = [16.0 * c[0], 16.0 * c[1], 48.0 * c[2]];
-                    index[i] = 3.0;
-                } else {
-                    index[i] = 5.0;
-                }
-            }
-            for k in 0..3 {
-                rgb[k][i] = c[k];
-            }
-        }
-    }
+    let (rgb, _, index) = harmonizer_core::synth::touching_boxes(w, h);
     let ones = vec![1.0f32; w * h];
     let dir = TempDir::new("run-ids");
     let named: [(&str, &[f32]); 5] = [
