@@ -296,6 +296,12 @@ def main(argv: list[str] | None = None) -> int:
         help="the prior reads only the first N history slots (manifest `history_read`; default: as the source)",
     )
     ap.add_argument(
+        "--blend-gain",
+        type=float,
+        default=None,
+        help="a fixed factor on the history blend's weight (ModelConfig.blend_gain; default: the checkpoint's)",
+    )
+    ap.add_argument(
         "--repair-margin",
         type=int,
         default=None,
@@ -325,6 +331,8 @@ def main(argv: list[str] | None = None) -> int:
         model.load_state_dict(drop_blend_beta(ck["model"], model))
         if args.history_read is not None:
             model.cfg.prior_frames = args.history_read
+        if args.blend_gain is not None:
+            model.cfg.blend_gain = args.blend_gain
         model.eval()
         step = ck["step"]
     manifest = export(model, args.out, args.name, args.version, args.stabilize, args.repair_margin)

@@ -349,6 +349,11 @@ def test_the_history_blend_is_convex_and_silent_without_history():
     lo = torch.minimum(est, x[:, 5:8]) - 1e-6
     hi = torch.maximum(est, x[:, 5:8]) + 1e-6
     assert bool(((out >= lo) & (out <= hi)).all())
+    # `blend_gain` scales the step toward the history.
+    m.cfg.blend_gain = 0.5
+    with torch.no_grad():
+        half = m(x)
+    assert torch.allclose(half - est, 0.5 * (out - est), atol=1e-5)
 
 
 def test_an_in_graph_margin_keeps_covered_colors_away_from_holes():
