@@ -1195,15 +1195,7 @@ mod object_ids {
     }
 
     fn write(path: &Path, channels: &[(&str, &[f32])]) {
-        let list: Vec<OutChannel> = channels
-            .iter()
-            .map(|(name, data)| OutChannel {
-                name,
-                data,
-                half: false,
-            })
-            .collect();
-        write_channels(path, W, H, &list, None).unwrap();
+        write_channels(path, W, H, &OutChannel::floats(channels), None).unwrap();
     }
 
     fn run(input: &str, out: &str, extra: &[&str]) -> Output {

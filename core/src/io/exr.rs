@@ -946,6 +946,20 @@ pub struct OutChannel<'a> {
     pub half: bool,
 }
 
+impl<'a> OutChannel<'a> {
+    /// Full-float channels from `(name, samples)` pairs.
+    pub fn floats(channels: &[(&'a str, &'a [f32])]) -> Vec<OutChannel<'a>> {
+        channels
+            .iter()
+            .map(|&(name, data)| OutChannel {
+                name,
+                data,
+                half: false,
+            })
+            .collect()
+    }
+}
+
 /// Writes a single-part EXR with the given channels and optional camera
 /// attributes (`worldToCamera`, `worldToNDC`), atomically.
 pub fn write_channels(

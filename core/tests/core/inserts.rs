@@ -485,37 +485,25 @@ fn process_pair(s: &mut Session, p: &Pair, index: i64, with_ids: bool) -> Image 
     out
 }
 
-/// Mean log2 change (output over input, mean of the channels) over `px`.
-fn log_change(out: &Image, p: &Pair, px: &[usize]) -> f64 {
+/// Mean over `px` and the channels of `per(log2(output / input))`.
+fn mean_log_change(out: &Image, p: &Pair, px: &[usize], per: impl Fn(f64) -> f64) -> f64 {
     let n = W * H;
     let sum: f64 = px
         .iter()
-        .map(|&i| {
-            (0..3)
-                .map(|c| ((out.data[c * n + i] + 1e-3) / (p.rgb[3 * i + c] + 1e-3)).log2() as f64)
-                .sum::<f64>()
-                / 3.0
-        })
-        .sum();
-    sum / px.len() as f64
-}
-
-/// Mean absolute log2 change over `px` and channels.
-fn abs_log_change(out: &Image, p: &Pair, px: &[usize]) -> f64 {
-    let n = W * H;
-    let sum: f64 = px
-        .iter()
-        .map(|&i| {
-            (0..3)
-                .map(|c| {
-                    ((out.data[c * n + i] + 1e-3) / (p.rgb[3 * i + c] + 1e-3))
-                        .log2()
-                        .abs() as f64
-                })
-                .sum::<f64>()
-        })
+        .flat_map(|&i| (0..3).map(move |c| (i, c)))
+        .map(|(i, c)| per(((out.data[c * n + i] + 1e-3) / (p.rgb[3 * i + c] + 1e-3)).log2() as f64))
         .sum();
     sum / (3 * px.len()) as f64
+}
+
+/// Mean log2 change (output over input) over `px` and the channels.
+fn log_change(out: &Image, p: &Pair, px: &[usize]) -> f64 {
+    mean_log_change(out, p, px, |d| d)
+}
+
+/// Mean absolute log2 change over `px` and the channels.
+fn abs_log_change(out: &Image, p: &Pair, px: &[usize]) -> f64 {
+    mean_log_change(out, p, px, f64::abs)
 }
 
 #[test]

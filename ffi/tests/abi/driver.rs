@@ -1345,14 +1345,7 @@ fn run_sequence_takes_several_insert_indices() {
         ("ViewLayer.Combined.A", &ones),
         ("ViewLayer.Object Index.X", &index),
     ];
-    let list: Vec<OutChannel> = named
-        .iter()
-        .map(|(name, data)| OutChannel {
-            name,
-            data,
-            half: false,
-        })
-        .collect();
+    let list = OutChannel::floats(&named);
     write_channels(&dir.0.join("layer.0001.exr"), w, h, &list, None).unwrap();
     let input = dir.0.join("layer.####.exr").to_string_lossy().to_string();
     let cstr = |s: &str| std::ffi::CString::new(s).unwrap();
