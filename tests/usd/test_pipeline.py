@@ -40,6 +40,12 @@ def run_cli(*args: str) -> subprocess.CompletedProcess[str]:
     )
 
 
+def run_classical_beauty(shot: Path, out_dir: Path, layer: Path, *extra: str) -> subprocess.CompletedProcess[str]:
+    """The CLI's classical backend on the ``beauty`` product, its outputs in
+    ``out_dir`` and its layer at ``layer``."""
+    return run_cli(str(shot), "--backend", "classical", "--product", "beauty", "--out-dir", str(out_dir), "--layer", str(layer), *extra)
+
+
 def spec_of(path: Path) -> oiio.ImageSpec:
     inp = oiio.ImageInput.open(str(path))
     spec = oiio.ImageSpec(inp.spec())
@@ -163,17 +169,7 @@ def test_cli_classical_enhances_with_history(shot: Path, tmp_path: Path) -> None
     input, are finite, and frames after the first use history."""
     out_dir = tmp_path / "enh"
     layer = tmp_path / "layers" / "enh.usda"
-    r = run_cli(
-        str(shot),
-        "--backend",
-        "classical",
-        "--product",
-        "beauty",
-        "--out-dir",
-        str(out_dir),
-        "--layer",
-        str(layer),
-    )
+    r = run_classical_beauty(shot, out_dir, layer)
     assert r.returncode == 0, r.stderr
     files = sorted((out_dir / "beauty").glob("beauty.*.exr"))
     assert [p.name for p in files] == [f"beauty.{f}.exr" for f in fixtures.FRAMES]
@@ -202,18 +198,7 @@ def test_insert_ids_are_passed_through(shot: Path, tmp_path: Path) -> None:
     outs = {}
     for name, extra in (("ids", ["--map", "objectIndex=insertId"]), ("plain", [])):
         out_dir = tmp_path / name
-        r = run_cli(
-            str(shot),
-            "--backend",
-            "classical",
-            "--product",
-            "beauty",
-            "--out-dir",
-            str(out_dir),
-            "--layer",
-            str(tmp_path / f"{name}.usda"),
-            *extra,
-        )
+        r = run_classical_beauty(shot, out_dir, tmp_path / f"{name}.usda", *extra)
         assert r.returncode == 0, r.stderr
         want = "insert_mask+insert_id+camera" if extra else "insert_mask+camera"
         assert f"inputs color+depth+motion+normal+coverage+{want}" in r.stdout, r.stdout
