@@ -348,7 +348,7 @@ class Enhancer(nn.Module):
             # 1.2.1: 71 ms less inference at 1920x1088 on 2 threads).
             p = self.prior(x, parts)
             est = p + self.correction(torch.cat(parts[:3] + [p], 1))
-            return self.after_network(est, x, parts)
+            return self.after_network(est, parts)
         seen = x
         if self._folds_history_out():
             seen = x[:, :5]
@@ -359,12 +359,11 @@ class Enhancer(nn.Module):
             est = p + self.correction(torch.cat([seen, p], 1))
         else:
             est = parts[0] + self.correction(seen)
-        return self.after_network(est, x, parts)
+        return self.after_network(est, parts)
 
-    def after_network(self, est: torch.Tensor, x: torch.Tensor, parts: list[torch.Tensor] | None = None) -> torch.Tensor:
+    def after_network(self, est: torch.Tensor, parts: list[torch.Tensor]) -> torch.Tensor:
         """The in-graph repair margin and the history blend on the network's
-        estimate (identity without them)."""
-        parts = parts if parts is not None else self.split(x)
+        estimate (identity without them); ``parts``: the input's ``split``."""
         color = parts[0]
         cov = parts[1].clamp(0, 1)
         near = None
