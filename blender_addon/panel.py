@@ -71,6 +71,8 @@ class RENDER_PT_harmonizer(bpy.types.Panel):
         elif s.mask_source == "CRYPTOMATTE":
             col.prop(s, "mask_crypto_layer")
             col.prop(s, "mask_names")
+        if s.mask_source != "NONE":
+            col.prop(s, "match_tone")
         col.prop(s, "light_source")
         if s.light_source == "MANUAL":
             col.prop(s, "light_direction")

@@ -117,6 +117,15 @@ class HarmonizerSceneSettings(bpy.types.PropertyGroup):
     )
     mask_names: StringProperty(name="Mattes", description="Cryptomatte names, comma separated")
     mask_crypto_layer: EnumProperty(name="Cryptomatte Layer", items=CRYPTO_LAYERS, default="CryptoObject")
+    match_tone: BoolProperty(
+        name="Match Tone",
+        description=(
+            "Move each inserted object's exposure, white balance and saturation part of the way toward the "
+            "background around it. For composites known to carry a tone mismatch: on correctly lit objects "
+            "it changes colors that were right"
+        ),
+        default=False,
+    )
     light_source: EnumProperty(
         name="Light",
         description=(

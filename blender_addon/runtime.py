@@ -109,6 +109,7 @@ class Runner:
                 gap_policy=s.gap_policy,
                 depth_kind="planar",
                 light_space="world",  # Blender's world: the camera matrices' and the Sun's
+                match_tone=s.match_tone,
                 denoise=self.denoise,
                 denoise_quality=s.denoise_quality,
                 samples=self.samples,

@@ -1208,6 +1208,9 @@ mod object_ids {
             "classical",
             "--threads",
             "2",
+            // The boxes' filters are what these tests follow.
+            "--set",
+            "match_tone=true",
         ];
         args.extend(extra);
         harmonize(&args)

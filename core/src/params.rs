@@ -166,6 +166,13 @@ pub struct Params {
     pub coverage_floor: f32,
     /// Harmonize inserted objects with their surroundings (`harmonize`).
     pub harmonize: bool,
+    /// With `harmonize`: match each inserted object's color statistics to
+    /// the background around it (`match_tone`: exposure, white balance and
+    /// saturation, [`crate::ops::harmonize`]). Off by default: on the
+    /// project's held-out inserts it cost 0.7 dB in the insert on average
+    /// and repainted correctly lit objects (docs/inserts.md); for
+    /// composites known to carry a tone or white-balance mismatch.
+    pub match_tone: bool,
     /// With `harmonize`, a light direction and a camera: give an inserted
     /// object lit by another light the scene light's shading (`relight`,
     /// [`crate::ops::relight`]).
@@ -241,6 +248,7 @@ impl Default for Params {
             fill_holes: true,
             coverage_floor: 0.95,
             harmonize: true,
+            match_tone: false,
             relight: true,
             contact_shadows: true,
             shadow_strength: 0.6,
@@ -274,6 +282,7 @@ pub const PARAM_NAMES: &[&str] = &[
     "fill_holes",
     "coverage_floor",
     "harmonize",
+    "match_tone",
     "relight",
     "contact_shadows",
     "shadow_strength",
@@ -378,6 +387,7 @@ impl Params {
             "fill_holes" => self.fill_holes = want_bool(name, v)?,
             "coverage_floor" => self.coverage_floor = want_float(name, v, 0.0, 1.0)?,
             "harmonize" => self.harmonize = want_bool(name, v)?,
+            "match_tone" => self.match_tone = want_bool(name, v)?,
             "relight" => self.relight = want_bool(name, v)?,
             "contact_shadows" => self.contact_shadows = want_bool(name, v)?,
             "shadow_strength" => self.shadow_strength = want_float(name, v, 0.0, 1.0)?,
@@ -451,6 +461,7 @@ impl Params {
             "fill_holes" => ParamValue::Bool(self.fill_holes),
             "coverage_floor" => ParamValue::Float(self.coverage_floor as f64),
             "harmonize" => ParamValue::Bool(self.harmonize),
+            "match_tone" => ParamValue::Bool(self.match_tone),
             "relight" => ParamValue::Bool(self.relight),
             "contact_shadows" => ParamValue::Bool(self.contact_shadows),
             "shadow_strength" => ParamValue::Float(self.shadow_strength as f64),

@@ -296,3 +296,29 @@ def test_panel_shows_the_light(addon, tmp_root):
     scene.harmonizer.light_source = "AUTO"
     bpy.data.objects["Sun"].hide_render = True
     assert "No Sun light: no cast shadows" in draw().labels
+
+
+def test_match_tone_reaches_the_session(addon, tmp_root):
+    """The panel's Match Tone (shown once an insert mask is chosen, off by
+    default) is the session's ``match_tone``."""
+    from types import SimpleNamespace
+
+    scene = fixture.build(os.path.join(tmp_root, "match_tone", "frame_####.exr"))
+    scene.harmonizer.enabled = True
+
+    def draw() -> _Layout:
+        layout = _Layout()
+        addon.panel.RENDER_PT_harmonizer.draw(SimpleNamespace(layout=layout), bpy.context)
+        return layout
+
+    scene.harmonizer.mask_source = "NONE"
+    assert "match_tone" not in draw().props
+    scene.harmonizer.mask_source = "OBJECT_INDEX"
+    assert "match_tone" in draw().props
+    for want in (False, True):
+        scene.harmonizer.match_tone = want
+        runner = addon.runtime.Runner(scene)
+        try:
+            assert runner.session.get("match_tone") is want
+        finally:
+            runner.close()

@@ -15,13 +15,16 @@
 //!    ([`crate::temporal::HistoryView::sample`]), except for frames reached
 //!    by chained motion vectors (reprojected whole, stage `reproject`).
 //! 2. **harmonize** (`harmonize`, needs the insert mask): each inserted
-//!    object's (the pixels of one of the host's object ids, else a
-//!    connected part of the mask; [`harmonize::objects`]) color statistics
-//!    are matched part of the way to a ring of background around it (with
-//!    ids, the other objects left out of it); each object's filter is
-//!    smoothed over time in the [`Carry`] (key [`TONE_KEY`], the objects
-//!    followed by their ids, [`ID_KEY`], else by their centroids) with the
-//!    weight `temporal_blend` on the past.
+//!    object (the pixels of one of the host's object ids, else a
+//!    connected part of the mask; [`harmonize::objects`]) gets the scene
+//!    light's shading (`relight`, with a light direction, depth and a
+//!    camera; [`relight`]) and, with `match_tone` (off by default), its
+//!    color statistics matched part of the way to a ring of background
+//!    around it (with ids, the other objects left out of it); each object's
+//!    filter and shading are smoothed over time in the [`Carry`] (keys
+//!    [`TONE_KEY`] and [`SHADE_KEY`], the objects followed by their ids,
+//!    [`ID_KEY`], else by their centroids) with the weight
+//!    `temporal_blend` on the past.
 //! 3. **shadow** (`contact_shadows`, needs mask and depth): a soft contact
 //!    shadow of strength `shadow_strength` under the insert.
 //! 4. **stabilize** (`stabilize`): blend with the reprojected previous result
@@ -508,18 +511,24 @@ fn run_ops_on(
                     }),
                     None => None,
                 };
-                let estimate = stages.time("harmonize", || {
-                    pool.install(|| {
-                        harmonize::estimate_among(
-                            img,
-                            pmask,
-                            ids.map(|_| &mask[..]),
-                            part.rect,
-                            frame.coverage.as_deref(),
-                            frame.depth.as_deref(),
-                        )
+                // Without `match_tone` the object keeps its colors (the
+                // identity filter), and its track carries the shading.
+                let estimate = if params.match_tone {
+                    stages.time("harmonize", || {
+                        pool.install(|| {
+                            harmonize::estimate_among(
+                                img,
+                                pmask,
+                                ids.map(|_| &mask[..]),
+                                part.rect,
+                                frame.coverage.as_deref(),
+                                frame.depth.as_deref(),
+                            )
+                        })
                     })
-                });
+                } else {
+                    Some(harmonize::Tone::IDENTITY)
+                };
                 let tone = match (m.map(|j| previous[j].1), estimate) {
                     (Some(p), Some(e)) => Some(p.toward(&e, 1.0 - params.temporal_blend)),
                     (p, e) => e.or(p),

@@ -357,7 +357,9 @@ fn log_error(out: &Image, f: &Frame) -> f64 {
 #[test]
 fn a_tone_shifted_insert_gets_closer_to_its_true_colors() {
     let dev = device(2);
-    let mut s = session(&dev, &off(&["contact_shadows", "stabilize"]));
+    let mut params = off(&["contact_shadows", "stabilize"]);
+    params.push(("match_tone", ParamValue::Bool(true)));
+    let mut s = session(&dev, &params);
     let ins = Insert {
         x0: 60,
         // 3 stops too bright, 2 stops too blue, flatter: a clear mismatch,
@@ -390,7 +392,9 @@ fn a_tone_shifted_insert_gets_closer_to_its_true_colors() {
 /// (same light as the floor) and only its albedo differs, saturated yellow
 /// or red on a grey-brown floor; harmonization used to pull it toward the
 /// floor's colors (a yellow sphere turned nearly grey). Insert PSNR against
-/// the truth may drop by at most 0.5 dB.
+/// the truth may drop by at most 0.5 dB with `match_tone`; by default
+/// (no tone matching, no light direction to relight by) the insert comes
+/// out exactly as it went in.
 #[test]
 fn correct_insert_is_left_alone() {
     let dev = device(2);
@@ -398,8 +402,15 @@ fn correct_insert_is_left_alone() {
         x0: 60,
         shift: (1.0, 1.0, 1.0),
     };
-    for albedo in [[1.6, 1.2, 0.1], [1.5, 0.15, 0.12]] {
-        let mut s = session(&dev, &off(&["contact_shadows", "stabilize"]));
+    for (albedo, match_tone) in [
+        ([1.6, 1.2, 0.1], true),
+        ([1.5, 0.15, 0.12], true),
+        ([1.6, 1.2, 0.1], false),
+        ([1.5, 0.15, 0.12], false),
+    ] {
+        let mut params = off(&["contact_shadows", "stabilize"]);
+        params.push(("match_tone", ParamValue::Bool(match_tone)));
+        let mut s = session(&dev, &params);
         let mut f = render(Look {
             insert: Some(ins),
             ..Look::default()
@@ -421,11 +432,24 @@ fn correct_insert_is_left_alone() {
         let before = psnr_where(|x, y, c| f.color[3 * (y * W + x) + c], &f.truth, in_insert);
         let (out, _) = s.process(&f.input(0), None).unwrap();
         let after = psnr_where(|x, y, c| out.at(x, y, c), &f.truth, in_insert);
-        eprintln!("albedo {albedo:?}: insert PSNR {before:.2} -> {after:.2} dB");
-        assert!(
-            after >= before - 0.5,
-            "albedo {albedo:?}: insert PSNR {before:.2} -> {after:.2} dB"
+        eprintln!(
+            "albedo {albedo:?}, match_tone {match_tone}: insert PSNR {before:.2} -> {after:.2} dB"
         );
+        if match_tone {
+            assert!(
+                after >= before - 0.5,
+                "albedo {albedo:?}: insert PSNR {before:.2} -> {after:.2} dB"
+            );
+        } else {
+            let changed = (0..W * H)
+                .filter(|&p| in_insert(p))
+                .filter(|&p| (0..3).any(|c| out.at(p % W, p / W, c) != f.color[3 * p + c]))
+                .count();
+            assert_eq!(
+                changed, 0,
+                "albedo {albedo:?}: {changed} insert pixels changed"
+            );
+        }
     }
 }
 
@@ -593,6 +617,7 @@ fn harmonization_parameters_are_smoothed_over_time_and_dropped_with_the_insert()
     let params = Params {
         contact_shadows: false,
         stabilize: false,
+        match_tone: true,
         temporal_blend: 0.8,
         ..Params::default()
     };

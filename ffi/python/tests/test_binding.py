@@ -284,7 +284,7 @@ def test_insert_id_tells_touching_objects_apart(device):
     color, ids = two_boxes()
     mask = (ids > 0).astype(np.float32)
     right = ids == 2.0
-    params = dict(backend="classical", contact_shadows=False, stabilize=False)
+    params = dict(backend="classical", contact_shadows=False, stabilize=False, match_tone=True)
     with hz.Session(device, **params) as s:
         merged = s.process(color, insert_mask=mask, frame_index=0)
     with hz.Session(device, **params) as s:

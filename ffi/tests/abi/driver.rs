@@ -80,6 +80,15 @@ impl Api {
         d
     }
     fn session(&self, d: *mut hz_device, backend: &CStr) -> *mut hz_session {
+        self.session_with(d, backend, &[])
+    }
+    /// [`Api::session`] with boolean parameters set by name.
+    fn session_with(
+        &self,
+        d: *mut hz_device,
+        backend: &CStr,
+        extra: &[(&CStr, bool)],
+    ) -> *mut hz_session {
         let new = sym!(
             self,
             "hz_session_new",
@@ -89,6 +98,11 @@ impl Api {
             self,
             "hz_session_set_string",
             unsafe extern "C" fn(*mut hz_session, *const c_char, *const c_char) -> hz_status
+        );
+        let set_bool = sym!(
+            self,
+            "hz_session_set_bool",
+            unsafe extern "C" fn(*mut hz_session, *const c_char, bool) -> hz_status
         );
         let commit = sym!(
             self,
@@ -105,6 +119,9 @@ impl Api {
                 "{}",
                 self.last_error()
             );
+            for (k, v) in extra {
+                assert_eq!(set_bool(s, k.as_ptr(), *v), HZ_OK, "{}", self.last_error());
+            }
             assert_eq!(commit(s), HZ_OK, "{}", self.last_error());
         }
         s
@@ -917,7 +934,8 @@ fn albedo_and_denoise_normal_are_validated() {
 fn insert_id_is_validated_and_makes_the_mask() {
     let api = Api::load();
     let d = api.device(1);
-    let s = api.session(d, c"classical");
+    // The box's own filter (`match_tone`) is what its id changes.
+    let s = api.session_with(d, c"classical", &[(c"match_tone", true)]);
     let (w, h) = (48, 32);
     let mut rgba = vec![0.0f32; w * h * 4];
     let mut ids = vec![0.0f32; w * h];
@@ -1152,7 +1170,10 @@ impl Drop for TempDir {
 
 /// The library's own runner (what `harmonize run` calls) with a classical
 /// session of 2 threads: the bytes `hz_run_sequence` must match.
-fn run_classical_directly(options: &harmonizer_core::io::run::RunOptions) {
+fn run_classical_directly(
+    options: &harmonizer_core::io::run::RunOptions,
+    extra: &[(&str, harmonizer_core::ParamValue)],
+) {
     use harmonizer_core::io::run::{plan, run_sequence};
     let device = harmonizer_core::Device::new(harmonizer_core::DeviceOptions {
         threads: 2,
@@ -1166,6 +1187,9 @@ fn run_classical_directly(options: &harmonizer_core::io::run::RunOptions) {
             &harmonizer_core::ParamValue::Str("classical".into()),
         )
         .unwrap();
+    for (k, v) in extra {
+        params.set(k, v).unwrap();
+    }
     let mut session = harmonizer_core::Session::new(device, params).unwrap();
     let planned = plan(options).unwrap();
     run_sequence(&mut session, options, &planned, false, &mut |_| Ok(())).unwrap();
@@ -1267,7 +1291,7 @@ fn run_sequence_writes_a_chunk_with_its_preroll() {
         frames: Some(harmonizer_core::io::pattern::FrameRange::parse("8-12").unwrap()),
         preroll: 4,
     };
-    run_classical_directly(&options);
+    run_classical_directly(&options, &[]);
     let dp = FramePattern::parse(&options.output).unwrap();
     for n in 8..=12 {
         assert_eq!(
@@ -1353,7 +1377,7 @@ fn run_sequence_takes_several_insert_indices() {
 
     let api = Api::load();
     let d = api.device(2);
-    let s = api.session(d, c"classical");
+    let s = api.session_with(d, c"classical", &[(c"match_tone", true)]);
     let abi_out = dir.0.join("abi").join("o.####.exr");
     let c_out = cstr(abi_out.to_str().unwrap());
     let indices = [3i64, 5];
@@ -1390,7 +1414,11 @@ fn run_sequence_takes_several_insert_indices() {
             frames: None,
             preroll: 0,
         };
-        run_classical_directly(&options);
+        // The boxes' own filters (`match_tone`) are what the ids change.
+        run_classical_directly(
+            &options,
+            &[("match_tone", harmonizer_core::ParamValue::Bool(true))],
+        );
         std::fs::read(FramePattern::parse(&options.output).unwrap().path(1)).unwrap()
     };
     let got = std::fs::read(
