@@ -886,7 +886,9 @@ impl Neural {
         let (w, h) = (frame.width(), frame.height());
         let plan = model.tile_plan_within(w, h, input.params, input.memory_budget)?;
         let codec = stages.time("encode_stats", || {
-            ColorCodec::for_frame(&m.encoding, &frame.color, frame.coverage.as_deref())
+            pool.install(|| {
+                ColorCodec::for_frame(&m.encoding, &frame.color, frame.coverage.as_deref())
+            })
         });
         let used = m.history_slots().min(input.history.len());
         let mut sources = channel_sources(&model.channels, frame, used, m.premultiplied);
