@@ -339,9 +339,9 @@ mod tests {
         let one = on(1);
         assert_eq!(one.to_bits(), on(3).to_bits());
         let (mut sum, mut weight) = (0.0f64, 0.0f64);
-        for i in 0..w * h {
-            let a = cov[i] as f64;
-            if cov[i] < COVERAGE_EPSILON {
+        for (i, &c) in cov.iter().enumerate() {
+            let a = c as f64;
+            if c < COVERAGE_EPSILON {
                 continue;
             }
             let p = |c: usize| img.data[c * w * h + i] as f64;
