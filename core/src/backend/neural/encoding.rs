@@ -36,9 +36,9 @@ const LOG_AVERAGE_BLOCK: usize = 1 << 15;
 
 /// The coverage-weighted log-average luminance of premultiplied color
 /// (`exp(sum(w * ln(1e-4 + L)) / sum(w))`, L of the unpremultiplied color),
-/// or `None` when nothing is covered. Deterministic: blocks of
-/// [`LOG_AVERAGE_BLOCK`] pixels are summed in parallel (on the calling
-/// pool), their sums added in block order.
+/// or `None` when nothing is covered. Deterministic: blocks of a fixed
+/// number of pixels (32768) are summed in parallel (on the calling pool),
+/// their sums added in block order.
 pub fn log_average_luminance(color: &Image, coverage: Option<&[f32]>) -> Option<f64> {
     use rayon::prelude::*;
     let n = color.len();
