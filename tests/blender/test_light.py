@@ -277,10 +277,12 @@ class _Layout:
         pass
 
 
-def test_panel_shows_the_light(addon, tmp_root):
+def _panel(addon, tmp_root: str, name: str):
+    """A fixture scene with the extension enabled, and a function that draws
+    its panel into a recording layout."""
     from types import SimpleNamespace
 
-    scene = fixture.build(os.path.join(tmp_root, "light_panel", "frame_####.exr"))
+    scene = fixture.build(os.path.join(tmp_root, name, "frame_####.exr"))
     scene.harmonizer.enabled = True
 
     def draw() -> _Layout:
@@ -288,6 +290,11 @@ def test_panel_shows_the_light(addon, tmp_root):
         addon.panel.RENDER_PT_harmonizer.draw(SimpleNamespace(layout=layout), bpy.context)
         return layout
 
+    return scene, draw
+
+
+def test_panel_shows_the_light(addon, tmp_root):
+    scene, draw = _panel(addon, tmp_root, "light_panel")
     shown = draw()
     assert "light_source" in shown.props and "light_direction" not in shown.props
     assert "Sun (strength 3)" in shown.labels, shown.labels
@@ -301,16 +308,7 @@ def test_panel_shows_the_light(addon, tmp_root):
 def test_match_tone_reaches_the_session(addon, tmp_root):
     """The panel's Match Tone (shown once an insert mask is chosen, off by
     default) is the session's ``match_tone``."""
-    from types import SimpleNamespace
-
-    scene = fixture.build(os.path.join(tmp_root, "match_tone", "frame_####.exr"))
-    scene.harmonizer.enabled = True
-
-    def draw() -> _Layout:
-        layout = _Layout()
-        addon.panel.RENDER_PT_harmonizer.draw(SimpleNamespace(layout=layout), bpy.context)
-        return layout
-
+    scene, draw = _panel(addon, tmp_root, "match_tone")
     scene.harmonizer.mask_source = "NONE"
     assert "match_tone" not in draw().props
     scene.harmonizer.mask_source = "OBJECT_INDEX"
