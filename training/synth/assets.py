@@ -1,11 +1,16 @@
-"""Real assets for the data generator: Sweet Home 3D furniture and Blender's HDRIs.
+"""Real assets for the data generator: Sweet Home 3D furniture, photo textures
+from ``nexuiz-textures`` and Blender's HDRIs.
 
 ``python -m training.synth.assets`` (any Python 3.9+, no bpy needed) makes sure
 the Debian package ``sweethome3d-furniture`` is installed (``apt-get`` when run as
 root), extracts each ``.sh3f`` library into ``training/assets/sh3d/<library>/``,
-writes ``training/assets/catalog.json`` (one entry per model: OBJ path, size in
-metres, elevation, rotation, library, creator, license) and regenerates
-``training/ATTRIBUTION.md``. Every step is idempotent: finished work is skipped.
+downloads ``nexuiz-textures`` (``apt-get download``, no root needed; skipped
+with a note when it cannot be fetched) and extracts its floor, wall, metal,
+stone and wood textures into ``training/assets/textures/nexuiz/``, writes
+``training/assets/catalog.json`` (one entry per model: OBJ path, size in
+metres, elevation, rotation, library, creator, license; one per texture) and
+regenerates ``training/ATTRIBUTION.md``. Every step is idempotent: finished
+work is skipped.
 """
 
 from __future__ import annotations
@@ -16,6 +21,7 @@ import os
 import shutil
 import subprocess
 import sys
+import tempfile
 import zipfile
 from pathlib import Path
 
@@ -23,7 +29,16 @@ TRAINING_DIR = Path(__file__).resolve().parent.parent
 ASSETS_DIR = TRAINING_DIR / "assets"
 SH3D_SYSTEM_DIR = Path("/usr/share/sweethome3d/furniture")
 DEBIAN_PACKAGE = "sweethome3d-furniture"
-CATALOG_VERSION = 1
+CATALOG_VERSION = 2
+#: Photo textures for floors and walls: a source the out-of-domain set does
+#: not use (it takes extremetuxracer-data and openarena-081-textures).
+TEXTURE_PACKAGE = "nexuiz-textures"
+TEXTURE_LICENSE = "GPL-2+"
+TEXTURE_COPYRIGHT = "the Nexuiz team and texture authors (the package's copyright file)"
+_TEXTURE_WORDS = ("floor", "wall", "tile", "brick", "concrete", "wood", "stone", "rock", "metal", "plate", "ground", "dirt")
+# Normal, gloss, glow and other maps, effects, trims and signs.
+_TEXTURE_SKIP = ("_norm", "_gloss", "_glow", "_bump", "_shirt", "_pants", "_reflect", "_luma", "_alpha")
+_TEXTURE_SKIP += ("sfx", "_fx", "light", "trim", "decal", "sky", "water", "logo", "sign", "font", "_d.", "_e.")
 
 
 class AssetError(RuntimeError):
@@ -196,6 +211,69 @@ def extract_library(sh3f: Path, assets_dir: Path = ASSETS_DIR) -> dict:
     }
 
 
+def texture_wanted(name: str, size: int) -> bool:
+    """A color texture of a surface (no normal, gloss or glow map, no effect,
+    trim or sign), at least 20 kB."""
+    n = name.lower()
+    return (
+        n.startswith("textures/")
+        and n.endswith((".jpg", ".tga"))
+        and any(w in n for w in _TEXTURE_WORDS)
+        and not any(x in n for x in _TEXTURE_SKIP)
+        and size >= 20000
+    )
+
+
+def ensure_textures(assets_dir: Path = ASSETS_DIR) -> list[dict]:
+    """The photo textures (downloaded and extracted once); ``[]`` with a
+    note when the package cannot be fetched (the generator then uses its
+    procedural materials alone)."""
+    out_dir = assets_dir / "textures" / "nexuiz"
+    index = out_dir / "index.json"
+    if index.exists():
+        return json.loads(index.read_text())
+    if shutil.which("apt-get") is None or shutil.which("dpkg-deb") is None:
+        print(f"assets: apt-get/dpkg-deb not found: no {TEXTURE_PACKAGE} textures", flush=True)
+        return []
+    with tempfile.TemporaryDirectory() as tmp_s:
+        tmp = Path(tmp_s)
+        r = subprocess.run(
+            ["apt-get", "download", TEXTURE_PACKAGE], cwd=tmp, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+        )
+        debs = sorted(tmp.glob("*.deb"))
+        if r.returncode != 0 or not debs:
+            print(f"assets: apt-get download {TEXTURE_PACKAGE} failed (exit {r.returncode}): no textures", flush=True)
+            return []
+        x = tmp / "x"
+        subprocess.run(["dpkg-deb", "-x", str(debs[0]), str(x)], check=True)
+        pk3 = next(x.rglob("textures.pk3"), None)
+        if pk3 is None:
+            raise AssetError(f"{debs[0].name} holds no textures.pk3")
+        staging = out_dir.with_suffix(".tmp")
+        shutil.rmtree(staging, ignore_errors=True)
+        staging.mkdir(parents=True)
+        entries = []
+        with zipfile.ZipFile(pk3) as z:
+            for info in z.infolist():
+                if not texture_wanted(info.filename, info.file_size):
+                    continue
+                name = info.filename[len("textures/") :].replace("/", "__")
+                (staging / name).write_bytes(z.read(info))
+                entries.append(
+                    {
+                        "name": info.filename,
+                        "path": str(out_dir / name),
+                        "package": TEXTURE_PACKAGE,
+                        "license": TEXTURE_LICENSE,
+                    }
+                )
+        (staging / "index.json").write_text(json.dumps(entries, indent=1))
+        shutil.rmtree(out_dir, ignore_errors=True)
+        staging.rename(out_dir)
+    print(f"assets: {len(entries)} textures from {TEXTURE_PACKAGE} -> {out_dir}", flush=True)
+    return entries
+
+
 def hdri_dir() -> Path | None:
     """Blender's bundled HDRIs, found through bpy when importable, else beside it."""
     try:
@@ -209,8 +287,9 @@ def hdri_dir() -> Path | None:
     return None
 
 
-def write_attribution(libraries: list[dict], path: Path) -> None:
-    """Writes the attribution page: per library its license, copyright and model creators."""
+def write_attribution(libraries: list[dict], path: Path, textures: int = 0) -> None:
+    """Writes the attribution page: per library its license, copyright and
+    model creators; the photo textures (``textures`` of them) when used."""
     lines = [
         "# Attribution of the training assets",
         "",
@@ -242,6 +321,16 @@ def write_attribution(libraries: list[dict], path: Path) -> None:
         lic = lib["license_text"].strip().splitlines()
         if lic:
             lines += ["LICENSE.TXT (first lines):", "", "```"] + lic[:12] + ["```", ""]
+    if textures:
+        lines += [
+            f"## Floor and wall textures: Debian package `{TEXTURE_PACKAGE}`",
+            "",
+            f"{textures} color textures of floors, walls, metal, stone and wood from the package's",
+            "`textures.pk3` (normal, gloss and glow maps, effects and signs left out), in",
+            f"`training/assets/textures/nexuiz/`. License: {TEXTURE_LICENSE}; copyright {TEXTURE_COPYRIGHT}.",
+            "Half of the floors and walls of scenes rendered with this catalog use one of them.",
+            "",
+        ]
     lines += [
         "## Environment lighting: Blender's bundled HDRIs",
         "",
@@ -269,6 +358,7 @@ def prepare(assets_dir: Path = ASSETS_DIR, attribution: Path | None = TRAINING_D
         "hdri_dir": str(hdri_dir() or ""),
         "libraries": [{k: v for k, v in lib.items() if k not in ("models", "license_text", "header")} for lib in libs],
         "models": [m for lib in libs for m in lib["models"]],
+        "textures": ensure_textures(assets_dir),
     }
     if not catalog["models"]:
         raise AssetError(f"no usable OBJ model found under {assets_dir / 'sh3d'}")
@@ -276,7 +366,7 @@ def prepare(assets_dir: Path = ASSETS_DIR, attribution: Path | None = TRAINING_D
     tmp.write_text(json.dumps(catalog, indent=1))
     tmp.replace(catalog_path)
     if attribution is not None:
-        write_attribution(libs, attribution)
+        write_attribution(libs, attribution, len(catalog["textures"]))
     return catalog_path
 
 
@@ -291,7 +381,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"assets: error: {e}", file=sys.stderr)
         return 1
     cat = json.loads(path.read_text())
-    print(f"assets: {len(cat['models'])} models from {len(cat['libraries'])} libraries -> {path}")
+    print(
+        f"assets: {len(cat['models'])} models from {len(cat['libraries'])} libraries, "
+        f"{len(cat.get('textures', []))} textures -> {path}"
+    )
     return 0
 
 

@@ -77,8 +77,16 @@ def reset_blender(cfg: dict) -> bpy.types.Scene:
     return sc
 
 
-def procedural_material(rng: np.random.Generator, name: str) -> bpy.types.Material:
-    """A random floor/wall material: plaster, tiles, bricks, wood-like or plain."""
+def procedural_material(
+    rng: np.random.Generator, name: str, textures: list | None = None, size: tuple = (1.0, 1.0)
+) -> bpy.types.Material:
+    """A random floor/wall material: plaster, tiles, bricks, wood-like or
+    plain; with ``textures`` (the catalog's photo textures), half the time
+    one of them, repeated every 0.5-2.5 m over the plane of ``size`` metres
+    (the unit plane's object coordinates, scaled), at a random brightness
+    and saturation. The choice is kept in the material's ``surface``
+    property. Without textures the random draws are those of a catalog
+    without them (scenes stay reproducible)."""
     mat = bpy.data.materials.new(name)
     nt = mat.node_tree
     bsdf = nt.nodes.get("Principled BSDF")
@@ -87,6 +95,23 @@ def procedural_material(rng: np.random.Generator, name: str) -> bpy.types.Materi
     s = float(rng.uniform(0.5, 3.0))
     mapping.inputs["Scale"].default_value = (s, s, s)
     nt.links.new(tc.outputs["Object"], mapping.inputs["Vector"])
+    if textures and rng.random() < 0.5:
+        entry = textures[int(rng.integers(len(textures)))]
+        tile = float(rng.uniform(0.5, 2.5))
+        mapping.inputs["Scale"].default_value = (size[0] / tile, size[1] / tile, 1.0)
+        tex = nt.nodes.new("ShaderNodeTexImage")
+        tex.image = bpy.data.images.load(entry["path"], check_existing=True)
+        tex.image.colorspace_settings.name = "sRGB"
+        nt.links.new(mapping.outputs["Vector"], tex.inputs["Vector"])
+        shade = nt.nodes.new("ShaderNodeHueSaturation")
+        shade.inputs["Hue"].default_value = float(0.5 + rng.normal(0, 0.03))
+        shade.inputs["Saturation"].default_value = float(rng.uniform(0.6, 1.2))
+        shade.inputs["Value"].default_value = float(rng.uniform(0.6, 1.4))
+        nt.links.new(tex.outputs["Color"], shade.inputs["Color"])
+        nt.links.new(shade.outputs["Color"], bsdf.inputs["Base Color"])
+        bsdf.inputs["Roughness"].default_value = float(rng.uniform(0.35, 0.95))
+        mat["surface"] = entry["name"]
+        return mat
 
     def col() -> tuple:
         hsv_h, hsv_s, hsv_v = rng.uniform(0, 1), rng.uniform(0.0, 0.6) ** 1.5, rng.uniform(0.05, 0.8)
@@ -131,6 +156,7 @@ def procedural_material(rng: np.random.Generator, name: str) -> bpy.types.Materi
         nt.links.new(mapping.outputs["Vector"], tex.inputs["Vector"])
     nt.links.new(out, bsdf.inputs["Base Color"])
     bsdf.inputs["Roughness"].default_value = float(rng.uniform(0.25, 0.95))
+    mat["surface"] = f"procedural:{kind}"
     return mat
 
 
@@ -260,10 +286,16 @@ def build_scene(rng: np.random.Generator, catalog: dict, cfg: dict) -> dict:
     sc = reset_blender(cfg)
     assets_dir = Path(catalog["assets_dir"])
     room = float(rng.uniform(6.0, 10.0))
-    floor = add_plane("floor", (room * 2, room * 2), (0, 0, 0), (0, 0, 0), procedural_material(rng, "floor"))
+    textures = catalog.get("textures") or []
+    floor_mat = procedural_material(rng, "floor", textures, (room * 2, room * 2))
+    floor = add_plane("floor", (room * 2, room * 2), (0, 0, 0), (0, 0, 0), floor_mat)
+    surfaces = {"floor": floor_mat["surface"]}
     walls = []
     if rng.random() < 0.85:
-        wall_mat = procedural_material(rng, "wall")
+        # The height is drawn after the material (the order of the draws of
+        # scenes rendered before the textures).
+        wall_mat = procedural_material(rng, "wall", textures, (room * 2, 3.0))
+        surfaces["walls"] = wall_mat["surface"]
         h = float(rng.uniform(2.4, 3.5))
         walls.append(add_plane("wall_back", (room * 2, h), (0, room / 2, h / 2), (math.pi / 2, 0, 0), wall_mat))
         if rng.random() < 0.7:
@@ -374,6 +406,7 @@ def build_scene(rng: np.random.Generator, catalog: dict, cfg: dict) -> dict:
         "room": room,
         "walls": len(walls),
         "floor": floor,
+        "surfaces": surfaces,
     }
 
 
@@ -523,6 +556,7 @@ def render_scene(scene_id: int, out_dir: Path, cfg: dict, catalog: dict) -> dict
         "relight": relight,
         "room_m": info["room"],
         "walls": info["walls"],
+        "surfaces": info["surfaces"],
         "color_space": "Linear Rec.709 (scene-linear), premultiplied by coverage",
         "motion": "pixels, current -> previous, x right, y down",
         "depth": "planar, empty = 1e10",

@@ -86,3 +86,20 @@ def test_shadow_mask_finds_darkening_outside_the_insert():
     insert[6:, 5:] = 1
     m = degrade.shadow_mask(full, without, insert)
     assert m[6:, :3].min() == 1.0 and m[:5].max() == 0.0 and m[6:, 5:].max() == 0.0
+
+
+def test_texture_selection_keeps_surface_colors_only():
+    """The photo textures for floors and walls: color maps of surfaces, no
+    normal/gloss/glow maps, effects, trims or tiny files."""
+    from training.synth.assets import texture_wanted
+
+    big = 50_000
+    assert texture_wanted("textures/egyptsoc_floor/woodmgrid2a.tga", big)
+    assert texture_wanted("textures/evil1_walls/wallpaperd_old.jpg", big)
+    assert not texture_wanted("textures/evil1_walls/wallpaperd_old_norm.jpg", big)
+    assert not texture_wanted("textures/evil1_walls/wallpaperd_old_gloss.tga", big)
+    assert not texture_wanted("textures/evil8_trim/metal_trim.jpg", big)
+    assert not texture_wanted("textures/evil4_lights/wall_light.jpg", big)
+    assert not texture_wanted("textures/evil1_walls/wallpaperd_old.jpg", 1_000)
+    assert not texture_wanted("models/evil1_walls/wall.jpg", big)
+    assert not texture_wanted("textures/evil1_walls/wall.png", big)
