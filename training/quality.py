@@ -38,7 +38,10 @@ Methods, all on the same inputs:
   manifest, which is what ``--backend auto`` runs), the same with
   ``--context 0`` (no history, hence no stabilization either) and with
   ``--set stabilize=false`` (the network alone with its history: against
-  ``neural_k0`` it is the network's own use of its temporal context).
+  ``neural_k0`` it is the network's own use of its temporal context);
+- ``classical_tone``: ``--backend classical --set match_tone=true``, the
+  inserts' appearance filter that is off by default, kept in view so what
+  it does is measured on every run (``docs/inserts.md``).
 
 Metrics on display-encoded values (sRGB transfer of the scene-linear color,
 clipped to [0, 1]): PSNR and SSIM (7x7 box window) over the frame and in the
@@ -80,6 +83,7 @@ OURS = {
     "neural": ["--backend", "neural"],
     "neural_k0": ["--backend", "neural", "--context", "0"],
     "neural_nostab": ["--backend", "neural", "--set", "stabilize=false"],
+    "classical_tone": ["--backend", "classical", "--set", "match_tone=true"],
 }
 METHODS = PEERS + tuple(OURS)
 IN_DOMAIN_REGION = {
