@@ -31,6 +31,12 @@ def scene_dir(out: Path, scene_id: int, test_every: int) -> Path:
     return out / split / f"scene_{scene_id:06d}"
 
 
+#: Exit codes of a render stopped from outside (SIGINT, SIGTERM): the scene
+#: did not fail. A kill (SIGKILL, also the kernel's when memory runs out)
+#: still counts as a failure, so a scene that cannot fit is not retried forever.
+STOP_SIGNALS = (-2, -15)
+
+
 def parse_range(s: str) -> range:
     if ":" in s:
         a, b = s.split(":", 1)
@@ -128,6 +134,16 @@ def main(argv: list[str] | None = None) -> int:
         _current["child"] = None
         if _current["stopping"]:
             print(f"[{time.strftime('%H:%M:%S')}] stopped during scene {sid}; rerun to resume", flush=True)
+            return 130
+        if rc in STOP_SIGNALS:
+            # The render itself was stopped from outside (the machine
+            # shutting down, someone freeing the cores): not the scene's
+            # failure, so a rerun renders it again.
+            print(
+                f"[{time.strftime('%H:%M:%S')}] scene {sid}'s render was stopped (signal {-rc}); "
+                "rerun to resume",
+                flush=True,
+            )
             return 130
         if rc == 0 and (d / "meta.json").exists():
             done += 1

@@ -103,3 +103,35 @@ def test_texture_selection_keeps_surface_colors_only():
     assert not texture_wanted("textures/evil1_walls/wallpaperd_old.jpg", 1_000)
     assert not texture_wanted("models/evil1_walls/wall.jpg", big)
     assert not texture_wanted("textures/evil1_walls/wall.png", big)
+
+
+def test_a_render_stopped_from_outside_is_not_a_failed_scene(tmp_path):
+    """A render ended by SIGTERM (someone freeing the cores) stops the run
+    and is rendered again on the next one; a render that exits with an error
+    is noted as failed and skipped."""
+    import signal
+    import stat
+
+    from training.synth import generate
+
+    fake = tmp_path / "python"
+    fake.write_text(
+        "#!/bin/sh\n"
+        'case "$*" in\n'
+        '  *"--scene-id 5 "*) kill -TERM $$ ;;\n'
+        '  *"--scene-id 6 "*) echo "render broke"; exit 3 ;;\n'
+        "esac\n"
+        "exit 0\n"
+    )
+    fake.chmod(fake.stat().st_mode | stat.S_IXUSR)
+    out = tmp_path / "data"
+    handlers = signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGINT)
+    try:
+        assert generate.main(["--out", str(out), "--scenes", "5:7", "--bpy-python", str(fake)]) == 130
+        assert not (out / "failed").exists()
+        generate.main(["--out", str(out), "--scenes", "6", "--bpy-python", str(fake)])
+        note = out / "failed" / "scene_000006.txt"
+        assert note.exists() and "exit 3" in note.read_text()
+    finally:
+        signal.signal(signal.SIGTERM, handlers[0])
+        signal.signal(signal.SIGINT, handlers[1])
