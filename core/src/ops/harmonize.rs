@@ -1,11 +1,11 @@
 //! Insert harmonization: match the color statistics of an inserted object
 //! to a ring of surrounding background with a few global filter parameters
-//! ([`Tone`]: exposure, white balance, contrast, saturation).
+//! ([`Tone`]: exposure, white balance, saturation).
 //!
 //! Statistics are taken in log2 space on unpremultiplied color
 //! (`l_k = log2(c_k + 1e-3)`): per pixel a brightness `mu = mean_k l_k` and a
 //! log chroma `chi_k = l_k - mu`. Over a region: the mean of each `l_k`, the
-//! mean and standard deviation of `mu`, and the mean chroma magnitude
+//! mean of `mu`, and the mean chroma magnitude
 //! `sqrt(mean_k chi_k^2)`. The ring is a band around the insert (its width a
 //! quarter of the insert's size, 8 to 128 pixels), built on a mask
 //! downsampled by [`RING_CELL`] and excluding the insert and one cell around
@@ -24,9 +24,8 @@
 //! the object's own color and left alone. Saturation stays at identity
 //! unless the evidence is strong: it is only ever reduced, when the insert
 //! is far more saturated than its ring and its chroma points away from the
-//! ring's illuminant. Contrast is never estimated (it stays 1; [`Tone`]
-//! keeps the field for [`apply`] and the carried state): matching the
-//! insert's brightness spread to its ring's cost 0.9-1.3 dB in the insert
+//! ring's illuminant. There is no contrast term: matching the insert's
+//! brightness spread to its ring's cost 0.9-1.3 dB in the insert
 //! on the generator's tone-shifted inserts and left out-of-domain inserts
 //! unchanged (`docs/inserts.md`).
 
@@ -76,12 +75,8 @@ pub struct Tone {
     pub exposure: f32,
     /// Per-channel shift in stops; sums to 0 (brightness unchanged).
     pub white_balance: [f32; 3],
-    /// Factor on the brightness deviation from `pivot`.
-    pub contrast: f32,
     /// Factor on the log chroma.
     pub saturation: f32,
-    /// Mean log2 brightness of the insert the contrast pivots about.
-    pub pivot: f32,
 }
 
 impl Tone {
@@ -89,43 +84,32 @@ impl Tone {
     pub const IDENTITY: Tone = Tone {
         exposure: 0.0,
         white_balance: [0.0; 3],
-        contrast: 1.0,
         saturation: 1.0,
-        pivot: 0.0,
     };
 
     /// Number of values in [`Tone::to_vec`].
-    pub const LEN: usize = 7;
+    pub const LEN: usize = 5;
 
     /// The parameters as a flat vector (for the backend's carry).
     pub fn to_vec(&self) -> Vec<f32> {
         let wb = self.white_balance;
-        vec![
-            self.exposure,
-            wb[0],
-            wb[1],
-            wb[2],
-            self.contrast,
-            self.saturation,
-            self.pivot,
-        ]
+        vec![self.exposure, wb[0], wb[1], wb[2], self.saturation]
     }
 
     /// Reads [`Tone::to_vec`]'s layout; `None` for a wrong length or non-finite values.
     pub fn from_slice(v: &[f32]) -> Option<Tone> {
-        if v.len() != Self::LEN || v.iter().any(|x| !x.is_finite()) || v[4] <= 0.0 || v[5] <= 0.0 {
+        if v.len() != Self::LEN || v.iter().any(|x| !x.is_finite()) || v[4] <= 0.0 {
             return None;
         }
         Some(Tone {
             exposure: v[0],
             white_balance: [v[1], v[2], v[3]],
-            contrast: v[4],
-            saturation: v[5],
-            pivot: v[6],
+            saturation: v[4],
         })
     }
 
-    /// Moves a share `t` of the way to `target` (factors interpolate in log space).
+    /// Moves a share `t` of the way to `target` (the saturation factor
+    /// interpolates in log space).
     pub fn toward(&self, target: &Tone, t: f32) -> Tone {
         let lerp = |a: f32, b: f32| a + t * (b - a);
         let glerp = |a: f32, b: f32| (a.ln() + t * (b.ln() - a.ln())).exp();
@@ -136,27 +120,21 @@ impl Tone {
                 lerp(self.white_balance[1], target.white_balance[1]),
                 lerp(self.white_balance[2], target.white_balance[2]),
             ],
-            contrast: glerp(self.contrast, target.contrast),
             saturation: glerp(self.saturation, target.saturation),
-            pivot: lerp(self.pivot, target.pivot),
         }
     }
 
     /// True when no parameter moves by more than `tol` (stops for exposure
-    /// and white balance, a ratio for contrast and saturation).
+    /// and white balance, a ratio for saturation).
     pub fn is_near_identity(&self, tol: f32) -> bool {
         self.exposure.abs() <= tol
             && self.white_balance.iter().all(|w| w.abs() <= tol)
-            && (self.contrast - 1.0).abs() <= tol
             && (self.saturation - 1.0).abs() <= tol
     }
 
     /// True when the filter changes nothing.
     pub fn is_identity(&self) -> bool {
-        self.exposure == 0.0
-            && self.white_balance == [0.0; 3]
-            && self.contrast == 1.0
-            && self.saturation == 1.0
+        self.exposure == 0.0 && self.white_balance == [0.0; 3] && self.saturation == 1.0
     }
 }
 
@@ -169,14 +147,12 @@ pub struct Stats {
     pub log_mean: [f64; 3],
     /// Mean brightness `mu`.
     pub brightness: f64,
-    /// Standard deviation of `mu`.
-    pub brightness_std: f64,
     /// Mean chroma magnitude.
     pub chroma: f64,
 }
 
-/// Weighted sums: w, w*l_r, w*l_g, w*l_b, w*mu, w*mu^2, w*chroma.
-type Sums = [f64; 7];
+/// Weighted sums: w, w*l_r, w*l_g, w*l_b, w*mu, w*chroma.
+type Sums = [f64; 6];
 
 fn add(s: &mut Sums, wt: f32, l: [f32; 3], mu: f32, chroma: f32) {
     let wt = wt as f64;
@@ -185,8 +161,7 @@ fn add(s: &mut Sums, wt: f32, l: [f32; 3], mu: f32, chroma: f32) {
     s[2] += wt * l[1] as f64;
     s[3] += wt * l[2] as f64;
     s[4] += wt * mu as f64;
-    s[5] += wt * (mu as f64) * (mu as f64);
-    s[6] += wt * chroma as f64;
+    s[5] += wt * chroma as f64;
 }
 
 fn finish(s: &Sums) -> Option<Stats> {
@@ -194,13 +169,11 @@ fn finish(s: &Sums) -> Option<Stats> {
         return None;
     }
     let w = s[0];
-    let mean = s[4] / w;
     Some(Stats {
         weight: w,
         log_mean: [s[1] / w, s[2] / w, s[3] / w],
-        brightness: mean,
-        brightness_std: (s[5] / w - mean * mean).max(0.0).sqrt(),
-        chroma: s[6] / w,
+        brightness: s[4] / w,
+        chroma: s[5] / w,
     })
 }
 
@@ -349,8 +322,8 @@ pub fn measure_among(
     let partial: Vec<(Sums, Sums)> = rows
         .par_iter()
         .map(|&y| {
-            let mut si = [0.0; 7];
-            let mut sb = [0.0; 7];
+            let mut si = [0.0; 6];
+            let mut sb = [0.0; 6];
             for x in (area.x0..area.x1).step_by(step) {
                 let p = y * w + x;
                 let a = planes[3][p];
@@ -381,10 +354,10 @@ pub fn measure_among(
         })
         .collect();
     // Sequential sum in row order: independent of the thread count.
-    let mut si = [0.0; 7];
-    let mut sb = [0.0; 7];
+    let mut si = [0.0; 6];
+    let mut sb = [0.0; 6];
     for (a, b) in &partial {
-        for k in 0..7 {
+        for k in 0..6 {
             si[k] += a[k];
             sb[k] += b[k];
         }
@@ -455,9 +428,7 @@ pub fn tone_from_stats(insert: &Stats, ring: &Stats) -> Tone {
     Tone {
         exposure,
         white_balance: wb,
-        contrast: 1.0,
         saturation,
-        pivot: insert.brightness as f32,
     }
 }
 
@@ -821,8 +792,8 @@ pub fn estimate_among(
 }
 
 /// Applies `tone` to the insert in place, weighted by the mask: per pixel
-/// `mu' = pivot + exposure + contrast * (mu - pivot)` and
-/// `l'_k = mu' + saturation * chi_k + wb_k`, then `c'_k = c_k * 2^(l'_k - l_k)`
+/// `l'_k = mu + exposure + saturation * chi_k + wb_k`, then
+/// `c'_k = c_k * 2^(l'_k - l_k)`
 /// (so black stays black). Only pixels inside `insert` (the mask's bounding
 /// box, [`insert_rect`]) are touched.
 pub fn apply(img: &mut Image, mask: &[f32], insert: Rect, tone: &Tone) {
@@ -848,7 +819,7 @@ pub fn apply(img: &mut Image, mask: &[f32], insert: Rect, tone: &Tone) {
                 let m = mrow[x];
                 let k = 1.0 / fmax(ar[x], 1e-6);
                 let (l, mu, chi) = log_color(rr[x] * k, gr[x] * k, br[x] * k);
-                let mu2 = t.pivot + t.exposure + t.contrast * (mu - t.pivot);
+                let mu2 = mu + t.exposure;
                 let gain = |ch: usize| {
                     let l2 = mu2 + t.saturation * chi[ch] + t.white_balance[ch];
                     1.0 + m * (fast_exp2(l2 - l[ch]) - 1.0)
@@ -947,7 +918,6 @@ mod tests {
         let tone = estimate(&img, &mask, rect, None, None).unwrap();
         assert!(tone.exposure < -0.5, "{tone:?}");
         assert!(tone.white_balance[2] < -0.1, "{tone:?}");
-        assert_eq!(tone.contrast, 1.0, "{tone:?}");
         assert_eq!(tone.saturation, 1.0, "{tone:?}");
         apply(&mut img, &mask, rect, &tone);
         let after = err(&img);
@@ -1000,15 +970,12 @@ mod tests {
         let t = Tone {
             exposure: 1.0,
             white_balance: [0.1, 0.0, -0.1],
-            contrast: 2.0,
             saturation: 0.5,
-            pivot: -2.0,
         };
         assert_eq!(Tone::from_slice(&t.to_vec()), Some(t));
         assert_eq!(Tone::from_slice(&[1.0; 3]), None);
         let half = Tone::IDENTITY.toward(&t, 0.5);
         assert!((half.exposure - 0.5).abs() < 1e-6);
-        assert!((half.contrast - 2f32.sqrt()).abs() < 1e-5);
         assert!((half.saturation - 0.5f32.sqrt()).abs() < 1e-5);
         assert!(Tone::IDENTITY.is_identity() && !t.is_identity());
     }
