@@ -279,6 +279,13 @@ def main(argv: list[str] | None = None) -> int:
         default=defaults.correction_history,
         help="with --from-onnx",
     )
+    ap.add_argument(
+        "--prior-depth-tol",
+        type=float,
+        default=None,
+        help="the prior's depth-aware push-pull tolerance (ModelConfig.prior_depth_tol; 0: off; "
+        "default: the checkpoint's, or off with --from-onnx)",
+    )
     ap.add_argument("--out", type=Path, required=True, help="output path without extension")
     ap.add_argument("--name", default="harmonizer-small")
     ap.add_argument("--version", default="0.1.0")
@@ -320,6 +327,7 @@ def main(argv: list[str] | None = None) -> int:
             prior_gate=args.prior_gate,
             correction_history=args.correction_history,
             **({"prior_frames": args.history_read} if args.history_read is not None else {}),
+            **({"prior_depth_tol": args.prior_depth_tol} if args.prior_depth_tol is not None else {}),
         )
         step = None
         if args.repair_margin is None:
@@ -333,6 +341,8 @@ def main(argv: list[str] | None = None) -> int:
             model.cfg.prior_frames = args.history_read
         if args.blend_gain is not None:
             model.cfg.blend_gain = args.blend_gain
+        if args.prior_depth_tol is not None:
+            model.cfg.prior_depth_tol = args.prior_depth_tol
         model.eval()
         step = ck["step"]
     manifest = export(model, args.out, args.name, args.version, args.stabilize, args.repair_margin)

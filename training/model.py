@@ -94,6 +94,15 @@ class ModelConfig:
     # `repair_margin`, moved before the history blend so the blend also
     # steadies covered pixels; 0: none).
     graph_margin: int = 0
+    # Depth-aware push-pull in the prior (0: off). With a tolerance, the input
+    # gains a last channel, `disparity` (1 / (1 + planar depth), 0 where the
+    # host gave none), and each halving of the push keeps, of the frame's own
+    # covered pixels in a 2x2 block, only those within this relative
+    # disparity of the block's farthest: holes fill from the background
+    # side of a disocclusion, not from the object in front of it. Pixels the
+    # history filled carry no depth of their own and are always kept. The
+    # correction does not read the disparity (its weights are unchanged).
+    prior_depth_tol: float = 0.0
     # Width of a 1x1 convolution on the unshuffled input (0: none); it replaces the
     # first 3x3 layer's many input channels with a cheap mix.
     stem: int = 32
@@ -108,7 +117,14 @@ class ModelConfig:
         ch = ["color.r", "color.g", "color.b", "coverage", "insert"]
         for k in range(self.context_frames):
             ch += [f"hist{k}.r", f"hist{k}.g", f"hist{k}.b", f"valid{k}"]
+        if self.prior_depth_tol > 0:
+            ch.append("disparity")
         return ch
+
+    def network_channels(self) -> int:
+        """Input channels the correction's stem is sized for (the disparity,
+        read by the prior alone, is not one)."""
+        return len(self.input_channels()) - (1 if self.prior_depth_tol > 0 else 0)
 
     @property
     def spatial_multiple(self) -> int:
@@ -275,6 +291,108 @@ def push_pull_clamped(c: torch.Tensor, w: torch.Tensor, levels: int) -> torch.Te
     return f
 
 
+def _shifted(x: torch.Tensor) -> dict:
+    """``x`` shifted by -1, 0, +1 rows and columns (edges replicated):
+    ``s[(dy, dx)][..., i, j] = x[..., i + dy, j + dx]``."""
+    h, w = x.shape[-2:]
+    p = F.pad(x, (1, 1, 1, 1), mode="replicate")
+    return {(dy, dx): p[..., 1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w] for dy in (-1, 0, 1) for dx in (-1, 0, 1)}
+
+
+# The bilinear taps of a 2x upsampling (pixel centres, align_corners=False):
+# fine pixel 2i takes coarse i-1 (1/4) and i (3/4); 2i+1 takes i (3/4) and i+1 (1/4).
+_PHASE_TAPS = {0: ((-1, 0.25), (0, 0.75)), 1: ((0, 0.75), (1, 0.25))}
+
+
+def upsample_far(f: torch.Tensor, fd: torch.Tensor, size, tol: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """The 2x bilinear upsampling of ``f`` (and its disparity ``fd``) to
+    ``size``, each fine pixel taking of its four taps only those within the
+    relative ``tol`` of the farthest (smallest disparity), renormalized."""
+    sf, sd = _shifted(f), _shifted(fd)
+    outs, douts = [], []
+    for py in (0, 1):
+        for px in (0, 1):
+            taps = [
+                (sf[(dy, dx)], sd[(dy, dx)], wy * wx)
+                for dy, wy in _PHASE_TAPS[py]
+                for dx, wx in _PHASE_TAPS[px]
+            ]
+            far = torch.minimum(torch.minimum(taps[0][1], taps[1][1]), torch.minimum(taps[2][1], taps[3][1]))
+            acc = torch.zeros_like(f)
+            dacc = torch.zeros_like(fd)
+            wsum = torch.zeros_like(fd)
+            for c, d, wt in taps:
+                k = (d <= far * (1 + tol)).to(f.dtype) * wt
+                acc = acc + k * c
+                dacc = dacc + k * d
+                wsum = wsum + k
+            outs.append(acc / wsum)
+            douts.append(dacc / wsum)
+    h, w = size
+
+    def interleave(phases: list) -> torch.Tensor:
+        n, c, ch, cw = phases[0].shape
+        x = torch.stack(phases, 2).reshape(n, c * 4, ch, cw)
+        return F.pixel_shuffle(x, 2)[..., :h, :w]
+
+    return interleave(outs), interleave(douts)
+
+
+# Larger than any disparity (1 / (1 + depth) <= 1): "no depth of its own".
+NO_DISPARITY = 4.0
+
+
+def push_pull_depth(
+    c: torch.Tensor, w: torch.Tensor, own: torch.Tensor, disp: torch.Tensor, levels: int, tol: float
+) -> torch.Tensor:
+    """``push_pull_clamped`` filled from the background side.
+
+    ``own`` (at most ``w``) is the part of each pixel's weight that is the
+    frame's own data, at disparity ``disp``. Pull: before each halving, a
+    pixel with data of its own whose disparity exceeds its 2x2 block's
+    smallest by more than the relative ``tol`` (a nearer surface) is left
+    out of the block's sum (the level itself keeps all its data); the coarse
+    level's disparity is the own-weighted mean of what it kept. Push: as
+    ``push_pull_clamped``, but the last step, into the full resolution,
+    takes of each pixel's four bilinear taps only the far ones
+    (``upsample_far``) with the disparity completed on the way down.
+    Measured on the held-out reconstructions (the prior alone, one frame):
+    the far side in the last step only gained 1.1 dB on average over the
+    plain fill; in every step it lost up to 1.1 dB on two sequences (a wide
+    unseen area takes the far wall behind it). Pixels the history filled
+    (weight without own data) are never left out."""
+    cs, ws, owns, ds = [c], [w], [own], [disp]
+    for _ in range(levels):
+        has = own > 0
+        key = torch.where(has, disp, torch.full_like(disp, NO_DISPARITY))
+        far = -F.max_pool2d(-F.pad(key, (0, 1, 0, 1), value=NO_DISPARITY), 2)
+        far = F.interpolate(far, size=key.shape[-2:], mode="nearest")
+        keep = (~(has & (disp > far * (1 + tol)))).to(c.dtype)
+        c, w, own = c * keep, w * keep, own * keep
+        c = F.avg_pool2d(F.pad(c, (0, 1, 0, 1)), 2) * 4
+        w = F.avg_pool2d(F.pad(w, (0, 1, 0, 1)), 2) * 4
+        od = F.avg_pool2d(F.pad(own * disp, (0, 1, 0, 1)), 2) * 4
+        own = F.avg_pool2d(F.pad(own, (0, 1, 0, 1)), 2) * 4
+        disp = od / own.clamp(min=1e-12)
+        k = w.clamp(max=1) / w.clamp(min=1e-12)
+        c = c * k
+        w = w.clamp(max=1)
+        cs.append(c)
+        ws.append(w)
+        owns.append(own)
+        ds.append(disp)
+    f = cs[-1] / ws[-1].clamp(min=1e-4)
+    # Where the coarsest level has no depth of its own: the farthest there is.
+    fd = torch.where(owns[-1] > 0, ds[-1], torch.zeros_like(ds[-1]))
+    for lv in range(levels - 1, 0, -1):
+        up = F.interpolate(f, size=cs[lv].shape[-2:], mode="bilinear", align_corners=False)
+        upd = F.interpolate(fd, size=cs[lv].shape[-2:], mode="bilinear", align_corners=False)
+        f = cs[lv] + (1 - ws[lv]) * up
+        fd = torch.where(owns[lv] > 0, ds[lv], upd)
+    up, _ = upsample_far(f, fd, cs[0].shape[-2:], tol)
+    return cs[0] + (1 - ws[0]) * up
+
+
 class Enhancer(nn.Module):
     """UNet on pixel-unshuffled input.
 
@@ -289,7 +407,7 @@ class Enhancer(nn.Module):
         super().__init__()
         self.cfg = cfg
         r = cfg.unshuffle
-        cin = (len(cfg.input_channels()) + (3 if cfg.prior else 0)) * r * r
+        cin = (cfg.network_channels() + (3 if cfg.prior else 0)) * r * r
         w = list(cfg.widths)
         prev = cin
         self.stem = None
@@ -338,7 +456,8 @@ class Enhancer(nn.Module):
         insert, then each history frame's color and validity. One Split in
         the graph; a slice per use copied its full-resolution planes each time
         (slices took 35 of ONNX Runtime's 428 ms at 1920x1088)."""
-        return list(torch.split(x, [3, 1, 1] + [3, 1] * self.cfg.context_frames, 1))
+        depth = [1] if self.cfg.prior_depth_tol > 0 else []
+        return list(torch.split(x, [3, 1, 1] + [3, 1] * self.cfg.context_frames + depth, 1))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         parts = self.split(x)
@@ -349,11 +468,11 @@ class Enhancer(nn.Module):
             p = self.prior(x, parts)
             est = p + self.correction(torch.cat(parts[:3] + [p], 1))
             return self.after_network(est, parts)
-        seen = x
+        seen = x[:, : self.cfg.network_channels()]
         if self._folds_history_out():
             seen = x[:, :5]
-        elif not self.cfg.correction_history and x.shape[1] > 5:
-            seen = torch.cat([x[:, :5], torch.zeros_like(x[:, 5:])], 1)
+        elif not self.cfg.correction_history and seen.shape[1] > 5:
+            seen = torch.cat([seen[:, :5], torch.zeros_like(seen[:, 5:])], 1)
         if self.cfg.prior:
             p = self.prior(x, parts)
             est = p + self.correction(torch.cat([seen, p], 1))
@@ -411,6 +530,10 @@ class Enhancer(nn.Module):
                 m = (1 - weight) * v
                 known = known + m * parts[3 + 2 * k]
                 weight = weight + m
+            if self.cfg.prior_depth_tol > 0:
+                return push_pull_depth(
+                    known, weight, cov, parts[-1], self.cfg.pushpull_levels, self.cfg.prior_depth_tol
+                )
             return push_pull_clamped(known, weight, self.cfg.pushpull_levels)
         hsum = torch.zeros_like(color)
         wsum = torch.zeros_like(cov)
@@ -611,12 +734,15 @@ def assemble_input(
     insert: torch.Tensor,
     history: list[tuple[torch.Tensor, torch.Tensor]],
     scale: torch.Tensor,
+    depth: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """The network input tensor for one frame.
 
     ``rgba`` premultiplied linear ``[N, 4, H, W]``; ``insert [N, 1, H, W]``;
     ``history``: up to K (reprojected linear color ``[N, 3, H, W]``, validity)
-    pairs, newest first; missing ones are zeros with validity 0."""
+    pairs, newest first; missing ones are zeros with validity 0; ``depth``
+    (planar ``[N, 1, H, W]``) for the ``disparity`` channel of a depth-aware
+    prior (zeros without it, as the runtime gives without depth)."""
     n, _, h, w = rgba.shape
     rgb = rgba[:, :3]
     if not cfg.premultiplied:
@@ -632,4 +758,7 @@ def assemble_input(
             parts += [encode(col, scale, cfg.log_range) * (val > 0).to(col.dtype), val]
         else:
             parts += [zero3, zero1]
+    if cfg.prior_depth_tol > 0:
+        parts.append(1 / (1 + depth.clamp(min=0)) if depth is not None else zero1)
     return torch.cat(parts, 1)
+

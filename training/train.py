@@ -46,11 +46,18 @@ TRAINING_DIR = Path(__file__).resolve().parent
 class SampleCache:
     """Loads samples on demand and keeps the most recent ``size`` in memory."""
 
-    def __init__(self, scenes: list[Path], size: int = 64):
-        self.scenes = scenes
+    def __init__(self, scenes: list[Path], size: int = 64, only: tuple[str, ...] = ()):
         self.size = size
+        self.only = only
         self.cache: dict = {}
-        self.streams = {str(p): scene_streams(p) for p in scenes}
+        self.rescan(scenes)
+
+    def rescan(self, scenes: list[Path]) -> None:
+        """Takes this scene list, each with its streams (only those asked for);
+        scenes with none of them are left out."""
+        streams = {str(p): [n for n in scene_streams(p) if not self.only or n in self.only] for p in scenes}
+        self.scenes = [p for p in scenes if streams[str(p)]]
+        self.streams = {k: v for k, v in streams.items() if v}
 
     def get(self, scene: Path, stream: str) -> dict:
         key = (str(scene), stream)
@@ -236,7 +243,8 @@ def run_window(model: Enhancer, batch: dict, cfg: dict, rng: np.random.Generator
                 # time: the history then holds the model's own errors, and the
                 # network learns not to amplify them frame after frame.
                 with torch.no_grad():
-                    pseudo = decode(model(assemble_input(mcfg, rgba, ins[:, f], hist, scale)), scale, mcfg.log_range)
+                    x = assemble_input(mcfg, rgba, ins[:, f], hist, scale, dep[:, f])
+                    pseudo = decode(model(x), scale, mcfg.log_range)
             else:
                 # A near-truth "enhanced" frame (small random gain and blur).
                 g = np.exp(rng.normal(0, 0.03, (tgt.shape[0], 3, 1, 1))).astype(np.float32)
@@ -247,7 +255,7 @@ def run_window(model: Enhancer, batch: dict, cfg: dict, rng: np.random.Generator
             hist = [(pseudo, torch.ones_like(rgba[:, 3:4]))] + hist
             hist = hist[: mcfg.context_frames]
             continue
-        x = assemble_input(mcfg, rgba, ins[:, f], hist, scale)
+        x = assemble_input(mcfg, rgba, ins[:, f], hist, scale, dep[:, f])
         out = model(x)
         # Losses see the encoding times loss_gain (the default encoding puts the log-average at 0.4).
         lg = cfg["loss_gain"]
@@ -358,6 +366,18 @@ def add_args(ap: argparse.ArgumentParser) -> None:
         default="all",
         help="blend: only the history blend learns; the rest keeps the weights it started from",
     )
+    ap.add_argument(
+        "--prior-depth-tol",
+        type=float,
+        default=None,
+        help="the prior's depth-aware push-pull (ModelConfig.prior_depth_tol; 0: off; default: off, "
+        "or the --init checkpoint's)",
+    )
+    ap.add_argument(
+        "--streams",
+        default="",
+        help="comma-separated streams to train on (e.g. s1_recon); default: every stream of a scene",
+    )
     ap.add_argument("--rescan-every", type=int, default=200, help="pick up newly rendered scenes every N steps")
     ap.add_argument("--context-frames", type=int, default=4)
     ap.add_argument("--p-no-history", type=float, default=0.3, help="share of non-temporal batches")
@@ -438,6 +458,7 @@ def main(argv: list[str] | None = None) -> int:
         "lr": args.lr,
         "seed": args.seed,
         "train_only": args.train_only,
+        "streams": args.streams,
     }
     ckpt_path = args.run / "ckpt_last.pt"
     torch.manual_seed(args.seed)
@@ -456,6 +477,8 @@ def main(argv: list[str] | None = None) -> int:
     elif args.init:
         init = load_checkpoint(args.init)
         mcfg = ModelConfig.from_dict({**init["model_cfg"], "prior_fill": args.prior_fill})
+        if args.prior_depth_tol is not None:
+            mcfg.prior_depth_tol = args.prior_depth_tol
         weights = init["model"]
         if args.fresh_blend:
             # The rest of the weights, with a history blend from its initialization.
@@ -465,13 +488,17 @@ def main(argv: list[str] | None = None) -> int:
         model = Enhancer(mcfg)
         if args.fresh_blend:
             weights |= {k: v for k, v in model.state_dict().items() if k.startswith("blend.")}
-        model.load_state_dict(weights)
+        from training.export import drop_blend_beta
+
+        model.load_state_dict(drop_blend_beta(weights, model))
         cfg["init"] = str(args.init)
         print(f"train: starting from the weights of {args.init} (step {init['step']})", flush=True)
     elif args.init_onnx:
         from training.export import weights_from_onnx
 
         changes = {"graph_margin": args.graph_margin}
+        if args.prior_depth_tol is not None:
+            changes["prior_depth_tol"] = args.prior_depth_tol
         if args.history_blend:
             changes["history_blend"] = True
         model = weights_from_onnx(args.init_onnx, **changes)
@@ -488,6 +515,7 @@ def main(argv: list[str] | None = None) -> int:
             skip=args.skip,
             prior=not args.no_prior,
             prior_fill=args.prior_fill,
+            prior_depth_tol=args.prior_depth_tol or 0.0,
         )
         model = Enhancer(mcfg)
     device = torch.device(args.device)
@@ -505,7 +533,10 @@ def main(argv: list[str] | None = None) -> int:
     opt = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=args.lr)
     if ck is not None:
         opt.load_state_dict(ck["opt"])
-    cache = SampleCache(scenes, args.cache_samples)
+    cache = SampleCache(scenes, args.cache_samples, tuple(n for n in cfg.get("streams", "").split(",") if n))
+    if not cache.scenes:
+        print(f"train: no training scene has the streams {cfg['streams']}", file=sys.stderr)
+        return 2
     log = open(args.run / "train.log", "a")
     t0 = time.time()
     model.train()
@@ -524,9 +555,8 @@ def main(argv: list[str] | None = None) -> int:
         if batches is None and args.rescan_every > 0 and step % args.rescan_every == 0:
             found = list_scenes(args.data, "train")
             if len(found) != len(cache.scenes):
-                print(f"train: {len(found)} training scenes", flush=True)
-                cache.scenes = found
-                cache.streams = {str(p): scene_streams(p) for p in found}
+                cache.rescan(found)
+                print(f"train: {len(cache.scenes)} training scenes", flush=True)
         torch.manual_seed(cfg["seed"] * 1_000_003 + step)
         if batches is None:
             batch = make_batch(cache, batch_rng(cfg["seed"], step), cfg, mcfg.key)

@@ -102,6 +102,57 @@ def test_prior_fills_holes_from_history_then_push_pull():
     assert torch.isfinite(m.prior(y)).all()
 
 
+def test_the_depth_aware_prior_fills_a_disocclusion_from_the_background():
+    from training.model import push_pull_clamped, push_pull_depth
+
+    h, w = 48, 64
+
+    def scene(lo, hi):
+        # A near object (left, dark) and the far background (right, bright);
+        # the hole between them is what the object uncovered.
+        c = torch.full((1, 3, h, w), 0.8)
+        c[..., :lo] = 0.2
+        disp = torch.full((1, 1, h, w), 0.1)
+        disp[..., :lo] = 0.5
+        cov = torch.ones(1, 1, h, w)
+        cov[..., lo:hi] = 0.0
+        return c, disp, cov
+
+    # A crack two pixels wide takes the background alone; the plain fill mixes in the object.
+    c, disp, cov = scene(29, 31)
+    plain = push_pull_clamped(c * cov, cov, 8)
+    aware = push_pull_depth(c * cov, cov, cov.clone(), disp, 8, 0.05)
+    assert torch.allclose(aware[..., 29:31], torch.full((1, 3, h, 2), 0.8))
+    assert plain[..., 29].max() < 0.4
+    # A wider hole: every pixel of it nearer the background's color than the plain fill.
+    c, disp, cov = scene(28, 36)
+    known = c * cov
+    plain = push_pull_clamped(known, cov, 8)
+    aware = push_pull_depth(known, cov, cov.clone(), disp, 8, 0.05)
+    assert (aware[..., 28:36] >= plain[..., 28:36] - 1e-6).all()
+    assert aware[..., 28:36].mean() > plain[..., 28:36].mean() + 0.02
+    # Known pixels keep their color; without depth differences the fill is plain push-pull.
+    assert torch.allclose(aware[..., :28], c[..., :28]) and torch.allclose(aware[..., 36:], c[..., 36:])
+    flat = push_pull_depth(known, cov, cov.clone(), torch.full_like(disp, 0.3), 8, 0.05)
+    assert torch.allclose(flat, plain, atol=1e-6)
+    # In the model: the last input channel is the disparity, read by the prior alone.
+    cfg = ModelConfig(widths=(8, 8, 12, 16), prior_floor=0.0, prior_gate=False, prior_depth_tol=0.05)
+    assert cfg.input_channels()[-1] == "disparity" and cfg.network_channels() == len(cfg.input_channels()) - 1
+    m = Enhancer(cfg)
+    assert m.stem[0].in_channels == Enhancer(ModelConfig(widths=(8, 8, 12, 16))).stem[0].in_channels
+    x = torch.zeros(1, len(cfg.input_channels()), h, w)
+    x[:, 0:3], x[:, 3:4], x[:, -1:] = c, cov, disp
+    assert torch.allclose(m.prior(x), aware, atol=1e-6)
+    rgba = torch.cat([known, cov], 1)
+    depth = 1 / disp - 1
+    y = assemble_input(cfg, rgba, torch.zeros(1, 1, h, w), [], frame_scale(rgba, cfg.key), depth)
+    assert torch.allclose(y[:, -1:], disp, atol=1e-6)
+    # Odd sizes, holes at the edges: finite everywhere.
+    z = torch.rand(1, len(cfg.input_channels()), 37, 53)
+    z[:, 3, :, :20] = 0.0
+    assert torch.isfinite(m.prior(z)).all()
+
+
 def test_prior_drops_faint_colors_and_gates_the_history_by_covered_neighbours():
     cfg = ModelConfig(widths=(8, 8, 12, 16))
     assert cfg.prior_floor == 0.95 and cfg.prior_gate and not cfg.correction_history
@@ -206,11 +257,11 @@ def test_a_lean_graph_reads_only_its_history_frames_and_comes_back_whole(tmp_pat
         export(Enhancer(ModelConfig(widths=(8, 8, 12, 16), prior_frames=2, correction_history=True)), tmp_path / "h")
 
 
-@pytest.mark.parametrize("prior", [True, False])
-def test_export_matches_pytorch_in_onnx_runtime(tmp_path, prior):
+@pytest.mark.parametrize("prior,depth_tol", [(True, 0.0), (False, 0.0), (True, 0.05)])
+def test_export_matches_pytorch_in_onnx_runtime(tmp_path, prior, depth_tol):
     pytest.importorskip("onnxruntime")
     torch.manual_seed(0)
-    m = Enhancer(ModelConfig(widths=(8, 8, 12, 16), prior=prior))
+    m = Enhancer(ModelConfig(widths=(8, 8, 12, 16), prior=prior, prior_depth_tol=depth_tol))
     torch.nn.init.normal_(m.head.weight, std=0.05)  # a non-trivial residual
     manifest = hz_export.export(m, tmp_path / "model")
     diff = hz_export.verify(m, tmp_path / "model.onnx", sizes=((48, 64), (32, 96), (144, 256)))

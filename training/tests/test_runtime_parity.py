@@ -38,7 +38,8 @@ def ort_library():
     return str(libs[-1]) if libs else None
 
 
-def test_harmonize_neural_matches_the_python_contract(tmp_path):
+@pytest.mark.parametrize("depth_tol", [0.0, 0.05])
+def test_harmonize_neural_matches_the_python_contract(tmp_path, depth_tol):
     exe, lib = harmonize_binary(), ort_library()
     if exe is None or lib is None:
         pytest.skip(
@@ -46,7 +47,8 @@ def test_harmonize_neural_matches_the_python_contract(tmp_path):
             "build with `cargo build --release -p harmonizer-cli` and run scripts/setup-venv.sh"
         )
     torch.manual_seed(0)
-    model = Enhancer(ModelConfig(widths=(8, 8, 12, 16)))
+    # With a depth-aware prior the runtime also gives the disparity channel.
+    model = Enhancer(ModelConfig(widths=(8, 8, 12, 16), prior_depth_tol=depth_tol))
     torch.nn.init.normal_(model.head.weight, std=0.05)
     hz_export.export(model, tmp_path / "model")
     man = json.loads((tmp_path / "model.json").read_text())
@@ -61,10 +63,14 @@ def test_harmonize_neural_matches_the_python_contract(tmp_path):
     rgb = rgb * cov
     insert = np.zeros((h, w), np.float32)
     insert[50:70, 10:30] = 1.0
-    write_exr(
-        tmp_path / "in.0001.exr",
-        {"R": rgb[0], "G": rgb[1], "B": rgb[2], "A": cov, "mask.insert": insert},
-    )
+    # Planar depth: a near object in front of a far wall, empty in the hole.
+    depth = np.full((h, w), 8.0, np.float32)
+    depth[:, :50] = 2.0
+    depth[cov < 1] = 1e10
+    channels = {"R": rgb[0], "G": rgb[1], "B": rgb[2], "A": cov, "mask.insert": insert}
+    if depth_tol > 0:
+        channels["Z"] = depth
+    write_exr(tmp_path / "in.0001.exr", channels)
     env = dict(os.environ, ORT_DYLIB_PATH=lib, HARMONIZER_ORT_LIB=lib)
     cmd = [
         str(exe),
@@ -89,7 +95,9 @@ def test_harmonize_neural_matches_the_python_contract(tmp_path):
 
     rgba = torch.from_numpy(np.concatenate([rgb, cov[None]])[None])
     scale = frame_scale(rgba, man["encoding"]["key"])
-    x = assemble_input(model.cfg, rgba, torch.from_numpy(insert[None, None]), [], scale)
+    x = assemble_input(
+        model.cfg, rgba, torch.from_numpy(insert[None, None]), [], scale, torch.from_numpy(depth[None, None])
+    )
     # The frame fits one tile: the runtime's window starts at the frame edge and is
     # the frame reflected on the far side up to a multiple of spatial_multiple
     # (core/src/backend/neural/tiling.rs).
