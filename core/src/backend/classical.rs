@@ -5,7 +5,9 @@
 //!    from the reprojected history (frame 0, then older frames only where
 //!    still missing, and only while more than [`OLDER_HISTORY_MIN_HOLES`] of
 //!    the frame is missing), then by push-pull over a window around the rest,
-//!    on the square root of the color ([`crate::ops::inpaint::push_pull_sqrt`]).
+//!    on the square root of the color ([`crate::ops::inpaint::push_pull_sqrt`];
+//!    with depth, from the background side of each silhouette:
+//!    [`crate::ops::inpaint::push_pull_far`]).
 //!    The history fills a pixel only where few confidently covered pixels
 //!    are near ([`history_weight`] of [`crate::ops::inpaint::KnownCounts`]
 //!    within [`GATE_RADIUS`]): thin gaps take the spatial fill. Pixels below
@@ -301,6 +303,12 @@ fn run_ops_on(
                 pool.install(|| inpaint::drop_faint(img, hh.rect, params.coverage_floor))
             });
         }
+        // With depth, the spatial fill takes the background side; it tells
+        // the frame's own data from what the history fills by this copy.
+        let own = match (&holes, frame.depth.as_deref()) {
+            (Some(_), Some(depth)) => Some((img.plane(3).to_vec(), depth)),
+            _ => None,
+        };
         // History only where few confidently covered pixels are near: in
         // the thin gaps between a reconstruction's splats the spatial fill
         // from the neighbours is closer than last frame's fill reprojected.
@@ -329,6 +337,7 @@ fn run_ops_on(
                             w,
                             *rect,
                             params.coverage_floor,
+                            frame.depth.as_deref(),
                         )
                     })
                 })
@@ -395,7 +404,10 @@ fn run_ops_on(
         if let Some(hh) = holes {
             let window = inpaint::fill_window(hh.rect, w, h);
             stages.time("inpaint", || {
-                pool.install(|| inpaint::push_pull_sqrt(img, window, missing.as_deref()))
+                pool.install(|| match &own {
+                    Some((own, depth)) => inpaint::push_pull_far(img, window, own, depth),
+                    None => inpaint::push_pull_sqrt(img, window, missing.as_deref()),
+                })
             });
         }
     }

@@ -14,7 +14,10 @@ use super::{bbox_below, par_bands_mut, rgba_planes_mut, Rect};
 use crate::frame::Image;
 use crate::temporal::ReprojectedFrame;
 
+mod far;
 mod sparse;
+
+pub use far::{push_pull_far, FAR_TOLERANCE};
 
 /// Coverage at or above this counts as complete (snaps to exactly 1).
 pub const FULL: f32 = 1.0 - 1e-5;
@@ -338,7 +341,18 @@ impl SpatialFill {
     /// planes (`rgba`: RGB premultiplied, A coverage, `width` pixels a
     /// row), from its pixels covered at least `floor`. `None` when the
     /// window has no fully covered pixel.
-    pub fn new(rgba: [&[f32]; 4], width: usize, holes: Rect, floor: f32) -> Option<SpatialFill> {
+    ///
+    /// With `depth` (the frame's planar depth), the fill takes the
+    /// background side of silhouettes ([`push_pull_far`], each half-resolution
+    /// pixel at the farthest depth of its covered pixels), as the spatial
+    /// fill of the holes does.
+    pub fn new(
+        rgba: [&[f32]; 4],
+        width: usize,
+        holes: Rect,
+        floor: f32,
+        depth: Option<&[f32]>,
+    ) -> Option<SpatialFill> {
         let height = rgba[3].len() / width.max(1);
         let window = fill_window(holes, width, height);
         let (hw, hh) = (window.width().div_ceil(2), window.height().div_ceil(2));
@@ -391,7 +405,33 @@ impl SpatialFill {
                 *v = (counts.share(x, y) / NEAR_SHARE).min(1.0);
             }
         });
-        push_pull_sqrt(&mut img, Rect::full(hw, hh), None);
+        // Each half-resolution pixel's depth: the farthest of its covered pixels.
+        let far = depth.map(|d| {
+            let mut far = vec![f32::NEG_INFINITY; hw * hh];
+            far.par_chunks_mut(hw).enumerate().for_each(|(y, row)| {
+                let y = window.y0 + 2 * y;
+                for (x, f) in row.iter_mut().enumerate() {
+                    let xa = window.x0 + 2 * x;
+                    for yy in y..(y + 2).min(window.y1) {
+                        for xx in xa..(xa + 2).min(window.x1) {
+                            let p = yy * width + xx;
+                            let c = rgba[3][p];
+                            if c >= floor && c > 0.0 {
+                                *f = f.max(d[p]);
+                            }
+                        }
+                    }
+                }
+            });
+            far
+        });
+        match far {
+            Some(far) => {
+                let own = img.plane(3).to_vec();
+                push_pull_far(&mut img, Rect::full(hw, hh), &own, &far);
+            }
+            None => push_pull_sqrt(&mut img, Rect::full(hw, hh), None),
+        }
         img.plane_mut(3).copy_from_slice(&near);
         Some(SpatialFill { img, window })
     }
@@ -1335,7 +1375,7 @@ mod tests {
         });
         let planes = [img.plane(0), img.plane(1), img.plane(2), img.plane(3)];
         let holes = find_holes(&img).unwrap().rect;
-        let fill = SpatialFill::new(planes, w, holes, 0.0).unwrap();
+        let fill = SpatialFill::new(planes, w, holes, 0.0, None).unwrap();
         let history = [0.1, 0.2, 0.3, 1.0];
         // In the small hole: the flat color, pulled by the whole share.
         let c = fill.pull(32, 62, history, 0.5);
@@ -1361,6 +1401,6 @@ mod tests {
             empty.plane(2),
             empty.plane(3),
         ];
-        assert!(SpatialFill::new(planes, 8, Rect::full(8, 8), 0.0).is_none());
+        assert!(SpatialFill::new(planes, 8, Rect::full(8, 8), 0.0, None).is_none());
     }
 }

@@ -947,6 +947,7 @@ impl Neural {
                                     w,
                                     rect,
                                     input.params.coverage_floor,
+                                    frame.depth.as_deref(),
                                 )
                             })
                         })
