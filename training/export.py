@@ -263,6 +263,19 @@ def drop_blend_beta(weights: dict, model: Enhancer) -> dict:
     return weights
 
 
+def average_weights(weights: dict, other: Path, share: float, model: Enhancer) -> dict:
+    """``share`` of ``weights`` plus ``1 - share`` of checkpoint ``other``'s, which
+    must have the same parameters (a fine-tuning's start: averaging a fine-tuned
+    network with the one it started from keeps part of what each does best)."""
+    if not 0.0 <= share <= 1.0:
+        raise ValueError(f"--average-share {share} is outside 0..1")
+    ck = torch.load(other, map_location="cpu", weights_only=False)
+    theirs = drop_blend_beta(ck["model"], model)
+    if set(theirs) != set(weights) or any(theirs[k].shape != v.shape for k, v in weights.items()):
+        raise ValueError(f"{other}: its weights do not match the checkpoint's (another architecture)")
+    return {k: share * v + (1 - share) * theirs[k] for k, v in weights.items()}
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     src = ap.add_mutually_exclusive_group(required=True)
@@ -285,6 +298,19 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help="the prior's depth-aware push-pull tolerance (ModelConfig.prior_depth_tol; 0: off; "
         "default: the checkpoint's, or off with --from-onnx)",
+    )
+    ap.add_argument(
+        "--average-with",
+        type=Path,
+        default=None,
+        help="with --ckpt: average its weights with this checkpoint's (same architecture), e.g. the run it was "
+        "fine-tuned from",
+    )
+    ap.add_argument(
+        "--average-share",
+        type=float,
+        default=0.5,
+        help="with --average-with: the share of --ckpt's weights in the average (the rest from --average-with)",
     )
     ap.add_argument("--out", type=Path, required=True, help="output path without extension")
     ap.add_argument("--name", default="harmonizer-small")
@@ -336,7 +362,14 @@ def main(argv: list[str] | None = None) -> int:
     else:
         ck = torch.load(args.ckpt, map_location="cpu", weights_only=False)
         model = Enhancer(ModelConfig.from_dict(ck["model_cfg"]))
-        model.load_state_dict(drop_blend_beta(ck["model"], model))
+        weights = drop_blend_beta(ck["model"], model)
+        if args.average_with is not None:
+            try:
+                weights = average_weights(weights, args.average_with, args.average_share, model)
+            except (ValueError, OSError) as e:
+                print(f"export: {e}", file=sys.stderr)
+                return 2
+        model.load_state_dict(weights)
         if args.history_read is not None:
             model.cfg.prior_frames = args.history_read
         if args.blend_gain is not None:

@@ -502,3 +502,17 @@ def test_blend_only_training_leaves_the_rest_of_the_network_as_it_was(tmp_path):
             continue
         assert torch.equal(v, ref[k]), k
     assert any(not torch.equal(ck["model"][k], fresh[k]) for k in fresh if k.startswith("blend."))
+
+
+def test_averaged_weights_are_the_share_of_each_and_need_one_architecture(tmp_path):
+    cfg = ModelConfig(widths=(8, 8, 12, 16), history_blend=True)
+    torch.manual_seed(0)
+    a, b = Enhancer(cfg), Enhancer(cfg)
+    torch.save({"model": b.state_dict(), "model_cfg": cfg.to_dict()}, tmp_path / "b.pt")
+    avg = hz_export.average_weights(a.state_dict(), tmp_path / "b.pt", 0.25, a)
+    for k, v in a.state_dict().items():
+        assert torch.allclose(avg[k], 0.25 * v + 0.75 * b.state_dict()[k])
+    other = Enhancer(ModelConfig(widths=(8, 8, 12, 24), history_blend=True))
+    torch.save({"model": other.state_dict(), "model_cfg": other.cfg.to_dict()}, tmp_path / "o.pt")
+    with pytest.raises(ValueError, match="do not match"):
+        hz_export.average_weights(a.state_dict(), tmp_path / "o.pt", 0.5, a)
