@@ -6,8 +6,9 @@
 //!    still missing, and only while more than [`OLDER_HISTORY_MIN_HOLES`] of
 //!    the frame is missing), then by push-pull over a window around the rest,
 //!    on the square root of the color ([`crate::ops::inpaint::push_pull_sqrt`];
-//!    with depth, from the background side of each silhouette:
-//!    [`crate::ops::inpaint::push_pull_far`]).
+//!    with depth and holes that are a large part of the window, from the
+//!    background side of each silhouette:
+//!    [`crate::ops::inpaint::push_pull_far_or_sparse`]).
 //!    The history fills a pixel only where few confidently covered pixels
 //!    are near ([`history_weight`] of [`crate::ops::inpaint::KnownCounts`]
 //!    within [`GATE_RADIUS`]): thin gaps take the spatial fill. Pixels below
@@ -405,7 +406,13 @@ fn run_ops_on(
             let window = inpaint::fill_window(hh.rect, w, h);
             stages.time("inpaint", || {
                 pool.install(|| match &own {
-                    Some((own, depth)) => inpaint::push_pull_far(img, window, own, depth),
+                    Some((own, depth)) => inpaint::push_pull_far_or_sparse(
+                        img,
+                        window,
+                        missing.as_deref(),
+                        own,
+                        depth,
+                    ),
                     None => inpaint::push_pull_sqrt(img, window, missing.as_deref()),
                 })
             });

@@ -714,6 +714,36 @@ fn push_pull_sqrt_copy(img: &mut Image, window: Rect, holes: &[(u32, u32)]) {
     }
 }
 
+/// [`push_pull_far`] where the holes are a large part of `window` (the
+/// dense pyramid either way), else [`push_pull_sqrt`] by the sparse
+/// evaluation (a few slivers: the far side's cost, a window-sized
+/// pyramid, is not paid for them). `holes`: the window's hole pixels as
+/// [`push_pull_at`] takes them, when known.
+pub fn push_pull_far_or_sparse(
+    img: &mut Image,
+    window: Rect,
+    holes: Option<&[(u32, u32)]>,
+    own: &[f32],
+    depth: &[f32],
+) {
+    if window.is_empty() {
+        return;
+    }
+    let listed;
+    let list = match holes {
+        Some(l) => l,
+        None => {
+            listed = window_holes(img, window);
+            &listed
+        }
+    };
+    if list.len() * SPARSE_RATIO < window.width() * window.height() {
+        push_pull_sparse(img, window, list, true);
+    } else {
+        push_pull_far(img, window, own, depth);
+    }
+}
+
 /// How [`push_pull_sqrt`] encodes a premultiplied sample `c` of coverage
 /// `a`: `A * sqrt(C / A) = sqrt(A * C)` (0 where A is 0: C is too). The
 /// sparse and dense pyramids both read level 0 through it, so they agree

@@ -304,23 +304,10 @@ fn thin_cracks_take_their_neighbours_and_wide_holes_the_history() {
     };
     let ratio = |x: usize, y: usize| ratio_of(&out, x, y);
     // Interpolating the textured background across the crack is off by a
-    // few percent; the history would be 20 % off everywhere. The crack's
-    // pixel on the horizon's row, where the floor (12 m) stands in front of
-    // the wall (50 m), is filled from the far side: from the wall above, as
-    // a disocclusion would be.
-    let wall = background(100, HORIZON - 1);
-    let at_horizon = (0..3)
-        .map(|c| out.at(100, HORIZON, c) / wall[c])
-        .sum::<f32>()
-        / 3.0;
-    assert!(
-        (at_horizon - 1.0).abs() < 0.05,
-        "{at_horizon} of the wall above"
-    );
-    let crack: Vec<f32> = (12..58)
-        .filter(|&y| y != HORIZON)
-        .map(|y| ratio(100, y))
-        .collect();
+    // few percent; the history would be 20 % off everywhere. (Once the
+    // history has filled the wide hole, the crack is a few pixels of the
+    // fill's window: the plain fill's sparse evaluation, not the far side.)
+    let crack: Vec<f32> = (12..58).map(|y| ratio(100, y)).collect();
     let mean = crack.iter().map(|r| (r - 1.0).abs()).sum::<f32>() / crack.len() as f32;
     assert!(
         mean < 0.04 && crack.iter().all(|&r| r > 0.9),

@@ -357,6 +357,26 @@ mod tests {
     }
 
     #[test]
+    fn a_few_hole_pixels_take_the_plain_sparse_fill_and_many_the_far_side() {
+        let (w, h) = (64, 48);
+        let window = Rect::full(w, h);
+        // One crack pixel a row: under 1/32 of the window.
+        let (few, own, depth) = scene(w, h, 29, 30);
+        let mut a = few.clone();
+        let mut b = few.clone();
+        super::super::push_pull_far_or_sparse(&mut a, window, None, &own, &depth);
+        super::super::push_pull_sqrt(&mut b, window, None);
+        assert!(a == b, "not the plain fill");
+        // A hole a quarter of the window wide: the far side.
+        let (many, own, depth) = scene(w, h, 24, 40);
+        let mut a = many.clone();
+        let mut b = many.clone();
+        super::super::push_pull_far_or_sparse(&mut a, window, None, &own, &depth);
+        push_pull_far(&mut b, window, &own, &depth);
+        assert!(a == b, "not the far side");
+    }
+
+    #[test]
     fn what_the_history_filled_is_kept_whatever_its_depth() {
         // The crack's pixels hold history (A = 1 from the history, none of
         // their own, empty depth): they are not holes and keep their color;
