@@ -8,7 +8,7 @@
 //!    on the square root of the color ([`crate::ops::inpaint::push_pull_sqrt`];
 //!    with depth and holes that are a large part of the window, from the
 //!    background side of each silhouette:
-//!    [`crate::ops::inpaint::push_pull_far_or_sparse`]).
+//!    [`crate::ops::inpaint::push_pull_sqrt_or_far`]).
 //!    The history fills a pixel only where few confidently covered pixels
 //!    are near ([`history_weight`] of [`crate::ops::inpaint::KnownCounts`]
 //!    within [`GATE_RADIUS`]): thin gaps take the spatial fill. Pixels below
@@ -405,15 +405,9 @@ fn run_ops_on(
         if let Some(hh) = holes {
             let window = inpaint::fill_window(hh.rect, w, h);
             stages.time("inpaint", || {
-                pool.install(|| match &own {
-                    Some((own, depth)) => inpaint::push_pull_far_or_sparse(
-                        img,
-                        window,
-                        missing.as_deref(),
-                        own,
-                        depth,
-                    ),
-                    None => inpaint::push_pull_sqrt(img, window, missing.as_deref()),
+                pool.install(|| {
+                    let far = own.as_ref().map(|(own, depth)| (&own[..], *depth));
+                    inpaint::push_pull_sqrt_or_far(img, window, missing.as_deref(), far)
                 })
             });
         }

@@ -657,6 +657,21 @@ fn push_level(level: &mut Level, coarser: &Level) {
 /// depends on the scene's exposure). The square root, like any power,
 /// commutes with exposure.
 pub fn push_pull_sqrt(img: &mut Image, window: Rect, holes: Option<&[(u32, u32)]>) {
+    push_pull_sqrt_or_far(img, window, holes, None);
+}
+
+/// [`push_pull_sqrt`], but where the holes are a large part of `window`
+/// (the dense pyramid either way) and `far` gives the frame's own coverage
+/// and depth (planes of the image's size), [`push_pull_far`]: a few
+/// slivers keep the plain sparse evaluation (the far side's window-sized
+/// pyramid is not paid for them). `holes`: the window's hole pixels as
+/// [`push_pull_at`] takes them, when known.
+pub fn push_pull_sqrt_or_far(
+    img: &mut Image,
+    window: Rect,
+    holes: Option<&[(u32, u32)]>,
+    far: Option<(&[f32], &[f32])>,
+) {
     if window.is_empty() {
         return;
     }
@@ -672,6 +687,8 @@ pub fn push_pull_sqrt(img: &mut Image, window: Rect, holes: Option<&[(u32, u32)]
     };
     if list.len() * SPARSE_RATIO < window.width() * window.height() {
         push_pull_sparse(img, window, list, true);
+    } else if let Some((own, depth)) = far {
+        push_pull_far(img, window, own, depth);
     } else {
         push_pull_sqrt_copy(img, window, list);
     }
@@ -711,36 +728,6 @@ fn push_pull_sqrt_copy(img: &mut Image, window: Rect, holes: &[(u32, u32)]) {
         let (i, o) = (y * w + x, (y - window.y0) * ww + x - window.x0);
         let sq = |c: usize| enc.plane(c)[o] * enc.plane(c)[o];
         (r[i], g[i], b[i], a[i]) = (sq(0), sq(1), sq(2), 1.0);
-    }
-}
-
-/// [`push_pull_far`] where the holes are a large part of `window` (the
-/// dense pyramid either way), else [`push_pull_sqrt`] by the sparse
-/// evaluation (a few slivers: the far side's cost, a window-sized
-/// pyramid, is not paid for them). `holes`: the window's hole pixels as
-/// [`push_pull_at`] takes them, when known.
-pub fn push_pull_far_or_sparse(
-    img: &mut Image,
-    window: Rect,
-    holes: Option<&[(u32, u32)]>,
-    own: &[f32],
-    depth: &[f32],
-) {
-    if window.is_empty() {
-        return;
-    }
-    let listed;
-    let list = match holes {
-        Some(l) => l,
-        None => {
-            listed = window_holes(img, window);
-            &listed
-        }
-    };
-    if list.len() * SPARSE_RATIO < window.width() * window.height() {
-        push_pull_sparse(img, window, list, true);
-    } else {
-        push_pull_far(img, window, own, depth);
     }
 }
 

@@ -364,14 +364,14 @@ mod tests {
         let (few, own, depth) = scene(w, h, 29, 30);
         let mut a = few.clone();
         let mut b = few.clone();
-        super::super::push_pull_far_or_sparse(&mut a, window, None, &own, &depth);
+        super::super::push_pull_sqrt_or_far(&mut a, window, None, Some((&own, &depth)));
         super::super::push_pull_sqrt(&mut b, window, None);
         assert!(a == b, "not the plain fill");
         // A hole a quarter of the window wide: the far side.
         let (many, own, depth) = scene(w, h, 24, 40);
         let mut a = many.clone();
         let mut b = many.clone();
-        super::super::push_pull_far_or_sparse(&mut a, window, None, &own, &depth);
+        super::super::push_pull_sqrt_or_far(&mut a, window, None, Some((&own, &depth)));
         push_pull_far(&mut b, window, &own, &depth);
         assert!(a == b, "not the far side");
     }
