@@ -305,9 +305,10 @@ fn run_ops_on(
             });
         }
         // With depth, the spatial fill takes the background side; it tells
-        // the frame's own data from what the history fills by this copy.
+        // the frame's own data from what the history fills by this copy of
+        // the coverage in the holes' box.
         let own = match (&holes, frame.depth.as_deref()) {
-            (Some(_), Some(depth)) => Some((img.plane(3).to_vec(), depth)),
+            (Some(hh), Some(depth)) => Some((inpaint::OwnCoverage::capture(img, hh.rect), depth)),
             _ => None,
         };
         // History only where few confidently covered pixels are near: in
@@ -406,7 +407,7 @@ fn run_ops_on(
             let window = inpaint::fill_window(hh.rect, w, h);
             stages.time("inpaint", || {
                 pool.install(|| {
-                    let far = own.as_ref().map(|(own, depth)| (&own[..], *depth));
+                    let far = own.as_ref().map(|(own, depth)| (own, *depth));
                     inpaint::push_pull_sqrt_or_far(img, window, missing.as_deref(), far)
                 })
             });

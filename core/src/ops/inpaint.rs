@@ -17,7 +17,7 @@ use crate::temporal::ReprojectedFrame;
 mod far;
 mod sparse;
 
-pub use far::{push_pull_far, FAR_TOLERANCE};
+pub use far::{push_pull_far, OwnCoverage, FAR_TOLERANCE};
 
 /// Coverage at or above this counts as complete (snaps to exactly 1).
 pub const FULL: f32 = 1.0 - 1e-5;
@@ -426,9 +426,9 @@ impl SpatialFill {
             far
         });
         match far {
+            // No history is in this fill: all its data is the frame's own.
             Some(far) => {
-                let own = img.plane(3).to_vec();
-                push_pull_far(&mut img, Rect::full(hw, hh), &own, &far);
+                push_pull_far(&mut img, Rect::full(hw, hh), &OwnCoverage::unfilled(), &far)
             }
             None => push_pull_sqrt(&mut img, Rect::full(hw, hh), None),
         }
@@ -662,7 +662,7 @@ pub fn push_pull_sqrt(img: &mut Image, window: Rect, holes: Option<&[(u32, u32)]
 
 /// [`push_pull_sqrt`], but where the holes are a large part of `window`
 /// (the dense pyramid either way) and `far` gives the frame's own coverage
-/// and depth (planes of the image's size), [`push_pull_far`]: a few
+/// and depth (a plane of the image's size), [`push_pull_far`]: a few
 /// slivers keep the plain sparse evaluation (the far side's window-sized
 /// pyramid is not paid for them). `holes`: the window's hole pixels as
 /// [`push_pull_at`] takes them, when known.
@@ -670,7 +670,7 @@ pub fn push_pull_sqrt_or_far(
     img: &mut Image,
     window: Rect,
     holes: Option<&[(u32, u32)]>,
-    far: Option<(&[f32], &[f32])>,
+    far: Option<(&OwnCoverage, &[f32])>,
 ) {
     if window.is_empty() {
         return;

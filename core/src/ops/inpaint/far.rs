@@ -26,11 +26,51 @@
 
 use rayon::prelude::*;
 
-use super::{sqrt_encode, Rect, FULL};
+use super::{sqrt_encode, taps, Rect, FULL};
 use crate::frame::Image;
 
 /// Relative disparity within which two surfaces count as one.
 pub const FAR_TOLERANCE: f32 = 0.05;
+
+/// The frame's own coverage, as it was before the history filled some of
+/// its holes: a copy of the coverage inside the holes' box (the only
+/// pixels the history fill changes), the image's coverage outside it.
+pub struct OwnCoverage {
+    rect: Rect,
+    plane: Vec<f32>,
+}
+
+impl OwnCoverage {
+    /// The coverage (plane 3) of `img` inside `holes`, taken before the
+    /// history fill.
+    pub fn capture(img: &Image, holes: Rect) -> OwnCoverage {
+        let a = img.plane(3);
+        let mut plane = Vec::with_capacity(holes.width() * holes.height());
+        for y in holes.y0..holes.y1 {
+            plane.extend_from_slice(&a[y * img.width + holes.x0..y * img.width + holes.x1]);
+        }
+        OwnCoverage { rect: holes, plane }
+    }
+
+    /// Nothing filled by history: the own coverage is the image's.
+    pub fn unfilled() -> OwnCoverage {
+        OwnCoverage {
+            rect: Rect::full(0, 0),
+            plane: Vec::new(),
+        }
+    }
+
+    /// The own coverage at (`x`, `y`), `a` the image's coverage there.
+    #[inline]
+    fn at(&self, x: usize, y: usize, a: f32) -> f32 {
+        if self.rect.contains(x, y) {
+            let r = self.rect;
+            self.plane[(y - r.y0) * r.width() + x - r.x0].min(a)
+        } else {
+            a
+        }
+    }
+}
 
 /// Larger than any disparity (`1 / (1 + depth) <= 1`): no depth of its own.
 const NO_DISPARITY: f32 = 4.0;
@@ -101,11 +141,6 @@ fn down(fine: &Level) -> Level {
     Level { w, h, px }
 }
 
-/// Bilinear taps from a fine axis into a coarse one (as `super::taps`).
-fn taps(fine: usize, coarse: usize) -> Vec<(usize, usize, f32)> {
-    super::taps(fine, coarse)
-}
-
 /// Completes `fine` from `coarse` (complete: weight 1 everywhere): the
 /// missing part of every pixel takes the coarse color interpolated, and a
 /// pixel without data of its own the coarse disparity interpolated.
@@ -148,14 +183,13 @@ fn complete(fine: &mut Level, coarse: &Level) {
 /// Fills every pixel with A < 1 inside `window` of `img` (RGB premultiplied,
 /// A coverage) from the background side (see the module docs); A becomes 1
 /// there and the other pixels are not touched, bit for bit. `own` is the
-/// frame's own coverage (a plane of the image's size: what the history
-/// filled has none) and `depth` its planar depth (same size).
-pub fn push_pull_far(img: &mut Image, window: Rect, own: &[f32], depth: &[f32]) {
+/// frame's own coverage (what the history filled has none) and `depth`
+/// its planar depth (a plane of the image's size).
+pub fn push_pull_far(img: &mut Image, window: Rect, own: &OwnCoverage, depth: &[f32]) {
     if window.is_empty() {
         return;
     }
     let w = img.width;
-    assert_eq!(own.len(), img.width * img.height, "own coverage size");
     assert_eq!(depth.len(), img.width * img.height, "depth size");
     let (ww, wh) = (window.width(), window.height());
     let mut base = Level {
@@ -170,7 +204,7 @@ pub fn push_pull_far(img: &mut Image, window: Rect, own: &[f32], depth: &[f32]) 
             for (x, p) in row.iter_mut().enumerate() {
                 let i = s + x;
                 let a = planes[3][i];
-                let o = own[i].min(a).max(0.0);
+                let o = own.at(window.x0 + x, window.y0 + y, a).max(0.0);
                 *p = [
                     sqrt_encode(planes[0][i], a),
                     sqrt_encode(planes[1][i], a),
@@ -260,7 +294,7 @@ mod tests {
 
     /// A near object (columns below `lo`, dark, depth 1) and the far
     /// background (bright, depth 9), a hole in columns `lo..hi`.
-    fn scene(w: usize, h: usize, lo: usize, hi: usize) -> (Image, Vec<f32>, Vec<f32>) {
+    fn scene(w: usize, h: usize, lo: usize, hi: usize) -> (Image, OwnCoverage, Vec<f32>) {
         let mut img = Image::zeros(w, h, 4);
         let mut depth = vec![9.0f32; w * h];
         for y in 0..h {
@@ -284,8 +318,7 @@ mod tests {
                 }
             }
         }
-        let own = img.plane(3).to_vec();
-        (img, own, depth)
+        (img, OwnCoverage::unfilled(), depth)
     }
 
     #[test]
@@ -331,11 +364,6 @@ mod tests {
                 img.plane_mut(1)[i] *= img.plane(3)[i] * (0.5 + v);
             }
         }
-        let own = own
-            .iter()
-            .zip(img.plane(3))
-            .map(|(_, &a)| a)
-            .collect::<Vec<_>>();
         let depth = vec![3.0f32; w * h];
         let mut plain = img.clone();
         let window = Rect {
@@ -383,7 +411,14 @@ mod tests {
         // a half-filled pixel completes from the background side.
         let (w, h) = (32, 16);
         let (mut img, _, depth) = scene(w, h, 14, 18);
-        let own = img.plane(3).to_vec();
+        // Taken before the history fill, over the holes' box.
+        let holes = Rect {
+            x0: 14,
+            y0: 0,
+            x1: 18,
+            y1: h,
+        };
+        let own = OwnCoverage::capture(&img, holes);
         for y in 0..h {
             for x in 14..18 {
                 let i = y * w + x;
