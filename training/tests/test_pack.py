@@ -1,0 +1,85 @@
+"""Scenes packed for a GPU machine come back as scenes the trainer reads."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from training import pack
+from training.synth import dataset
+
+
+def _scene(root, sid: int, rng) -> None:
+    d = root / "train" / f"scene_{sid:06d}"
+    d.mkdir(parents=True)
+    t, h, w = 4, 24, 40
+    target = (rng.random((t, h, w, 3)) * 4).astype(np.float16)
+    depth = rng.uniform(0.5, 80, (t, h, w)).astype(np.float32)
+    depth[:, :4] = 1e10  # the sky
+    cov = np.ones((t, h, w, 1), np.float16)
+    cov[:, 6:12, 8:20] = 0
+    np.savez(
+        d / "scene.npz",
+        target=target,
+        depth=depth,
+        motion=rng.uniform(-9, 9, (t, h, w, 2)).astype(np.float16),
+        normal=rng.uniform(-1, 1, (t, h, w, 3)).astype(np.float16),
+        mask_insert=np.zeros((t, h, w), np.float16),
+        mask_shadow=(rng.random((t, h, w)) > 0.9).astype(np.float16),
+        world_to_camera=rng.random((t, 4, 4)).astype(np.float32),
+        world_to_ndc=rng.random((t, 4, 4)).astype(np.float32),
+    )
+    recon_depth = depth * rng.uniform(0.9, 1.1, depth.shape).astype(np.float32)
+    np.savez(
+        d / "s1_recon.npz",
+        input=np.concatenate([target * cov, cov], -1),
+        depth=recon_depth,
+        mask_insert=np.zeros((t, h, w), np.float16),
+    )
+    np.savez(d / "s2_tone.npz", input=np.concatenate([target * 0.5, cov * 0 + 1], -1))
+    (d / "meta.json").write_text(json.dumps({"scene_id": sid, "streams": {"s1_recon": {}, "s2_tone": {}}}))
+
+
+def test_a_packed_scene_unpacks_to_what_the_trainer_reads_within_the_stated_precision(tmp_path):
+    rng = np.random.default_rng(5)
+    for sid in range(5):
+        _scene(tmp_path / "data", sid, rng)
+    assert pack.main(["pack", "--data", str(tmp_path / "data"), "--scenes", "3", "--out", str(tmp_path / "pk")]) is None
+    # Three spread over five: the first, the middle, the last.
+    assert sorted(p.name for p in (tmp_path / "pk" / "train").iterdir()) == [
+        "scene_000000.xz",
+        "scene_000002.xz",
+        "scene_000004.xz",
+    ]
+    pack.main(["unpack", "--pack", str(tmp_path / "pk"), "--data", str(tmp_path / "out")])
+    scenes = dataset.list_scenes(tmp_path / "out", "train")
+    assert [s.name for s in scenes] == ["scene_000000", "scene_000002", "scene_000004"]
+    for s in scenes:
+        # Only the stream that travelled is listed.
+        assert dataset.scene_streams(s) == ["s1_recon"]
+        a = dataset.load_sample(tmp_path / "data" / "train" / s.name, "s1_recon")
+        b = dataset.load_sample(s, "s1_recon")
+        assert a["meta"]["scene_id"] == b["meta"]["scene_id"]
+        for k, bits in (("input", 7), ("target", 7), ("motion", 8)):
+            # float16 with the low mantissa bits cleared: within 2^-bits relative.
+            tol = 2.0**-bits * np.abs(a[k]) + 1e-3
+            assert np.all(np.abs(a[k] - b[k]) <= tol), k
+        # The stream's own depth, the sky clamped to float16's largest.
+        near = a["depth"] < 6e4
+        assert np.all(np.abs(a["depth"][near] - b["depth"][near]) <= 2.0**-8 * a["depth"][near])
+        assert np.all((b["depth"][~near] >= 6.5e4) & np.isfinite(b["depth"][~near]))
+        assert np.array_equal(a["mask_shadow"], b["mask_shadow"])
+        assert np.array_equal(a["world_to_ndc"], b["world_to_ndc"])
+        assert not b["normal"].any() and b["normal"].shape == a["normal"].shape
+
+
+def test_the_budget_stops_the_pack_before_it_is_exceeded(tmp_path):
+    rng = np.random.default_rng(6)
+    for sid in range(4):
+        _scene(tmp_path / "data", sid, rng)
+    one = len(pack.pack_scene(tmp_path / "data" / "train" / "scene_000000", ["s1_recon"]))
+    budget = 2.5 * one / 2**20
+    pack.main(["pack", "--data", str(tmp_path / "data"), "--budget-mb", str(budget), "--out", str(tmp_path / "pk")])
+    files = list((tmp_path / "pk" / "train").iterdir())
+    assert 1 <= len(files) <= 2 and sum(f.stat().st_size for f in files) <= budget * 2**20
