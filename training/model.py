@@ -291,9 +291,11 @@ def push_pull_clamped(c: torch.Tensor, w: torch.Tensor, levels: int) -> torch.Te
     return f
 
 
-# The bilinear taps of a 2x upsampling (pixel centres, align_corners=False):
-# fine pixel 2i takes coarse i-1 (1/4) and i (3/4); 2i+1 takes i (3/4) and i+1 (1/4).
-_PHASE_TAPS = {0: ((-1, 0.25), (0, 0.75)), 1: ((0, 0.75), (1, 0.25))}
+# The bilinear weights of a 2x upsampling (pixel centres, align_corners=False)
+# along one axis: fine pixel 2i (phase 0) takes coarse i-1 and i with 1/4 and
+# 3/4; 2i+1 (phase 1) takes i and i+1 with 3/4 and 1/4. On the grid padded by
+# one, a phase's two taps are offsets 0 and 1 of the pair starting at i + phase.
+_PHASE_WEIGHTS = {0: (0.25, 0.75), 1: (0.75, 0.25)}
 
 
 def upsample_far(f: torch.Tensor, fd: torch.Tensor, size, tol: float) -> torch.Tensor:
@@ -301,28 +303,40 @@ def upsample_far(f: torch.Tensor, fd: torch.Tensor, size, tol: float) -> torch.T
     taking of its four taps only those whose disparity ``fd`` is within the
     relative ``tol`` of the farthest (smallest), renormalized.
 
-    Computed per output phase at the coarse resolution: the four taps of a
-    phase are a 2x2 window of the coarse grid (edges replicated), whose
-    smallest disparity is one min-pooling for all phases."""
+    A fine pixel's four taps are a 2x2 window of the coarse grid (edges
+    replicated); which window and the bilinear weights depend on its phase.
+    Computed once per window rather than per phase and tap (the taps' masked
+    colours and masks are shared by the phases that read the same window),
+    then the bilinear weights as separable multiply-adds: 48 ms against 119
+    for the per-phase, per-tap form (``training/tests/test_model.py``
+    keeps it as the reference) from 960x544 to 1920x1088 in ONNX Runtime on
+    2 threads."""
     h, w = fd.shape[-2:]
+    n, ch = f.shape[:2]
     pf = F.pad(f, (1, 1, 1, 1), mode="replicate")
     pd = F.pad(fd, (1, 1, 1, 1), mode="replicate")
+    # Each 2x2 window of the padded grid, (h + 1) x (w + 1) of them, by its corner.
     limit = -F.max_pool2d(-pd, 2, stride=1) * (1 + tol)
+    taps = {}
+    for oy in (0, 1):
+        for ox in (0, 1):
+            keep = (pd[..., oy : oy + h + 1, ox : ox + w + 1] <= limit).to(f.dtype)
+            taps[oy, ox] = torch.cat([keep * pf[..., oy : oy + h + 1, ox : ox + w + 1], keep], 1)
+    cols = {
+        (oy, px): taps[oy, 0] * _PHASE_WEIGHTS[px][0] + taps[oy, 1] * _PHASE_WEIGHTS[px][1]
+        for oy in (0, 1)
+        for px in (0, 1)
+    }
     phases = []
     for py in (0, 1):
         for px in (0, 1):
-            lim = limit[..., py : py + h, px : px + w]
-            acc = wsum = None
-            for dy, wy in _PHASE_TAPS[py]:
-                for dx, wx in _PHASE_TAPS[px]:
-                    d = pd[..., 1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w]
-                    k = torch.where(d <= lim, torch.full_like(d, wy * wx), torch.zeros_like(d))
-                    c = k * pf[..., 1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w]
-                    acc, wsum = (c, k) if acc is None else (acc + c, wsum + k)
-            phases.append(acc / wsum)
-    n, ch = f.shape[:2]
-    x = torch.stack(phases, 2).reshape(n, ch * 4, h, w)
-    return F.pixel_shuffle(x, 2)[..., : size[0], : size[1]]
+            v = cols[0, px] * _PHASE_WEIGHTS[py][0] + cols[1, px] * _PHASE_WEIGHTS[py][1]
+            v = v[..., py : py + h, px : px + w]
+            phases.append(v[:, :ch] / v[:, ch:])
+    out = F.pixel_shuffle(torch.stack(phases, 2).reshape(n, ch * 4, h, w), 2)
+    if tuple(out.shape[-2:]) != tuple(size):  # odd sizes (never in the exported graph: multiples of 16)
+        out = out[..., : size[0], : size[1]]
+    return out
 
 
 # Larger than any disparity (1 / (1 + depth) <= 1): "no depth of its own".
@@ -350,17 +364,26 @@ def push_pull_depth(
     it). Pixels the history filled (weight without own data) are never left
     out."""
     cs, ws, owns, ds = [c], [w], [own], [disp]
-    for _ in range(levels):
+    for lv in range(levels):
+        # An even level needs no padding row and column (the halving drops
+        # them). Only the first four: the exported graph bakes this choice in
+        # at the export's size, and only those levels are even at every
+        # multiple of 16 (at 1920x1088 the pads took 15 ms of the fill).
+        even = lv < 4 and c.shape[-2] % 2 == 0 and c.shape[-1] % 2 == 0
+
+        def pad(x: torch.Tensor, value: float = 0.0, even: bool = even) -> torch.Tensor:
+            return x if even else F.pad(x, (0, 1, 0, 1), value=value)
+
         has = own > 0
         key = torch.where(has, disp, torch.full_like(disp, NO_DISPARITY))
-        far = -F.max_pool2d(-F.pad(key, (0, 1, 0, 1), value=NO_DISPARITY), 2)
-        far = F.interpolate(far, size=key.shape[-2:], mode="nearest")
-        keep = (~(has & (disp > far * (1 + tol)))).to(c.dtype)
+        limit = -F.max_pool2d(-pad(key, NO_DISPARITY), 2) * (1 + tol)
+        limit = F.interpolate(limit, size=key.shape[-2:], mode="nearest")
+        keep = (~(has & (disp > limit))).to(c.dtype)
         c, w, own = c * keep, w * keep, own * keep
-        c = F.avg_pool2d(F.pad(c, (0, 1, 0, 1)), 2) * 4
-        w = F.avg_pool2d(F.pad(w, (0, 1, 0, 1)), 2) * 4
-        od = F.avg_pool2d(F.pad(own * disp, (0, 1, 0, 1)), 2) * 4
-        own = F.avg_pool2d(F.pad(own, (0, 1, 0, 1)), 2) * 4
+        c = F.avg_pool2d(pad(c), 2) * 4
+        w = F.avg_pool2d(pad(w), 2) * 4
+        od = F.avg_pool2d(pad(own * disp), 2) * 4
+        own = F.avg_pool2d(pad(own), 2) * 4
         disp = od / own.clamp(min=1e-12)
         k = w.clamp(max=1) / w.clamp(min=1e-12)
         c = c * k
@@ -377,10 +400,11 @@ def push_pull_depth(
         upd = F.interpolate(fd, size=cs[lv].shape[-2:], mode="bilinear", align_corners=False)
         f = cs[lv] + (1 - ws[lv]) * up
         fd = torch.where(owns[lv] > 0, ds[lv], upd)
-    # The far side only in this last step: the cost of the whole fill at
-    # 1920x1088 on 2 threads (ONNX Runtime) is 70-90 ms with it here, 20-30
-    # ms with it one level up, but that gave back 0.3-1.6 dB of the holes'
-    # gain on most held-out reconstructions (model card, 1.4.0).
+    # The far side only in this last step, the costliest place for it (in
+    # 1.4.0's graph, 70-90 ms of the fill at 1920x1088 on 2 threads against
+    # 20-30 one level up; `upsample_far` now takes 48 of those ms), because
+    # one level up gave back 0.3-1.6 dB of the holes' gain on most held-out
+    # reconstructions (model card, 1.4.0).
     return cs[0] + (1 - ws[0]) * upsample_far(f, fd, cs[0].shape[-2:], tol)
 
 
@@ -443,12 +467,18 @@ class Enhancer(nn.Module):
         return not self.cfg.correction_history and self.cfg.unshuffle > 1 and self.stem is not None
 
     def split(self, x: torch.Tensor) -> list[torch.Tensor]:
-        """The input's channel groups, taken in one pass: color, coverage,
-        insert, then each history frame's color and validity. One Split in
-        the graph; a slice per use copied its full-resolution planes each time
-        (slices took 35 of ONNX Runtime's 428 ms at 1920x1088)."""
-        depth = [1] if self.cfg.prior_depth_tol > 0 else []
-        return list(torch.split(x, [3, 1, 1] + [3, 1] * self.cfg.context_frames + depth, 1))
+        """The input's channel groups: color, coverage, insert, then each
+        history frame's color and validity (then the disparity). Each group is
+        one slice, taken once per call; the export drops the slices nothing
+        reads (the history frames past ``prior_frames``), so the graph copies
+        14 of the 22 full-resolution planes, not all of them as one Split did.
+        (Before that, a slice per use copied the same planes several times.)"""
+        sizes = [3, 1, 1] + [3, 1] * self.cfg.context_frames + ([1] if self.cfg.prior_depth_tol > 0 else [])
+        parts, at = [], 0
+        for n in sizes:
+            parts.append(x[:, at : at + n])
+            at += n
+        return parts
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         parts = self.split(x)

@@ -102,6 +102,45 @@ def test_prior_fills_holes_from_history_then_push_pull():
     assert torch.isfinite(m.prior(y)).all()
 
 
+def _upsample_far_reference(f, fd, size, tol):
+    """The far-side upsampling as defined: per output phase and per tap."""
+    import torch.nn.functional as F
+
+    taps = {0: ((-1, 0.25), (0, 0.75)), 1: ((0, 0.75), (1, 0.25))}
+    h, w = fd.shape[-2:]
+    pf = F.pad(f, (1, 1, 1, 1), mode="replicate")
+    pd = F.pad(fd, (1, 1, 1, 1), mode="replicate")
+    limit = -F.max_pool2d(-pd, 2, stride=1) * (1 + tol)
+    phases = []
+    for py in (0, 1):
+        for px in (0, 1):
+            lim = limit[..., py : py + h, px : px + w]
+            acc = wsum = 0
+            for dy, wy in taps[py]:
+                for dx, wx in taps[px]:
+                    d = pd[..., 1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w]
+                    k = (d <= lim).to(f.dtype) * (wy * wx)
+                    acc = acc + k * pf[..., 1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w]
+                    wsum = wsum + k
+            phases.append(acc / wsum)
+    n, ch = f.shape[:2]
+    return F.pixel_shuffle(torch.stack(phases, 2).reshape(n, ch * 4, h, w), 2)[..., : size[0], : size[1]]
+
+
+def test_the_far_side_upsampling_is_the_per_tap_definition():
+    from training.model import upsample_far
+
+    torch.manual_seed(3)
+    for h, w, size in ((37, 51, (73, 101)), (37, 51, (74, 102)), (8, 16, (16, 32))):
+        f = torch.rand(2, 3, h, w)
+        fd = torch.rand(2, 1, h, w)
+        fd[..., 2:6, 3:9] *= 0.01  # a far patch: its neighbours take it alone
+        fd[..., 0, :] = fd[..., 1, :]  # ties take every tap
+        got = upsample_far(f, fd, size, 0.05)
+        assert got.shape[-2:] == size
+        assert torch.allclose(got, _upsample_far_reference(f, fd, size, 0.05), atol=1e-6)
+
+
 def test_the_depth_aware_prior_fills_a_disocclusion_from_the_background():
     from training.model import push_pull_clamped, push_pull_depth
 
