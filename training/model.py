@@ -333,7 +333,11 @@ def upsample_far(f: torch.Tensor, fd: torch.Tensor, size, tol: float) -> torch.T
             v = cols[0, px] * _PHASE_WEIGHTS[py][0] + cols[1, px] * _PHASE_WEIGHTS[py][1]
             v = v[..., py : py + h, px : px + w]
             phases.append(v[:, :ch] / v[:, ch:])
-    out = F.pixel_shuffle(torch.stack(phases, 2).reshape(n, ch * 4, h, w), 2)
+    # Interleaved as columns, then rows (two concatenations; ONNX Runtime's
+    # DepthToSpace of the stacked phases took twice as long: 14.7 ms against
+    # 7.2 at 1920x1088).
+    rows = [torch.stack(phases[2 * py : 2 * py + 2], -1).reshape(n, ch, h, 2 * w) for py in (0, 1)]
+    out = torch.stack(rows, -2).reshape(n, ch, 2 * h, 2 * w)
     if tuple(out.shape[-2:]) != tuple(size):  # odd sizes (never in the exported graph: multiples of 16)
         out = out[..., : size[0], : size[1]]
     return out
