@@ -82,7 +82,9 @@ def unpack_scene(data: bytes, out_dir: Path) -> None:
         arrays = {}
         for name, shape in header["shapes"].items():
             a = z[name]
-            arrays[name] = a if name.split("/", 1)[1].startswith("world_") else _unshuffle(a, np.float16, tuple(shape))
+            if not name.split("/", 1)[1].startswith("world_"):
+                a = _unshuffle(a.reshape(2, -1), np.float16, tuple(shape))  # its two byte planes
+            arrays[name] = a
     tmp = out_dir.with_name(out_dir.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
