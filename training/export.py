@@ -29,6 +29,8 @@ import torch
 from training.model import Enhancer, ModelConfig, activation_bytes_per_pixel, count_macs
 
 MAX_IR_VERSION = 13
+# The ONNX metadata key that holds the exported ModelConfig (`weights_from_onnx`).
+CONFIG_METADATA = "harmonizer.model_cfg"
 OPSET = 17
 
 
@@ -157,6 +159,11 @@ def export(
     proto = onnx.load(str(tmp))
     if proto.ir_version > MAX_IR_VERSION:
         proto.ir_version = MAX_IR_VERSION
+    # The whole configuration, for `weights_from_onnx`: the graph alone does
+    # not say everything (the depth-aware prior's tolerance, the in-graph
+    # margin). ONNX Runtime and the runtime's manifest ignore it.
+    entry = proto.metadata_props.add()
+    entry.key, entry.value = CONFIG_METADATA, json.dumps(model.cfg.to_dict(), sort_keys=True)
     onnx.checker.check_model(proto)
     onnx.save(proto, str(tmp))
     tmp.replace(onnx_path)
@@ -187,16 +194,28 @@ def verify(model: Enhancer, onnx_path: Path, sizes=((144, 256), (96, 160))) -> f
 
 def weights_from_onnx(path: Path, **changes) -> Enhancer:
     """The model exported at ``path`` (with its manifest ``.json`` beside it) as
-    an ``Enhancer``: architecture read from the weights' shapes, weights from the
-    initializers (the stem's, exported as one strided convolution, reshaped back),
-    prior and wiring from ``ModelConfig``'s defaults with ``changes``."""
+    an ``Enhancer``: weights from the initializers (the stem's, exported as one
+    strided convolution, reshaped back); the configuration from the file's
+    metadata (``CONFIG_METADATA``, exports since 1.4.1) with ``changes``, else
+    the architecture read from the weights' shapes and the prior and wiring
+    from ``ModelConfig``'s defaults with ``changes``. A file without that
+    metadata whose input has a ``disparity`` channel needs ``prior_depth_tol``
+    among the changes (it was exported with a depth-aware prior whose
+    tolerance the file does not say)."""
     import onnx
     from onnx import numpy_helper
 
     manifest = json.loads(path.with_suffix(".json").read_text())
     if manifest.get("residual", False):
         raise ValueError(f"{path}: a residual model (no in-graph prior) cannot be re-exported with a prior")
-    init = {i.name: torch.from_numpy(numpy_helper.to_array(i).copy()) for i in onnx.load(str(path)).graph.initializer}
+    proto = onnx.load(str(path))
+    init = {i.name: torch.from_numpy(numpy_helper.to_array(i).copy()) for i in proto.graph.initializer}
+    saved = {p.key: p.value for p in proto.metadata_props}.get(CONFIG_METADATA)
+    if saved is None and "disparity" in manifest["input"]["channels"] and "prior_depth_tol" not in changes:
+        raise ValueError(
+            f"{path}: its input has a disparity channel (a depth-aware prior) and the file does not say the "
+            "prior's tolerance: pass prior_depth_tol (--prior-depth-tol; 1.4.0 used 0.05)"
+        )
     levels = sorted({int(k.split(".")[1]) for k in init if k.startswith("enc.")})
     widths = tuple(int(init[f"enc.{i}.0.0.weight"].shape[0]) for i in levels)
     # The stem as one r x r convolution of stride r: [stem, channels, r, r].
@@ -205,6 +224,8 @@ def weights_from_onnx(path: Path, **changes) -> Enhancer:
         raise ValueError(f"{path}: no folded stem convolution found (not a model this trainer exported)")
     stem_w = folded[0]
     context = int(manifest["context_frames"])
+    if saved is not None:
+        return _load_onnx_weights(ModelConfig.from_dict({**json.loads(saved), **changes}), init, stem_w, path)
     changes.setdefault("prior_frames", int(manifest.get("history_read", 0)))
     if "blend.down.weight" in init:
         # A history blend: its width from its first layer. (An in-graph
@@ -224,14 +245,19 @@ def weights_from_onnx(path: Path, **changes) -> Enhancer:
         premultiplied=bool(manifest.get("premultiplied", False)),
         **changes,
     )
+    return _load_onnx_weights(cfg, init, stem_w, path)
+
+
+def _load_onnx_weights(cfg: ModelConfig, init: dict, stem_w: torch.Tensor, path: Path) -> Enhancer:
+    """An ``Enhancer`` of ``cfg`` with the exported initializers ``init``."""
     model = Enhancer(cfg)
     own = model.state_dict()
     weights = {k: init[k] for k in own if k in init}
     full = own["stem.0.weight"].shape[1] // cfg.unshuffle**2
-    if stem_w.shape[1] == full - 4 * context:
+    if stem_w.shape[1] == full - 4 * cfg.context_frames:
         # A graph without the history channels in the correction's input
         # (1.2.1 on): their rows come back as zeros, which they weighed before.
-        hist = torch.zeros(stem_w.shape[0], 4 * context, *stem_w.shape[2:], dtype=stem_w.dtype)
+        hist = torch.zeros(stem_w.shape[0], 4 * cfg.context_frames, *stem_w.shape[2:], dtype=stem_w.dtype)
         stem_w = torch.cat([stem_w[:, :5], hist, stem_w[:, 5:]], 1)
     weights["stem.0.weight"] = stem_w.reshape(own["stem.0.weight"].shape)
     fresh = sorted(k for k in set(own) - set(weights) if k.startswith("blend."))
@@ -281,16 +307,15 @@ def main(argv: list[str] | None = None) -> int:
     src = ap.add_mutually_exclusive_group(required=True)
     src.add_argument("--ckpt", type=Path)
     src.add_argument("--from-onnx", type=Path, help="re-export the weights of this exported model")
-    defaults = ModelConfig()
-    ap.add_argument("--prior-floor", type=float, default=defaults.prior_floor, help="with --from-onnx")
+    # With --from-onnx, each of these left out keeps the source's (saved in
+    # the file since 1.4.1; before, ModelConfig's default).
+    ap.add_argument("--prior-floor", type=float, default=None, help="with --from-onnx")
+    ap.add_argument("--prior-gate", action=argparse.BooleanOptionalAction, default=None, help="with --from-onnx")
     ap.add_argument(
-        "--prior-gate", action=argparse.BooleanOptionalAction, default=defaults.prior_gate, help="with --from-onnx"
+        "--correction-history", action=argparse.BooleanOptionalAction, default=None, help="with --from-onnx"
     )
     ap.add_argument(
-        "--correction-history",
-        action=argparse.BooleanOptionalAction,
-        default=defaults.correction_history,
-        help="with --from-onnx",
+        "--graph-margin", type=int, default=None, help="with --from-onnx: the in-graph repair margin (ModelConfig)"
     )
     ap.add_argument(
         "--prior-depth-tol",
@@ -347,14 +372,19 @@ def main(argv: list[str] | None = None) -> int:
         print(f"export: {source} not found", file=sys.stderr)
         return 2
     if args.from_onnx:
-        model = weights_from_onnx(
-            args.from_onnx,
-            prior_floor=args.prior_floor,
-            prior_gate=args.prior_gate,
-            correction_history=args.correction_history,
-            **({"prior_frames": args.history_read} if args.history_read is not None else {}),
-            **({"prior_depth_tol": args.prior_depth_tol} if args.prior_depth_tol is not None else {}),
-        )
+        given = {
+            "prior_floor": args.prior_floor,
+            "prior_gate": args.prior_gate,
+            "correction_history": args.correction_history,
+            "graph_margin": args.graph_margin,
+            "prior_frames": args.history_read,
+            "prior_depth_tol": args.prior_depth_tol,
+        }
+        try:
+            model = weights_from_onnx(args.from_onnx, **{k: v for k, v in given.items() if v is not None})
+        except ValueError as e:
+            print(f"export: {e}", file=sys.stderr)
+            return 2
         step = None
         if args.repair_margin is None:
             source_manifest = json.loads(args.from_onnx.with_suffix(".json").read_text())

@@ -258,6 +258,37 @@ def test_weights_from_onnx_rebuild_the_exported_model(tmp_path):
         assert torch.allclose(old(x), m(x), atol=1e-6)
 
 
+def test_an_exported_file_says_its_whole_configuration(tmp_path):
+    """What the graph cannot tell (the depth-aware prior's tolerance, the
+    in-graph margin) comes back from the file's metadata; a file without it
+    whose input reads depth is refused rather than rebuilt without it."""
+    import onnx
+
+    from training.export import CONFIG_METADATA, export, weights_from_onnx
+
+    m = _blend_model(prior_depth_tol=0.05, graph_margin=2, prior_frames=2)
+    export(m, tmp_path / "m")
+    back = weights_from_onnx(tmp_path / "m.onnx")
+    assert back.cfg == m.cfg
+    x = torch.rand(1, len(m.cfg.input_channels()), 32, 48)
+    x[:, 3] = (torch.rand(32, 48) > 0.3).float()
+    x[:, -1] = torch.where(torch.rand(32, 48) > 0.5, 0.5, 0.1)
+    with torch.no_grad():
+        assert torch.allclose(back(x), m(x), atol=1e-6)
+    assert weights_from_onnx(tmp_path / "m.onnx", graph_margin=0).cfg.graph_margin == 0
+    # Exported before the metadata: refused without the tolerance.
+    proto = onnx.load(str(tmp_path / "m.onnx"))
+    kept = [p for p in proto.metadata_props if p.key != CONFIG_METADATA]
+    del proto.metadata_props[:]
+    proto.metadata_props.extend(kept)
+    onnx.save(proto, str(tmp_path / "m.onnx"))
+    with pytest.raises(ValueError, match="prior_depth_tol"):
+        weights_from_onnx(tmp_path / "m.onnx")
+    old = weights_from_onnx(tmp_path / "m.onnx", prior_depth_tol=0.05, graph_margin=2)
+    with torch.no_grad():
+        assert torch.allclose(old(x), m(x), atol=1e-6)
+
+
 def test_a_lean_graph_reads_only_its_history_frames_and_comes_back_whole(tmp_path):
     """The default wiring leaves the history channels out of the correction's
     input and, with `prior_frames`, the prior reads the first frames only: the
