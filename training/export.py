@@ -360,6 +360,13 @@ def main(argv: list[str] | None = None) -> int:
         help="a fixed factor on the history blend's weight (ModelConfig.blend_gain; default: the checkpoint's)",
     )
     ap.add_argument(
+        "--hole-correction",
+        type=float,
+        default=None,
+        help="the share of the network's correction applied in holes (ModelConfig.hole_correction; default: "
+        "the source's)",
+    )
+    ap.add_argument(
         "--repair-margin",
         type=int,
         default=None,
@@ -379,6 +386,7 @@ def main(argv: list[str] | None = None) -> int:
             "graph_margin": args.graph_margin,
             "prior_frames": args.history_read,
             "prior_depth_tol": args.prior_depth_tol,
+            "hole_correction": args.hole_correction,
         }
         try:
             model = weights_from_onnx(args.from_onnx, **{k: v for k, v in given.items() if v is not None})
@@ -404,6 +412,8 @@ def main(argv: list[str] | None = None) -> int:
             model.cfg.prior_frames = args.history_read
         if args.blend_gain is not None:
             model.cfg.blend_gain = args.blend_gain
+        if args.hole_correction is not None:
+            model.cfg.hole_correction = args.hole_correction
         if args.prior_depth_tol is not None:
             model.cfg.prior_depth_tol = args.prior_depth_tol
         model.eval()

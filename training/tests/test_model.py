@@ -289,6 +289,35 @@ def test_an_exported_file_says_its_whole_configuration(tmp_path):
         assert torch.allclose(old(x), m(x), atol=1e-6)
 
 
+def test_hole_correction_leaves_holes_to_the_prior_and_the_rest_to_the_network(tmp_path):
+    from training.export import export, verify, weights_from_onnx
+
+    torch.manual_seed(8)
+    full = Enhancer(ModelConfig(widths=(8, 8, 12, 16), prior_depth_tol=0.05))
+    with torch.no_grad():
+        for p in full.parameters():
+            p.normal_(std=0.1)
+    none = Enhancer(ModelConfig.from_dict({**full.cfg.to_dict(), "hole_correction": 0.0}))
+    none.load_state_dict(full.state_dict())
+    prior_only = Enhancer(full.cfg)
+    prior_only.load_state_dict(full.state_dict())
+    with torch.no_grad():
+        prior_only.head.weight.zero_()
+        prior_only.head.bias.zero_()
+    x = torch.rand(1, len(full.cfg.input_channels()), 32, 48)
+    x[:, 3] = 1.0
+    x[:, 3, 8:20, 10:30] = 0.0  # a hole
+    x[:, 3, 4, 4] = 0.97  # covered above the floor: not a hole
+    hole = (x[:, 3:4] < full.cfg.prior_floor).expand(-1, 3, -1, -1)
+    with torch.no_grad():
+        got, ref, fill = none(x), full(x), prior_only(x)
+    assert torch.equal(got[hole], fill[hole]) and torch.equal(got[~hole], ref[~hole])
+    assert not torch.allclose(ref[hole], fill[hole])
+    export(none, tmp_path / "m")
+    assert verify(none, tmp_path / "m.onnx") < 1e-4
+    assert weights_from_onnx(tmp_path / "m.onnx").cfg.hole_correction == 0.0
+
+
 def test_a_lean_graph_reads_only_its_history_frames_and_comes_back_whole(tmp_path):
     """The default wiring leaves the history channels out of the correction's
     input and, with `prior_frames`, the prior reads the first frames only: the
