@@ -367,6 +367,12 @@ def main(argv: list[str] | None = None) -> int:
         "the source's)",
     )
     ap.add_argument(
+        "--hole-blend",
+        type=float,
+        default=None,
+        help="a factor on the history blend's weight in holes (ModelConfig.hole_blend; default: the source's)",
+    )
+    ap.add_argument(
         "--repair-margin",
         type=int,
         default=None,
@@ -387,6 +393,7 @@ def main(argv: list[str] | None = None) -> int:
             "prior_frames": args.history_read,
             "prior_depth_tol": args.prior_depth_tol,
             "hole_correction": args.hole_correction,
+            "hole_blend": args.hole_blend,
         }
         try:
             model = weights_from_onnx(args.from_onnx, **{k: v for k, v in given.items() if v is not None})
@@ -414,6 +421,8 @@ def main(argv: list[str] | None = None) -> int:
             model.cfg.blend_gain = args.blend_gain
         if args.hole_correction is not None:
             model.cfg.hole_correction = args.hole_correction
+        if args.hole_blend is not None:
+            model.cfg.hole_blend = args.hole_blend
         if args.prior_depth_tol is not None:
             model.cfg.prior_depth_tol = args.prior_depth_tol
         model.eval()

@@ -481,6 +481,24 @@ def _blend_model(**kw):
     return m
 
 
+def test_hole_blend_scales_the_blend_in_holes_only():
+    full = _blend_model()
+    none = _blend_model(hole_blend=0.0)
+    half = _blend_model(hole_blend=0.5)
+    plain = _blend_model()
+    plain.blend = None  # the estimate before the blend
+    x = torch.rand(1, len(full.cfg.input_channels()), 32, 48)
+    x[:, 3] = 1.0
+    x[:, 3, 8:20, 10:30] = 0.0
+    x[:, 8] = 1.0  # history frame 0 valid everywhere
+    hole = (x[:, 3:4] < full.cfg.prior_floor).expand(-1, 3, -1, -1)
+    with torch.no_grad():
+        a, b, c, est = full(x), none(x), half(x), plain(x)
+    assert torch.equal(b[~hole], a[~hole]) and torch.equal(c[~hole], a[~hole])
+    assert torch.allclose(b[hole], est[hole]) and not torch.allclose(a[hole], est[hole])
+    assert torch.allclose(c[hole], (a[hole] + est[hole]) / 2, atol=1e-6)
+
+
 def test_the_history_blend_is_convex_and_silent_without_history():
     """The blend returns the network's estimate where history frame 0 is not
     valid, and elsewhere a point between the estimate and the history (never
