@@ -358,7 +358,10 @@ def add_args(ap: argparse.ArgumentParser) -> None:
         help="with --init: the history blend starts from its initialization (the rest from the checkpoint)",
     )
     ap.add_argument(
-        "--graph-margin", type=int, default=0, help="in-graph repair margin in px (ModelConfig.graph_margin; 0: none)"
+        "--graph-margin",
+        type=int,
+        default=None,
+        help="in-graph repair margin in px (ModelConfig.graph_margin; 0: none; default: --init-onnx's own, else none)",
     )
     ap.add_argument(
         "--train-only",
@@ -496,7 +499,7 @@ def main(argv: list[str] | None = None) -> int:
     elif args.init_onnx:
         from training.export import weights_from_onnx
 
-        changes = {"graph_margin": args.graph_margin}
+        changes = {} if args.graph_margin is None else {"graph_margin": args.graph_margin}
         if args.prior_depth_tol is not None:
             changes["prior_depth_tol"] = args.prior_depth_tol
         if args.history_blend:
