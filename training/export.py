@@ -307,22 +307,24 @@ def main(argv: list[str] | None = None) -> int:
     src = ap.add_mutually_exclusive_group(required=True)
     src.add_argument("--ckpt", type=Path)
     src.add_argument("--from-onnx", type=Path, help="re-export the weights of this exported model")
-    # With --from-onnx, each of these left out keeps the source's (saved in
-    # the file since 1.4.1; before, ModelConfig's default).
-    ap.add_argument("--prior-floor", type=float, default=None, help="with --from-onnx")
-    ap.add_argument("--prior-gate", action=argparse.BooleanOptionalAction, default=None, help="with --from-onnx")
+    # Changes to the source's ModelConfig: each one left out keeps the
+    # source's (a checkpoint's, or an exported file's, saved in it since
+    # 1.4.1; in files before that, ModelConfig's default).
+    ap.add_argument("--prior-floor", type=float, default=None, help="ModelConfig.prior_floor")
+    ap.add_argument("--prior-gate", action=argparse.BooleanOptionalAction, default=None, help="ModelConfig.prior_gate")
     ap.add_argument(
-        "--correction-history", action=argparse.BooleanOptionalAction, default=None, help="with --from-onnx"
+        "--correction-history",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="ModelConfig.correction_history",
     )
-    ap.add_argument(
-        "--graph-margin", type=int, default=None, help="with --from-onnx: the in-graph repair margin (ModelConfig)"
-    )
+    ap.add_argument("--graph-margin", type=int, default=None, help="the in-graph repair margin (ModelConfig)")
     ap.add_argument(
         "--prior-depth-tol",
         type=float,
         default=None,
         help="the prior's depth-aware push-pull tolerance (ModelConfig.prior_depth_tol; 0: off; "
-        "default: the checkpoint's, or off with --from-onnx)",
+        "default: the source's)",
     )
     ap.add_argument(
         "--average-with",
@@ -384,19 +386,21 @@ def main(argv: list[str] | None = None) -> int:
     if not source.exists():
         print(f"export: {source} not found", file=sys.stderr)
         return 2
+    given = {
+        "prior_floor": args.prior_floor,
+        "prior_gate": args.prior_gate,
+        "correction_history": args.correction_history,
+        "graph_margin": args.graph_margin,
+        "prior_frames": args.history_read,
+        "prior_depth_tol": args.prior_depth_tol,
+        "blend_gain": args.blend_gain,
+        "hole_correction": args.hole_correction,
+        "hole_blend": args.hole_blend,
+    }
+    changes = {k: v for k, v in given.items() if v is not None}
     if args.from_onnx:
-        given = {
-            "prior_floor": args.prior_floor,
-            "prior_gate": args.prior_gate,
-            "correction_history": args.correction_history,
-            "graph_margin": args.graph_margin,
-            "prior_frames": args.history_read,
-            "prior_depth_tol": args.prior_depth_tol,
-            "hole_correction": args.hole_correction,
-            "hole_blend": args.hole_blend,
-        }
         try:
-            model = weights_from_onnx(args.from_onnx, **{k: v for k, v in given.items() if v is not None})
+            model = weights_from_onnx(args.from_onnx, **changes)
         except ValueError as e:
             print(f"export: {e}", file=sys.stderr)
             return 2
@@ -415,16 +419,8 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"export: {e}", file=sys.stderr)
                 return 2
         model.load_state_dict(weights)
-        if args.history_read is not None:
-            model.cfg.prior_frames = args.history_read
-        if args.blend_gain is not None:
-            model.cfg.blend_gain = args.blend_gain
-        if args.hole_correction is not None:
-            model.cfg.hole_correction = args.hole_correction
-        if args.hole_blend is not None:
-            model.cfg.hole_blend = args.hole_blend
-        if args.prior_depth_tol is not None:
-            model.cfg.prior_depth_tol = args.prior_depth_tol
+        for k, v in changes.items():
+            setattr(model.cfg, k, v)
         model.eval()
         step = ck["step"]
     manifest = export(model, args.out, args.name, args.version, args.stabilize, args.repair_margin)

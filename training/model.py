@@ -363,6 +363,12 @@ def upsample_far(f: torch.Tensor, fd: torch.Tensor, size, tol: float) -> torch.T
     return out
 
 
+def _pad_odd(x: torch.Tensor, even: bool, value: float = 0.0) -> torch.Tensor:
+    """``x`` with a row and a column of ``value`` added before a 2x2 halving,
+    unless ``even`` (the halving would drop them)."""
+    return x if even else F.pad(x, (0, 1, 0, 1), value=value)
+
+
 # Larger than any disparity (1 / (1 + depth) <= 1): "no depth of its own".
 NO_DISPARITY = 4.0
 
@@ -394,20 +400,16 @@ def push_pull_depth(
         # at the export's size, and only those levels are even at every
         # multiple of 16 (at 1920x1088 the pads took 15 ms of the fill).
         even = lv < 4 and c.shape[-2] % 2 == 0 and c.shape[-1] % 2 == 0
-
-        def pad(x: torch.Tensor, value: float = 0.0, even: bool = even) -> torch.Tensor:
-            return x if even else F.pad(x, (0, 1, 0, 1), value=value)
-
         has = own > 0
         key = torch.where(has, disp, torch.full_like(disp, NO_DISPARITY))
-        limit = -F.max_pool2d(-pad(key, NO_DISPARITY), 2) * (1 + tol)
+        limit = -F.max_pool2d(-_pad_odd(key, even, NO_DISPARITY), 2) * (1 + tol)
         limit = F.interpolate(limit, size=key.shape[-2:], mode="nearest")
         keep = (~(has & (disp > limit))).to(c.dtype)
         c, w, own = c * keep, w * keep, own * keep
-        c = F.avg_pool2d(pad(c), 2) * 4
-        w = F.avg_pool2d(pad(w), 2) * 4
-        od = F.avg_pool2d(pad(own * disp), 2) * 4
-        own = F.avg_pool2d(pad(own), 2) * 4
+        c = F.avg_pool2d(_pad_odd(c, even), 2) * 4
+        w = F.avg_pool2d(_pad_odd(w, even), 2) * 4
+        od = F.avg_pool2d(_pad_odd(own * disp, even), 2) * 4
+        own = F.avg_pool2d(_pad_odd(own, even), 2) * 4
         disp = od / own.clamp(min=1e-12)
         k = w.clamp(max=1) / w.clamp(min=1e-12)
         c = c * k
@@ -426,7 +428,7 @@ def push_pull_depth(
         fd = torch.where(owns[lv] > 0, ds[lv], upd)
     # The far side only in this last step, the costliest place for it (in
     # 1.4.0's graph, 70-90 ms of the fill at 1920x1088 on 2 threads against
-    # 20-30 one level up; `upsample_far` now takes 48 of those ms), because
+    # 20-30 one level up; `upsample_far` now takes 41 of those ms), because
     # one level up gave back 0.3-1.6 dB of the holes' gain on most held-out
     # reconstructions (model card, 1.4.0).
     return cs[0] + (1 - ws[0]) * upsample_far(f, fd, cs[0].shape[-2:], tol)
@@ -525,11 +527,15 @@ class Enhancer(nn.Module):
             est = parts[0] + self.correction(seen)
         return self.after_network(est, parts)
 
+    def holes(self, parts: list[torch.Tensor]) -> torch.Tensor:
+        """The pixels covered below ``prior_floor``: those the prior fills."""
+        return parts[1].clamp(0, 1) < self.cfg.prior_floor
+
     def in_holes(self, corr: torch.Tensor, parts: list[torch.Tensor]) -> torch.Tensor:
         """The correction with ``hole_correction`` of it in holes."""
         if self.cfg.hole_correction == 1.0:
             return corr
-        hole = parts[1].clamp(0, 1) < self.cfg.prior_floor
+        hole = self.holes(parts)
         if self.cfg.hole_correction == 0.0:
             return torch.where(hole, 0.0, corr)  # one operation at full resolution
         return corr * torch.where(hole, self.cfg.hole_correction, 1.0)
@@ -549,7 +555,7 @@ class Enhancer(nn.Module):
                 near = margin_share(cov, self.cfg.prior_floor, BLEND_MARGIN)
             gain = self.cfg.blend_gain
             if self.cfg.hole_blend != 1.0:
-                gain = torch.where(cov < self.cfg.prior_floor, gain * self.cfg.hole_blend, gain)
+                gain = torch.where(self.holes(parts), gain * self.cfg.hole_blend, gain)
             est = self.blend(est, parts[3], parts[4].clamp(0, 1), cov, near, gain)
         return est
 
