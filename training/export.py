@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from training.model import Enhancer, ModelConfig, activation_bytes_per_pixel, count_macs
+from training.model import BLEND_STRIDE, Enhancer, ModelConfig, activation_bytes_per_pixel, count_macs
 
 MAX_IR_VERSION = 13
 # The ONNX metadata key that holds the exported ModelConfig (`weights_from_onnx`).
@@ -218,6 +218,22 @@ def weights_from_onnx(path: Path, **changes) -> Enhancer:
         )
     levels = sorted({int(k.split(".")[1]) for k in init if k.startswith("enc.")})
     widths = tuple(int(init[f"enc.{i}.0.0.weight"].shape[0]) for i in levels)
+    # The history blend's first layer as one convolution per feature tensor
+    # (1.7.1 on: `HistoryBlend.down_features`), in graph order: their weight
+    # slices joined are the layer's weight.
+    split = [
+        n.input[1]
+        for n in proto.graph.node
+        if n.op_type == "Conv"
+        and n.name.startswith("/blend/")
+        and n.input[1] in init
+        and init[n.input[1]].dim() == 4
+        and init[n.input[1]].shape[-1] == BLEND_STRIDE
+    ]
+    if len(split) > 1 and "blend.down.weight" not in init:
+        init["blend.down.weight"] = torch.cat([init[k] for k in split], 1)
+        for k in set(split):
+            del init[k]
     # The stem as one r x r convolution of stride r: [stem, channels, r, r].
     folded = [v for k, v in init.items() if k.startswith("onnx::") and v.dim() == 4 and v.shape[-1] > 1]
     if "stem.0.bias" not in init or len(folded) != 1:

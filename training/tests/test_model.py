@@ -499,6 +499,24 @@ def test_hole_blend_scales_the_blend_in_holes_only():
     assert torch.allclose(c[hole], (a[hole] + est[hole]) / 2, atol=1e-6)
 
 
+def test_the_blend_layer_split_per_tensor_is_the_layer_on_their_concatenation():
+    """`HistoryBlend.down_features` (one convolution per tensor) is the
+    stride-4 layer on the 12 concatenated features, within float rounding,
+    and trains the same weight."""
+    torch.manual_seed(3)
+    b = _blend_model().blend
+    nn_init = torch.nn.init
+    nn_init.normal_(b.down.bias)
+    est, clamped, hist = (torch.rand(2, 3, 16, 24) for _ in range(3))
+    valid, cov, near = (torch.rand(2, 1, 16, 24) for _ in range(3))
+    want = b.down(torch.cat([est, clamped, hist - est, valid, cov, near], 1))
+    got = b.down_features(est, clamped, hist, valid, cov, near)
+    assert torch.allclose(got, want, atol=1e-5)
+    (g1,) = torch.autograd.grad(want.square().sum(), b.down.weight)
+    (g2,) = torch.autograd.grad(got.square().sum(), b.down.weight)
+    assert torch.allclose(g1, g2, atol=1e-4)
+
+
 def test_the_history_blend_is_convex_and_silent_without_history():
     """The blend returns the network's estimate where history frame 0 is not
     valid, and elsewhere a point between the estimate and the history (never
