@@ -364,6 +364,13 @@ def add_args(ap: argparse.ArgumentParser) -> None:
         help="in-graph repair margin in px (ModelConfig.graph_margin; 0: none; default: --init-onnx's own, else none)",
     )
     ap.add_argument(
+        "--hole-correction",
+        type=float,
+        default=None,
+        help="the share of the correction applied in holes while training (ModelConfig.hole_correction; "
+        "at 0 the network gets no gradient from hole pixels; default: the --init/--init-onnx model's)",
+    )
+    ap.add_argument(
         "--train-only",
         choices=("all", "blend"),
         default="all",
@@ -482,6 +489,8 @@ def main(argv: list[str] | None = None) -> int:
         mcfg = ModelConfig.from_dict({**init["model_cfg"], "prior_fill": args.prior_fill})
         if args.prior_depth_tol is not None:
             mcfg.prior_depth_tol = args.prior_depth_tol
+        if args.hole_correction is not None:
+            mcfg.hole_correction = args.hole_correction
         weights = init["model"]
         if args.fresh_blend:
             # The rest of the weights, with a history blend from its initialization.
@@ -504,6 +513,8 @@ def main(argv: list[str] | None = None) -> int:
             changes["prior_depth_tol"] = args.prior_depth_tol
         if args.history_blend:
             changes["history_blend"] = True
+        if args.hole_correction is not None:
+            changes["hole_correction"] = args.hole_correction
         model = weights_from_onnx(args.init_onnx, **changes)
         mcfg = model.cfg
         cfg["init"] = str(args.init_onnx)
