@@ -109,10 +109,12 @@ def test_harmonize_neural_matches_the_python_contract(tmp_path, depth_tol):
     with torch.no_grad():
         out = model(torch.from_numpy(xp))[:, :, :h, :w]
         want = decode(out, scale, man["encoding"]["log_range"])[0].numpy()
-    rel = np.abs(got - want) / (np.abs(want) + 1e-3)
+    rel = np.abs(got - want) / (np.abs(want) + 1e-2)
     worst = np.unravel_index(int(rel.argmax()), rel.shape)
     # 1e-3: float32 differences through a random network (straight color amplifies
-    # them at soft edges); a layout or encoding mistake is off by far more.
+    # them at soft edges); a layout or encoding mistake is off by far more. Below
+    # 0.01 (the frame's colors reach 2) the bound is absolute, 1e-5: ONNX Runtime's
+    # AVX2 kernels (no AVX-512) put one pixel of 3.1e-5 off by 1.2e-6 (3.7 %).
     assert rel.max() < 1e-3, f"max relative difference {rel.max()} at {worst}: got {got[worst]}, want {want[worst]}"
     # The correction is not trivial (the test would not notice a missing residual otherwise).
     assert np.abs(want - rgb).mean() > 1e-3
