@@ -12,7 +12,11 @@
 //!   stored byte can decompress to ([`expansion_bound`]), so a file of `n`
 //!   bytes cannot legitimately hold more than about `n * bound` decoded bytes;
 //! - for DWA chunks, the counters of each chunk's leader against the size of
-//!   the block they belong to.
+//!   the block they belong to;
+//! - one block (a tile, or a chunk of scan lines) against its part and the
+//!   budget: the decoder reads a chunk into a buffer of up to the block's
+//!   size, and a 2 KB file could claim 8 x 33554625-pixel tiles (a 1.7 GB
+//!   buffer; found by the `exr_read` fuzz target).
 //!
 //! What passes can still be corrupt; the decoder then fails with an error, and
 //! the allocations it makes on the way are bounded by the checked claims.
@@ -22,6 +26,7 @@ use std::io::Cursor;
 use exr::block::chunk::CompressedBlock;
 use exr::compression::Compression;
 use exr::meta::header::Header;
+use exr::meta::BlockDescription;
 
 /// Limits on what one EXR file may claim.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -135,6 +140,10 @@ impl From<String> for Refusal {
     }
 }
 
+/// Bytes one block may take whatever its part's size (a 1024 x 1024 tile
+/// of four 32-bit channels is 16 MiB).
+const BLOCK_FLOOR: usize = 64 << 20;
+
 /// Checks the headers of `bytes` (a whole EXR file) against `limits` and the
 /// file's size, then the chunk leaders of DWA parts. The message names the
 /// part and the claim; the caller adds file and frame.
@@ -174,6 +183,25 @@ pub fn check(bytes: &[u8], limits: &ReadLimits) -> Result<(), Refusal> {
         let part_bytes = decoded_bytes(h).ok_or_else(|| {
             format!("{part}: data window {w}x{ht} with these channels overflows the address space")
         })?;
+        // One block, as the decoder sizes its read buffer for it: a tile
+        // may be larger than a small image, but not by more than
+        // `BLOCK_FLOOR`; a chunk of scan lines (up to 256 for DWAB) of a
+        // short wide image only within the budget.
+        let (bw, bh, tiles) = match h.blocks {
+            BlockDescription::Tiles(t) => (t.tile_size.0, t.tile_size.1, true),
+            BlockDescription::ScanLines => (w, h.compression.scan_lines_per_block(), false),
+        };
+        let block = bw
+            .saturating_mul(bh)
+            .saturating_mul(h.channels.bytes_per_pixel);
+        if block > budget || (tiles && block > part_bytes.max(BLOCK_FLOOR)) {
+            return Err(Refusal::Invalid(format!(
+                "{part}: {} of {bw}x{bh} pixels ({} a block) for a {w}x{ht} data window \
+                 (corrupt header)",
+                if tiles { "tiles" } else { "scan-line blocks" },
+                mib(block)
+            )));
+        }
         total = total.saturating_add(part_bytes);
         stored_need = stored_need.saturating_add(part_bytes / expansion_bound(h.compression));
     }

@@ -227,6 +227,40 @@ fn legitimate_files_of_every_compression_read_even_when_flat() {
 /// B44 blocks whose deltas wrap below zero: OpenEXR's decoder wraps (C
 /// unsigned arithmetic), and so must the `exr` crate in debug builds, where
 /// it used to panic with `attempt to subtract with overflow`.
+/// A tiled file whose tile claims 8 x 33554625 pixels (the `exr_read` fuzz
+/// target's find: the decoder sized a 1.7 GB read buffer for one tile of a
+/// 12 x 10 image) is refused from its header.
+#[test]
+fn a_tile_larger_than_its_image_and_the_budget_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("tile.exr");
+    write_blocks(
+        &path,
+        12,
+        10,
+        3,
+        Compression::Uncompressed,
+        false,
+        Blocks::Tiles(exr::math::Vec2(8, 8)),
+    );
+    let good = std::fs::read(&path).unwrap();
+    assert!(
+        ExrFile::open(&path, Some(7)).is_ok(),
+        "the file as written reads"
+    );
+    let key = b"tiles\0tiledesc\0";
+    let at = good.windows(key.len()).position(|x| x == key).unwrap() + key.len() + 4;
+    let mut b = good.clone();
+    b[at + 4..at + 8].copy_from_slice(&0x0200_00c1u32.to_le_bytes());
+    std::fs::write(&path, &b).unwrap();
+    let e = open_err(&path);
+    let m = e.to_string();
+    assert!(
+        m.contains("tiles of 8x33554625 pixels") && m.contains("12x10 data window"),
+        "{m}"
+    );
+}
+
 #[test]
 fn b44_blocks_that_wrap_decode_without_a_panic() {
     let dir = tempfile::tempdir().unwrap();
