@@ -233,8 +233,10 @@ class HistoryBlend(nn.Module):
         the weight, the first with the bias), summed: the same products
         without the full-resolution concatenation, and ONNX Runtime reads an
         input of under 8 channels (its channel block with AVX2; 16 with
-        AVX-512) as it is, where the 12 were first copied into blocks (at
-        1920x1088 on 2 AVX2 cores about 35 of the layer's 41 ms; split, 8).
+        AVX-512) as it is, where the 12 were first copied into blocks (ONNX
+        Runtime's profile at 1920x1088 on 2 AVX2 cores: concatenation 6.6 ms,
+        layout copy 28.1 and convolution 7.0 became six convolutions and
+        their sums, 8).
         `training.export.weights_from_onnx` joins the slices back."""
         w = self.down.weight
         out, at = None, 0
@@ -273,8 +275,8 @@ class HistoryBlend(nn.Module):
 def pixel_shuffle_2(x: torch.Tensor) -> torch.Tensor:
     """``F.pixel_shuffle(x, 2)``, the same values, as the phases interleaved
     by two stacks (as `upsample_far` does): ONNX Runtime's DepthToSpace took
-    15-28 ms for the correction's 12 half-resolution channels at 1920x1088
-    on 2 threads."""
+    14-28 ms for the correction's 12 half-resolution channels at 1920x1088
+    on 2 threads, the stacks about 7."""
     n, c4, h, w = x.shape
     c = c4 // 4
     x = x.reshape(n, c, 2, 2, h, w)
