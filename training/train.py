@@ -361,7 +361,8 @@ def add_args(ap: argparse.ArgumentParser) -> None:
         "--graph-margin",
         type=int,
         default=None,
-        help="in-graph repair margin in px (ModelConfig.graph_margin; 0: none; default: --init-onnx's own, else none)",
+        help="in-graph repair margin in px (ModelConfig.graph_margin; 0: none; default: the --init/--init-onnx "
+        "model's, else none)",
     )
     ap.add_argument(
         "--hole-correction",
@@ -475,6 +476,14 @@ def main(argv: list[str] | None = None) -> int:
     step = 0
     seconds_before = 0.0
     ck = None
+    # ModelConfig changes from the command line, applied however the model
+    # starts (a fresh one, --init, --init-onnx); a resumed run keeps its own.
+    given = {
+        "graph_margin": args.graph_margin,
+        "prior_depth_tol": args.prior_depth_tol,
+        "hole_correction": args.hole_correction,
+    }
+    changes = {k: v for k, v in given.items() if v is not None}
     if ckpt_path.exists():
         ck = load_checkpoint(ckpt_path)
         mcfg = ModelConfig.from_dict(ck["model_cfg"])
@@ -486,11 +495,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"train: resumed {ckpt_path} at step {step}", flush=True)
     elif args.init:
         init = load_checkpoint(args.init)
-        mcfg = ModelConfig.from_dict({**init["model_cfg"], "prior_fill": args.prior_fill})
-        if args.prior_depth_tol is not None:
-            mcfg.prior_depth_tol = args.prior_depth_tol
-        if args.hole_correction is not None:
-            mcfg.hole_correction = args.hole_correction
+        mcfg = ModelConfig.from_dict({**init["model_cfg"], "prior_fill": args.prior_fill, **changes})
         weights = init["model"]
         if args.fresh_blend:
             # The rest of the weights, with a history blend from its initialization.
@@ -508,14 +513,8 @@ def main(argv: list[str] | None = None) -> int:
     elif args.init_onnx:
         from training.export import weights_from_onnx
 
-        changes = {} if args.graph_margin is None else {"graph_margin": args.graph_margin}
-        if args.prior_depth_tol is not None:
-            changes["prior_depth_tol"] = args.prior_depth_tol
-        if args.history_blend:
-            changes["history_blend"] = True
-        if args.hole_correction is not None:
-            changes["hole_correction"] = args.hole_correction
-        model = weights_from_onnx(args.init_onnx, **changes)
+        blend = {"history_blend": True} if args.history_blend else {}
+        model = weights_from_onnx(args.init_onnx, **changes, **blend)
         mcfg = model.cfg
         cfg["init"] = str(args.init_onnx)
         print(f"train: starting from the weights of {args.init_onnx}", flush=True)
@@ -529,7 +528,7 @@ def main(argv: list[str] | None = None) -> int:
             skip=args.skip,
             prior=not args.no_prior,
             prior_fill=args.prior_fill,
-            prior_depth_tol=args.prior_depth_tol or 0.0,
+            **changes,
         )
         model = Enhancer(mcfg)
     device = torch.device(args.device)
