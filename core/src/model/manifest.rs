@@ -134,6 +134,9 @@ pub enum InputChannel {
     HistoryAlpha(usize),
     /// `valid{k}`: validity of history frame k's reprojection (0 when unavailable).
     Valid(usize),
+    /// `prior.r|g|b`: the manifest's [`PriorSpec`] fill of the encoded
+    /// color, computed by the runtime from the other channels of the tile.
+    Prior(usize),
 }
 
 impl InputChannel {
@@ -162,6 +165,8 @@ impl InputChannel {
             _ => {
                 if let Some(c) = name.strip_prefix("color.") {
                     InputChannel::Color(rgb(c)?)
+                } else if let Some(c) = name.strip_prefix("prior.") {
+                    InputChannel::Prior(rgb(c)?)
                 } else if let Some(c) = name.strip_prefix("normal.") {
                     InputChannel::Normal(xyz(c)?)
                 } else if let Some(c) = name.strip_prefix("motion.") {
@@ -195,6 +200,29 @@ impl InputChannel {
             _ => None,
         }
     }
+}
+
+/// How the runtime computes a model's prior (the `prior.r|g|b` input
+/// channels): the encoded color with its holes filled, first from the
+/// reprojected history, newest first, then by a push-pull from the
+/// background side; the operations of the trainer's `Enhancer.prior`
+/// (`training/model.py`) with the "chain" fill, on the tile's input
+/// channels (`crate::backend::neural::prior`).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PriorSpec {
+    /// Pixels covered below this count as holes (their color is dropped).
+    pub floor: f32,
+    /// A history frame fills a hole pixel only where few covered pixels
+    /// are near (the classical backend's gate).
+    pub gate: bool,
+    /// History frames the fill reads (the first ones).
+    pub frames: usize,
+    /// Halvings of the push-pull pyramid.
+    pub levels: usize,
+    /// Relative disparity within which two surfaces count as one (0: a
+    /// plain push-pull, without depth).
+    pub depth_tol: f32,
 }
 
 /// A model manifest (see the module documentation for the JSON form).
@@ -262,6 +290,10 @@ pub struct Manifest {
     /// everywhere. The session's `keep_covered` parameter turns it off.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub repair_margin: Option<usize>,
+    /// How the runtime computes the `prior.r|g|b` channels; required by,
+    /// and only with, those channels.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub prior: Option<PriorSpec>,
 }
 
 /// Share of the network's output a covered pixel takes at `repair_margin`
@@ -321,6 +353,76 @@ impl Manifest {
     pub fn tile_bytes_per_pixel(&self) -> usize {
         self.bytes_per_pixel
             .unwrap_or(4 * (self.input.channels.len() + self.output.channels.len()) * 4)
+    }
+
+    /// The `prior` field against the channels: the spec comes with the
+    /// three `prior` channels, and the channels it reads are there.
+    fn validate_prior(&self, origin: &str) -> Result<()> {
+        let bad = |field: &str, msg: String| {
+            Err(Error::Model(format!(
+                "manifest {origin}: field {field}: {msg}"
+            )))
+        };
+        let has = |name: &str| self.input.channels.iter().any(|c| c == name);
+        let wants = ["prior.r", "prior.g", "prior.b"].map(has);
+        let Some(p) = self.prior else {
+            if wants.iter().any(|&w| w) {
+                return bad(
+                    "prior",
+                    "is missing: the input has prior channels, which the runtime computes as this field says"
+                        .into(),
+                );
+            }
+            return Ok(());
+        };
+        if wants != [true; 3] {
+            return bad(
+                "prior",
+                "is given but the input lacks prior.r, prior.g or prior.b".into(),
+            );
+        }
+        if !(p.floor.is_finite() && (0.0..=1.0).contains(&p.floor)) {
+            return bad("prior.floor", format!("{} is out of range 0..=1", p.floor));
+        }
+        if !(p.depth_tol.is_finite() && (0.0..=1.0).contains(&p.depth_tol)) {
+            return bad(
+                "prior.depth_tol",
+                format!("{} is out of range 0..=1", p.depth_tol),
+            );
+        }
+        if !(1..=16).contains(&p.levels) {
+            return bad(
+                "prior.levels",
+                format!("{} is out of range 1..=16", p.levels),
+            );
+        }
+        if p.frames > self.history_slots() {
+            return bad(
+                "prior.frames",
+                format!(
+                    "{} is above the history slots the runtime fills ({})",
+                    p.frames,
+                    self.history_slots()
+                ),
+            );
+        }
+        let mut needed: Vec<String> = ["color.r", "color.g", "color.b", "coverage"]
+            .map(String::from)
+            .into();
+        for k in 0..p.frames {
+            needed.extend(["r", "g", "b"].map(|c| format!("hist{k}.{c}")));
+            needed.push(format!("valid{k}"));
+        }
+        if p.depth_tol > 0.0 {
+            needed.push("disparity".into());
+        }
+        if let Some(missing) = needed.iter().find(|n| !has(n)) {
+            return bad(
+                "prior",
+                format!("reads channel {missing:?}, which the input lacks"),
+            );
+        }
+        Ok(())
     }
 
     /// Checks every field; errors name the field and the value seen.
@@ -384,7 +486,7 @@ impl Manifest {
                     &field,
                     format!(
                         "unknown channel {name:?} (known: color.r|g|b, coverage, insert, disparity, normal.x|y|z, \
-                         motion.x|y, hist<k>.r|g|b|a, valid<k>)"
+                         motion.x|y, hist<k>.r|g|b|a, valid<k>, prior.r|g|b)"
                     ),
                 );
             };
@@ -406,6 +508,7 @@ impl Manifest {
                 has_color[c] = true;
             }
         }
+        self.validate_prior(origin)?;
         if self.residual && has_color != [true; 3] {
             return bad(
                 "input.channels",
@@ -493,6 +596,7 @@ mod tests {
             version: "1".into(),
             context_frames: 2,
             history_read: None,
+            prior: None,
             input: TensorSpec {
                 name: "input".into(),
                 channels: ["color.r", "color.g", "color.b", "hist1.a", "valid0"]
@@ -551,5 +655,75 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("nme") && e.contains("y.json"), "{e}");
+    }
+
+    /// A model whose prior the runtime computes: its channels and `prior`.
+    fn with_prior() -> Manifest {
+        let mut m = sample();
+        m.residual = false;
+        m.input.channels = [
+            "color.r",
+            "color.g",
+            "color.b",
+            "coverage",
+            "hist0.r",
+            "hist0.g",
+            "hist0.b",
+            "valid0",
+            "disparity",
+            "prior.r",
+            "prior.g",
+            "prior.b",
+        ]
+        .map(String::from)
+        .to_vec();
+        m.prior = Some(PriorSpec {
+            floor: 0.95,
+            gate: true,
+            frames: 1,
+            levels: 8,
+            depth_tol: 0.05,
+        });
+        m
+    }
+
+    #[test]
+    fn the_prior_comes_with_its_channels_and_what_it_reads() {
+        let m = with_prior();
+        let back = Manifest::from_json(&m.to_json(), "test").unwrap();
+        assert_eq!(back, m);
+        assert_eq!(back.input_channels()[10], InputChannel::Prior(1));
+        let err = |m: &Manifest| m.validate("p.json").unwrap_err().to_string();
+        let mut m = with_prior();
+        m.prior = None;
+        let e = err(&m);
+        assert!(e.contains("field prior") && e.contains("missing"), "{e}");
+        let mut m = sample();
+        m.prior = with_prior().prior;
+        let e = err(&m);
+        assert!(
+            e.contains("field prior") && e.contains("lacks prior"),
+            "{e}"
+        );
+        // Two history frames read, one given.
+        let mut m = with_prior();
+        m.prior.as_mut().unwrap().frames = 2;
+        let e = err(&m);
+        assert!(e.contains("hist1.r"), "{e}");
+        // The depth tolerance reads the disparity.
+        let mut m = with_prior();
+        m.input.channels[8] = "insert".into();
+        let e = err(&m);
+        assert!(e.contains("\"disparity\""), "{e}");
+        m.prior.as_mut().unwrap().depth_tol = 0.0;
+        m.validate("p.json").unwrap();
+        let mut m = with_prior();
+        m.prior.as_mut().unwrap().levels = 0;
+        let e = err(&m);
+        assert!(e.contains("prior.levels") && e.contains('0'), "{e}");
+        let mut m = with_prior();
+        m.history_read = Some(0);
+        let e = err(&m);
+        assert!(e.contains("prior.frames"), "{e}");
     }
 }

@@ -9,7 +9,7 @@ mod manifest;
 pub mod onnx;
 
 pub use manifest::{
-    Encoding, Exposure, InputChannel, Manifest, TensorSpec, MANIFEST_FORMAT_VERSION,
+    Encoding, Exposure, InputChannel, Manifest, PriorSpec, TensorSpec, MANIFEST_FORMAT_VERSION,
     MAX_CONTEXT_FRAMES, MAX_REPAIR_MARGIN, REPAIR_EDGE_SHARE,
 };
 

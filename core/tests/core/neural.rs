@@ -1374,3 +1374,90 @@ fn a_repair_margin_gives_covered_pixels_far_from_holes_their_rendered_color() {
     .to_string();
     assert!(bad.contains("repair_margin"), "{bad}");
 }
+
+/// The runtime's prior (`prior.r|g|b`, manifest `prior`) against the
+/// trainer's, exported as graphs (`make_prior_fixtures.py`): on the same
+/// frame and history, through the same tiles, the probe (which returns
+/// the prior the runtime computed) and the graph (which computes it in
+/// ONNX Runtime) give the same output. The frame has a large hole across
+/// a depth edge, a one-pixel crack (where the gate keeps the history
+/// out), soft and faint edges, and is tiled (64 px tiles) at a size that
+/// is no multiple of 16.
+#[test]
+fn the_runtime_prior_is_the_trainers() {
+    let (w, h) = (109, 75);
+    let rgb = hdr_rgb(w, h, 21);
+    let mut cov = vec![1.0f32; w * h];
+    // A far wall and a near object, each rough by up to 8 % (more than the
+    // 5 % tolerance: some of a surface's own pixels are left out too).
+    let mut rough = Rng(22);
+    let mut depth: Vec<f32> = (0..w * h)
+        .map(|_| 8.0 * (1.0 + 0.08 * rough.next()))
+        .collect();
+    for y in 0..h {
+        for x in 0..w {
+            let i = y * w + x;
+            if x < 50 {
+                depth[i] = 2.0 * (1.0 + 0.08 * rough.next());
+            }
+            if (20..45).contains(&y) && (30..80).contains(&x) {
+                cov[i] = 0.0;
+                depth[i] = 1e10;
+            } else if y == 19 && (30..80).contains(&x) {
+                cov[i] = 0.5;
+            } else if x == 15 && (5..60).contains(&y) {
+                cov[i] = 0.0;
+            } else if (x * 7 + y * 3) % 23 == 0 {
+                // Faint (dropped below the 0.95 floor) and nearly full pixels.
+                cov[i] = if x % 2 == 0 { 0.9 } else { 0.97 };
+            }
+        }
+    }
+    let premult: Vec<f32> = rgb
+        .iter()
+        .enumerate()
+        .map(|(i, v)| v * cov[i / 3])
+        .collect();
+    let mut input = FrameInput::new(ImageView::from_f32("color", &premult, w, h, 3).unwrap());
+    input.coverage = Some(ImageView::from_f32("coverage", &cov, w, h, 1).unwrap());
+    input.depth = Some(ImageView::from_f32("depth", &depth, w, h, 1).unwrap());
+    let frame = PreparedFrame::from_input(&input, Default::default()).unwrap();
+    let hist = |seed: u64| {
+        let mut r = Rng(seed);
+        let mut img = Image::zeros(w, h, 4);
+        let n = w * h;
+        img.data[..3 * n]
+            .iter_mut()
+            .for_each(|v| *v = r.next() * 4.0);
+        img.data[3 * n..].fill(1.0);
+        img
+    };
+    let prev = [hist(31), hist(32)];
+    for (graph, tol) in [("prior_graph_far", 0.05), ("prior_graph_plain", 0.0)] {
+        let want_dev = device_file(graph);
+        let want_model = want_dev.neural_model().unwrap().unwrap();
+        let got_dev = device_edited("prior_probe", 0, |m| {
+            m["prior"]["depth_tol"] = tol.into();
+        });
+        let got_model = got_dev.neural_model().unwrap().unwrap();
+        for context in [2, 1, 0] {
+            let params = Params {
+                context_frames: context,
+                ..Params::default()
+            };
+            let want = run_backend(&want_model, &want_dev, &frame, &prev, &params);
+            let got = run_backend(&got_model, &got_dev, &frame, &prev, &params);
+            for c in 0..3 {
+                assert_close(
+                    &plane_of(&got, c),
+                    &plane_of(&want, c),
+                    1e-4,
+                    &format!("{graph}, {context} history frames, channel {c}"),
+                );
+            }
+            // Not trivial: the holes were filled, and differently with history.
+            let at = 30 * w + 60;
+            assert!(want.plane(0)[at] > 0.0, "{graph}: the hole is filled");
+        }
+    }
+}

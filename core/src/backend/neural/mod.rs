@@ -12,6 +12,7 @@
 //! and cancellation is honoured between tiles.
 
 pub mod encoding;
+pub mod prior;
 pub mod runtime;
 pub mod tiling;
 
@@ -42,6 +43,8 @@ pub struct NeuralModel {
     /// Where the model came from (file path, "embedded" or "in-memory model").
     pub origin: String,
     channels: Vec<InputChannel>,
+    /// The prior the runtime computes, for a model whose graph reads it.
+    prior: Option<prior::PriorChannels>,
     output_order: Vec<usize>,
     /// Static window size of the model input (width, height), if not dynamic.
     fixed: (Option<usize>, Option<usize>),
@@ -217,6 +220,7 @@ impl NeuralModel {
             name: manifest.name.clone(),
             version: manifest.version.clone(),
             channels: manifest.input_channels(),
+            prior: prior::PriorChannels::new(manifest.prior, &manifest.input_channels()),
             output_order: manifest.output_order(),
             manifest,
             origin: origin.to_string(),
@@ -634,6 +638,8 @@ fn channel_sources<'a>(
                 true => Src::History,
                 false => Src::Const(0.0),
             },
+            // Computed into each tile's input from its other channels.
+            InputChannel::Prior(_) => Src::Filled,
         })
         .collect()
 }
@@ -1056,6 +1062,12 @@ impl Neural {
             stages.time("tile_input", || {
                 fill_window(&mut tensor.data, &sources, &codec, (w, h), tile, pool)
             });
+            if let Some(prior) = &model.prior {
+                stages.time("prior", || {
+                    let mut scratch = model.buffer(2 * np);
+                    prior.compute(&mut tensor.data, (ww, wh), &mut scratch.data, pool)
+                });
+            }
             let started = std::time::Instant::now();
             let mut decoding = 0.0;
             model.run(&tensor.data, ww, wh, |result| {

@@ -1,0 +1,568 @@
+//! The prior of a model whose graph reads it (`prior.r|g|b` input channels,
+//! manifest [`PriorSpec`]): the tile's encoded color with its holes filled,
+//! first from the reprojected history frames (newest first, each under
+//! what is still missing, gated where covered pixels are near), then by a
+//! push-pull pyramid that fills from the background side of a depth edge.
+//!
+//! These are the operations of the trainer's `Enhancer.prior` with the
+//! "chain" fill and `push_pull_depth` (`training/model.py`), in the same
+//! order, on the same tile input the graph reads: a model trained with the
+//! prior in its graph runs with it computed here (parity:
+//! `training/tests/test_runtime_parity.py`). Computed in the graph, the
+//! prior was dense full-resolution work (130 of ONNX Runtime's 460 ms at
+//! 1920x1088 on 2 threads); here the full resolution is read twice (the
+//! history chain, then the first halving) and the push writes only the
+//! pixels not fully covered after the chain.
+//!
+//! The pull halves each level to `ceil(size / 2)`, a missing row or
+//! column counting as empty (the graph's zero padding); a pixel with data
+//! of its own (the frame's coverage, not the history's) whose disparity
+//! exceeds its 2x2 block's smallest by more than `depth_tol` (relative)
+//! is left out of the block. The push completes each level from the
+//! bilinear upsampling of the coarser one (half-pixel centres, edges
+//! clamped), and the last step into the full resolution takes of each
+//! pixel's four bilinear taps only those within `depth_tol` of the
+//! farthest, renormalized.
+
+use rayon::prelude::*;
+
+use crate::model::{InputChannel, PriorSpec};
+
+/// The classical backend's history gate (`crate::backend::classical`,
+/// mirrored by the trainer's `GATE_RADIUS` and `history_weight`): the
+/// share of covered pixels within this Chebyshev radius.
+const GATE_RADIUS: usize = 3;
+
+/// How much history a hole pixel takes from the share of covered pixels
+/// around it: all up to 0.225, none from 0.3.
+#[inline]
+fn history_weight(share: f32) -> f32 {
+    ((0.3 - share) / 0.075).clamp(0.0, 1.0)
+}
+
+/// Larger than any disparity (`1 / (1 + depth) <= 1`): no depth of its own.
+const NO_DISPARITY: f32 = 4.0;
+
+/// The pyramid's levels, kept between frames (fresh memory costs a page
+/// fault per 4 KiB on every frame).
+#[derive(Default)]
+struct Scratch {
+    levels: Vec<Level>,
+    filled: [Filled; 2],
+}
+
+/// Where the prior's inputs and outputs lie among a tile's input planes.
+pub struct PriorChannels {
+    spec: PriorSpec,
+    color: [usize; 3],
+    coverage: usize,
+    /// Per history frame read: its color planes and its validity plane.
+    history: Vec<([usize; 3], usize)>,
+    disparity: Option<usize>,
+    out: [usize; 3],
+    scratch: std::sync::Mutex<Scratch>,
+}
+
+impl std::fmt::Debug for PriorChannels {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("PriorChannels")
+            .field("spec", &self.spec)
+            .finish_non_exhaustive()
+    }
+}
+
+impl PriorChannels {
+    /// The planes of a validated manifest's channels; `None` for a model
+    /// without prior channels.
+    pub fn new(spec: Option<PriorSpec>, channels: &[InputChannel]) -> Option<PriorChannels> {
+        let spec = spec?;
+        let at = |want: InputChannel| {
+            channels
+                .iter()
+                .position(|&c| c == want)
+                .expect("validated manifest: the prior's channels are present")
+        };
+        Some(PriorChannels {
+            spec,
+            color: [0, 1, 2].map(|c| at(InputChannel::Color(c))),
+            coverage: at(InputChannel::Coverage),
+            history: (0..spec.frames)
+                .map(|k| {
+                    (
+                        [0, 1, 2].map(|c| at(InputChannel::History(k, c))),
+                        at(InputChannel::Valid(k)),
+                    )
+                })
+                .collect(),
+            disparity: (spec.depth_tol > 0.0).then(|| at(InputChannel::Disparity)),
+            out: [0, 1, 2].map(|c| at(InputChannel::Prior(c))),
+            scratch: Default::default(),
+        })
+    }
+
+    /// Computes the prior into its planes of `tensor` (a tile's NCHW input,
+    /// planes of `width` x `height`) from the others; `scratch` holds at
+    /// least two planes.
+    pub fn compute(
+        &self,
+        tensor: &mut [f32],
+        (width, height): (usize, usize),
+        scratch: &mut [f32],
+        pool: &rayon::ThreadPool,
+    ) {
+        let np = width * height;
+        assert!(tensor.len().is_multiple_of(np) && scratch.len() >= 2 * np);
+        let mut outs: [Option<&mut [f32]>; 3] = [None, None, None];
+        let mut ins: Vec<Option<&[f32]>> = Vec::new();
+        for (i, plane) in tensor.chunks_exact_mut(np).enumerate() {
+            match self.out.iter().position(|&o| o == i) {
+                Some(c) => {
+                    outs[c] = Some(plane);
+                    ins.push(None);
+                }
+                None => {
+                    let plane: &[f32] = plane;
+                    ins.push(Some(plane));
+                }
+            }
+        }
+        let plane = |i: usize| ins[i].expect("an input plane, not the prior's");
+        let [Some(r), Some(g), Some(b)] = outs else {
+            unreachable!("three distinct prior planes")
+        };
+        let (weight, own) = scratch[..2 * np].split_at_mut(np);
+        let src = Sources {
+            color: self.color.map(plane),
+            coverage: plane(self.coverage),
+            history: self
+                .history
+                .iter()
+                .map(|&(c, v)| (c.map(plane), plane(v)))
+                .collect(),
+            width,
+            height,
+        };
+        let spec = self.spec;
+        pool.install(|| {
+            chain(&src, &spec, [&mut *r, &mut *g, &mut *b], weight, own);
+            let disp = self.disparity.map(plane);
+            let tol = spec.depth_tol;
+            let level0 = Fine {
+                w: width,
+                h: height,
+                c: [&*r, &*g, &*b],
+                wt: weight,
+                own,
+                disp,
+            };
+            let mut kept = self.scratch.lock().unwrap_or_else(|p| p.into_inner());
+            let Scratch { levels, filled } = &mut *kept;
+            // The pull: level 1 from the full resolution, then halvings.
+            levels.resize_with(spec.levels, Level::default);
+            pull(&level0, tol, &mut levels[0]);
+            for l in 1..spec.levels {
+                let (done, rest) = levels.split_at_mut(l);
+                pull(&done[l - 1].view(), tol, &mut rest[0]);
+            }
+            // The push, down to level 1: the filled color and disparity.
+            let top = &levels[spec.levels - 1];
+            let [mut f, mut next] = std::mem::take(filled);
+            f.w = top.w;
+            f.h = top.h;
+            top.px
+                .par_iter()
+                .map(|p| {
+                    let d = p[3].max(1e-4);
+                    [
+                        p[0] / d,
+                        p[1] / d,
+                        p[2] / d,
+                        if p[4] > 0.0 { p[5] } else { 0.0 },
+                    ]
+                })
+                .collect_into_vec(&mut f.px);
+            for l in levels[..spec.levels - 1].iter().rev() {
+                push(&f, l, &mut next);
+                std::mem::swap(&mut f, &mut next);
+            }
+            finish(&f, [r, g, b], weight, width, tol);
+            *filled = [f, next];
+        });
+    }
+}
+
+/// The planes the history chain reads.
+struct Sources<'a> {
+    color: [&'a [f32]; 3],
+    coverage: &'a [f32],
+    history: Vec<([&'a [f32]; 3], &'a [f32])>,
+    width: usize,
+    height: usize,
+}
+
+/// The coverage a pixel keeps: clamped to 0..=1, 0 below the floor.
+#[inline(always)]
+fn kept(c: f32, floor: f32) -> f32 {
+    let c = c.clamp(0.0, 1.0);
+    if c < floor {
+        0.0
+    } else {
+        c
+    }
+}
+
+/// The known color (premultiplied by the weight) into `known`, the weight
+/// into `weight`, the frame's own weight into `own`: the kept coverage,
+/// then the history frames under what is missing.
+fn chain(
+    src: &Sources<'_>,
+    spec: &PriorSpec,
+    known: [&mut [f32]; 3],
+    weight: &mut [f32],
+    own: &mut [f32],
+) {
+    let w = src.width;
+    let floor = spec.floor;
+    let covered_at = floor.max(0.5);
+    let [kr, kg, kb] = known;
+    kr.par_chunks_mut(w)
+        .zip(kg.par_chunks_mut(w))
+        .zip(kb.par_chunks_mut(w))
+        .zip(weight.par_chunks_mut(w))
+        .zip(own.par_chunks_mut(w))
+        .enumerate()
+        .for_each(|(y, ((((kr, kg), kb), wt), ow))| {
+            let row = y * w..(y + 1) * w;
+            let cov = &src.coverage[row.clone()];
+            let col: [&[f32]; 3] = src.color.map(|p| &p[row.clone()]);
+            let mut partial = false;
+            for x in 0..w {
+                let c = kept(cov[x], floor);
+                ow[x] = c;
+                wt[x] = c;
+                kr[x] = c * col[0][x];
+                kg[x] = c * col[1][x];
+                kb[x] = c * col[2][x];
+                partial |= c != 1.0;
+            }
+            if !partial || src.history.is_empty() {
+                return;
+            }
+            // The history under what is missing (where the weight is 1, it
+            // adds exactly nothing).
+            for x in 0..w {
+                let mut wsum = wt[x];
+                if wsum == 1.0 {
+                    continue;
+                }
+                let gate = if spec.gate {
+                    history_weight(share(src, y, x, floor, covered_at))
+                } else {
+                    1.0
+                };
+                let i = y * w + x;
+                let mut k = [kr[x], kg[x], kb[x]];
+                for (hc, hv) in &src.history {
+                    let v = hv[i].clamp(0.0, 1.0) * gate;
+                    let m = (1.0 - wsum) * v;
+                    for (kc, p) in k.iter_mut().zip(hc) {
+                        *kc += m * p[i];
+                    }
+                    wsum += m;
+                }
+                (kr[x], kg[x], kb[x]) = (k[0], k[1], k[2]);
+                wt[x] = wsum;
+            }
+        });
+}
+
+/// The share of covered pixels (kept coverage at least `covered_at`) in
+/// the square of [`GATE_RADIUS`] around (`x`, `y`), clipped at the edges:
+/// the mean over its rows of each row's mean, as the graph's two average
+/// pools compute it.
+fn share(src: &Sources<'_>, y: usize, x: usize, floor: f32, covered_at: f32) -> f32 {
+    let (w, h) = (src.width, src.height);
+    let (x0, x1) = (x.saturating_sub(GATE_RADIUS), (x + GATE_RADIUS + 1).min(w));
+    let (y0, y1) = (y.saturating_sub(GATE_RADIUS), (y + GATE_RADIUS + 1).min(h));
+    let nx = (x1 - x0) as f32;
+    let mut sum = 0.0f32;
+    for yy in y0..y1 {
+        let row = &src.coverage[yy * w + x0..yy * w + x1];
+        let n = row
+            .iter()
+            .filter(|&&c| kept(c, floor) >= covered_at)
+            .count();
+        sum += n as f32 / nx;
+    }
+    sum / (y1 - y0) as f32
+}
+
+/// A pixel of a pulled level: color (premultiplied by the weight), weight,
+/// own weight, disparity (meaningful where the own weight is above 0).
+type Px = [f32; 6];
+
+/// A pulled level.
+#[derive(Default)]
+struct Level {
+    w: usize,
+    h: usize,
+    px: Vec<Px>,
+}
+
+/// The full resolution as the pull reads it.
+struct Fine<'a> {
+    w: usize,
+    h: usize,
+    c: [&'a [f32]; 3],
+    wt: &'a [f32],
+    own: &'a [f32],
+    disp: Option<&'a [f32]>,
+}
+
+/// What the pull reads of a level.
+trait Pixels: Sync {
+    fn size(&self) -> (usize, usize);
+    fn px(&self, i: usize) -> Px;
+}
+
+impl Pixels for Fine<'_> {
+    fn size(&self) -> (usize, usize) {
+        (self.w, self.h)
+    }
+
+    #[inline]
+    fn px(&self, i: usize) -> Px {
+        [
+            self.c[0][i],
+            self.c[1][i],
+            self.c[2][i],
+            self.wt[i],
+            self.own[i],
+            self.disp.map_or(0.0, |d| d[i]),
+        ]
+    }
+}
+
+/// A pulled level read by the next halving.
+struct LevelView<'a>(&'a Level);
+
+impl Level {
+    fn view(&self) -> LevelView<'_> {
+        LevelView(self)
+    }
+}
+
+impl Pixels for LevelView<'_> {
+    fn size(&self) -> (usize, usize) {
+        (self.0.w, self.0.h)
+    }
+
+    #[inline]
+    fn px(&self, i: usize) -> Px {
+        self.0.px[i]
+    }
+}
+
+/// An empty pixel: what a missing row or column past an odd edge holds.
+const EMPTY: Px = [0.0; 6];
+
+/// One halving into `out` (resized): each coarse pixel sums its 2x2 block
+/// (missing pixels past an odd edge are empty), leaving out, with a
+/// tolerance, the own data nearer than the block's farthest; the weight is
+/// clamped to one with the color scaled alike.
+fn pull(fine: &impl Pixels, tol: f32, out: &mut Level) {
+    let (w, h) = fine.size();
+    let (cw, ch) = (w.div_ceil(2), h.div_ceil(2));
+    out.w = cw;
+    out.h = ch;
+    out.px.clear();
+    out.px.resize(cw * ch, EMPTY);
+    out.px
+        .par_chunks_mut(cw)
+        .with_min_len(4)
+        .enumerate()
+        .for_each(|(i, row)| {
+            let (y0, y1) = (2 * i, 2 * i + 1);
+            for (j, out) in row.iter_mut().enumerate() {
+                let (x0, x1) = (2 * j, 2 * j + 1);
+                let at = |y: usize, x: usize| {
+                    if y < h && x < w {
+                        fine.px(y * w + x)
+                    } else {
+                        EMPTY
+                    }
+                };
+                // In the graph's order: (0, 0), (0, 1), (1, 0), (1, 1).
+                let block = [at(y0, x0), at(y0, x1), at(y1, x0), at(y1, x1)];
+                *out = sum_block(&block, tol);
+            }
+        });
+}
+
+/// A coarse pixel from its four fine ones (see [`pull`]).
+#[inline(always)]
+fn sum_block(block: &[Px; 4], tol: f32) -> Px {
+    let key = |p: &Px| if p[4] > 0.0 { p[5] } else { NO_DISPARITY };
+    let limit = if tol > 0.0 {
+        key(&block[0])
+            .min(key(&block[1]))
+            .min(key(&block[2]))
+            .min(key(&block[3]))
+            * (1.0 + tol)
+    } else {
+        f32::INFINITY
+    };
+    let mut s = [0.0f32; 5];
+    let mut od = 0.0f32;
+    for p in block {
+        let keep = if p[4] > 0.0 && p[5] > limit { 0.0 } else { 1.0 };
+        for c in 0..5 {
+            s[c] += keep * p[c];
+        }
+        od += keep * p[4] * p[5];
+    }
+    let k = s[3].min(1.0) / s[3].max(1e-12);
+    [
+        s[0] * k,
+        s[1] * k,
+        s[2] * k,
+        s[3].min(1.0),
+        s[4],
+        od / s[4].max(1e-12),
+    ]
+}
+
+/// A level's complete color and disparity.
+#[derive(Default)]
+struct Filled {
+    w: usize,
+    h: usize,
+    px: Vec<[f32; 4]>,
+}
+
+/// The taps of a bilinear resize along one axis from `from` to `to`
+/// samples (half-pixel centres, clamped at the edges): per output sample,
+/// the two input samples and their weights.
+fn taps(from: usize, to: usize) -> Vec<(usize, usize, f32, f32)> {
+    let scale = to as f32 / from as f32;
+    (0..to)
+        .map(|o| {
+            let x = if to > 1 {
+                ((o as f32 + 0.5) / scale - 0.5).clamp(0.0, (from - 1) as f32)
+            } else {
+                0.0
+            };
+            let i0 = (x as usize).min(from - 1);
+            let i1 = (i0 + 1).min(from - 1);
+            if i0 == i1 {
+                (i0, i1, 0.5, 0.5)
+            } else {
+                let d = x - i0 as f32;
+                (i0, i1, 1.0 - d, d)
+            }
+        })
+        .collect()
+}
+
+/// One step of the push: `level`'s missing part (one minus its weight)
+/// takes the bilinear upsampling of the coarser `f`; its disparity is its
+/// own where it has data of its own, else the upsampled one.
+fn push(f: &Filled, level: &Level, out: &mut Filled) {
+    let (w, h) = (level.w, level.h);
+    let tx = taps(f.w, w);
+    let ty = taps(f.h, h);
+    out.w = w;
+    out.h = h;
+    out.px.clear();
+    out.px.resize(w * h, [0.0; 4]);
+    out.px
+        .par_chunks_mut(w)
+        .with_min_len(4)
+        .enumerate()
+        .for_each(|(y, row)| {
+            let (y0, y1, wy0, wy1) = ty[y];
+            for (x, out) in row.iter_mut().enumerate() {
+                let (x0, x1, wx0, wx1) = tx[x];
+                let p = |yy: usize, xx: usize| f.px[yy * f.w + xx];
+                let (a, b, c, d) = (p(y0, x0), p(y0, x1), p(y1, x0), p(y1, x1));
+                let up: [f32; 4] = std::array::from_fn(|n| {
+                    wy0 * (wx0 * a[n] + wx1 * b[n]) + wy1 * (wx0 * c[n] + wx1 * d[n])
+                });
+                let l = level.px[y * w + x];
+                *out = [
+                    l[0] + (1.0 - l[3]) * up[0],
+                    l[1] + (1.0 - l[3]) * up[1],
+                    l[2] + (1.0 - l[3]) * up[2],
+                    if l[4] > 0.0 { l[5] } else { up[3] },
+                ];
+            }
+        });
+}
+
+/// The bilinear weights of a 2x upsampling along one axis (pixel centres):
+/// fine pixel `2i` takes coarse `i - 1` and `i` with 1/4 and 3/4, `2i + 1`
+/// takes `i` and `i + 1` with 3/4 and 1/4 (edges clamped).
+#[inline]
+fn phase(fine: usize, coarse: usize) -> (usize, usize, f32, f32) {
+    let i = fine / 2;
+    if fine.is_multiple_of(2) {
+        (i.saturating_sub(1), i.min(coarse - 1), 0.25, 0.75)
+    } else {
+        (i.min(coarse - 1), (i + 1).min(coarse - 1), 0.75, 0.25)
+    }
+}
+
+/// The last step into the full resolution, at the pixels whose weight is
+/// not 1 (the others keep their known color exactly): their missing part
+/// takes the 2x upsampling of level 1, with a tolerance only its taps
+/// within it of the farthest.
+fn finish(f: &Filled, out: [&mut [f32]; 3], weight: &[f32], w: usize, tol: f32) {
+    let [r, g, b] = out;
+    assert!(
+        w == 2 * f.w && weight.len() == w * 2 * f.h,
+        "the full resolution is twice level 1 (tiles are multiples of the spatial multiple)"
+    );
+    r.par_chunks_mut(w)
+        .zip(g.par_chunks_mut(w))
+        .zip(b.par_chunks_mut(w))
+        .zip(weight.par_chunks(w))
+        .enumerate()
+        .for_each(|(y, (((r, g), b), wt))| {
+            let (y0, y1, wy0, wy1) = phase(y, f.h);
+            for x in 0..w {
+                let a = wt[x];
+                if a == 1.0 {
+                    continue;
+                }
+                let (x0, x1, wx0, wx1) = phase(x, f.w);
+                let t = [
+                    f.px[y0 * f.w + x0],
+                    f.px[y0 * f.w + x1],
+                    f.px[y1 * f.w + x0],
+                    f.px[y1 * f.w + x1],
+                ];
+                let keep: [f32; 4] = if tol > 0.0 {
+                    let far = t.iter().map(|p| p[3]).fold(f32::INFINITY, f32::min);
+                    let limit = far * (1.0 + tol);
+                    t.map(|p| if p[3] <= limit { 1.0 } else { 0.0 })
+                } else {
+                    [1.0; 4]
+                };
+                // As the graph sums: across each tap row, then the rows.
+                let col = |n: usize| -> f32 {
+                    let top = keep[0] * t[0][n] * wx0 + keep[1] * t[1][n] * wx1;
+                    let bottom = keep[2] * t[2][n] * wx0 + keep[3] * t[3][n] * wx1;
+                    top * wy0 + bottom * wy1
+                };
+                let den = {
+                    let top = keep[0] * wx0 + keep[1] * wx1;
+                    let bottom = keep[2] * wx0 + keep[3] * wx1;
+                    top * wy0 + bottom * wy1
+                };
+                let miss = 1.0 - a;
+                r[x] += miss * (col(0) / den);
+                g[x] += miss * (col(1) / den);
+                b[x] += miss * (col(2) / den);
+            }
+        });
+}
