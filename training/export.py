@@ -85,7 +85,7 @@ def manifest_for(
         "name": name,
         "version": version,
         "context_frames": cfg.context_frames,
-        "input": {"name": "input", "channels": cfg.input_channels()},
+        "input": {"name": "input", "channels": cfg.graph_channels()},
         "output": {"name": "output", "channels": ["color.r", "color.g", "color.b"]},
         "residual": not cfg.prior,
         "premultiplied": cfg.premultiplied,
@@ -103,6 +103,8 @@ def manifest_for(
         # harmonizer-small 1.1.x, PSNR 30.30 -> 30.58 dB).
         "stabilize": stabilize,
     } | ({"history_read": history_read} if history_read is not None else {}) | (
+        {"prior": prior_spec(cfg)} if cfg.prior and cfg.prior_input else {}
+    ) | (
         # Covered pixels farther than this from a hole keep their rendered
         # color (the runtime; measured per model, see the model card).
         {"repair_margin": repair_margin} if repair_margin is not None else {}
@@ -122,10 +124,41 @@ class _ResidualFree(torch.nn.Module):
         return self.model.correction(x)
 
 
+class _PriorInput(torch.nn.Module):
+    """The graph of a model whose prior the runtime computes
+    (``ModelConfig.prior_input``): the prior is the input's last three
+    channels."""
+
+    def __init__(self, model: Enhancer):
+        super().__init__()
+        self.model = model
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.model(x[:, :-3], prior=x[:, -3:])
+
+
 def graph_of(model: Enhancer) -> torch.nn.Module:
-    """The module exported: the complete model with the prior (``residual: false``),
-    else the correction alone (``residual: true``)."""
-    return model if model.cfg.prior else _ResidualFree(model)
+    """The module exported: the complete model with the prior (``residual: false``;
+    with ``prior_input`` the prior read from the input), else the correction
+    alone (``residual: true``)."""
+    if not model.cfg.prior:
+        return _ResidualFree(model)
+    return _PriorInput(model) if model.cfg.prior_input else model
+
+
+def prior_spec(cfg: ModelConfig) -> dict:
+    """Manifest `prior`: how the runtime computes the prior of a model with
+    ``prior_input`` (``Enhancer.prior`` with the "chain" fill)."""
+    if cfg.prior_fill != "chain":
+        raise ValueError(f"the runtime computes only the chain prior, not {cfg.prior_fill!r}")
+    k = cfg.context_frames
+    return {
+        "floor": cfg.prior_floor,
+        "gate": cfg.prior_gate,
+        "frames": min(k, cfg.prior_frames) if cfg.prior_frames > 0 else k,
+        "levels": cfg.pushpull_levels,
+        "depth_tol": cfg.prior_depth_tol,
+    }
 
 
 def export(
@@ -140,7 +173,7 @@ def export(
 
     model.eval()
     net = graph_of(model).eval()
-    cin = len(model.cfg.input_channels())
+    cin = len(model.cfg.graph_channels())
     m = model.cfg.spatial_multiple
     dummy = torch.zeros(1, cin, 4 * m, 4 * m)
     onnx_path = out_stem.with_suffix(".onnx")
@@ -178,7 +211,7 @@ def verify(model: Enhancer, onnx_path: Path, sizes=((144, 256), (96, 160))) -> f
     import onnxruntime as ort
 
     sess = ort.InferenceSession(str(onnx_path), providers=["CPUExecutionProvider"])
-    cin = len(model.cfg.input_channels())
+    cin = len(model.cfg.graph_channels())
     rng = np.random.default_rng(0)
     worst = 0.0
     for h, w in sizes:
@@ -209,7 +242,12 @@ def weights_from_onnx(path: Path, **changes) -> Enhancer:
     if manifest.get("residual", False):
         raise ValueError(f"{path}: a residual model (no in-graph prior) cannot be re-exported with a prior")
     proto = onnx.load(str(path))
-    init = {i.name: torch.from_numpy(numpy_helper.to_array(i).copy()) for i in proto.graph.initializer}
+    # A graph exported through a wrapper (`_PriorInput`) names the model's
+    # weights and nodes under `model.` and `/model/`.
+    init = {
+        i.name.removeprefix("model."): torch.from_numpy(numpy_helper.to_array(i).copy())
+        for i in proto.graph.initializer
+    }
     saved = {p.key: p.value for p in proto.metadata_props}.get(CONFIG_METADATA)
     if saved is None and "disparity" in manifest["input"]["channels"] and "prior_depth_tol" not in changes:
         raise ValueError(
@@ -221,14 +259,17 @@ def weights_from_onnx(path: Path, **changes) -> Enhancer:
     # The history blend's first layer as one convolution per feature tensor
     # (1.7.1 on: `HistoryBlend.down_features`), in graph order: their weight
     # slices joined are the layer's weight.
+    def weight_of(n) -> str:
+        return n.input[1].removeprefix("model.")
+
     split = [
-        n.input[1]
+        weight_of(n)
         for n in proto.graph.node
         if n.op_type == "Conv"
-        and n.name.startswith("/blend/")
-        and n.input[1] in init
-        and init[n.input[1]].dim() == 4
-        and init[n.input[1]].shape[-1] == BLEND_STRIDE
+        and n.name.removeprefix("/model").startswith("/blend/")
+        and weight_of(n) in init
+        and init[weight_of(n)].dim() == 4
+        and init[weight_of(n)].shape[-1] == BLEND_STRIDE
     ]
     if len(split) > 1 and "blend.down.weight" not in init:
         init["blend.down.weight"] = torch.cat([init[k] for k in split], 1)
@@ -397,6 +438,13 @@ def main(argv: list[str] | None = None) -> int:
         help="manifest `repair_margin`: covered pixels farther than N px from a hole keep their rendered "
         "color (default: none; with --from-onnx, the source's)",
     )
+    ap.add_argument(
+        "--prior-input",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="the runtime computes the prior and the graph reads it as input channels prior.r|g|b "
+        "(ModelConfig.prior_input; default: the source's)",
+    )
     args = ap.parse_args(argv)
     source = args.ckpt or args.from_onnx
     if not source.exists():
@@ -412,6 +460,7 @@ def main(argv: list[str] | None = None) -> int:
         "blend_gain": args.blend_gain,
         "hole_correction": args.hole_correction,
         "hole_blend": args.hole_blend,
+        "prior_input": args.prior_input,
     }
     changes = {k: v for k, v in given.items() if v is not None}
     if args.from_onnx:

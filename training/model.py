@@ -118,6 +118,15 @@ class ModelConfig:
     # history filled carry no depth of their own and are always kept. The
     # correction does not read the disparity (its weights are unchanged).
     prior_depth_tol: float = 0.0
+    # The runtime computes the prior (export-time, `--prior-input`): the
+    # exported graph reads it as three more input channels, `prior.r|g|b`,
+    # and the manifest's `prior` tells the runtime how to compute it
+    # (`core/src/backend/neural/prior.rs`, the same operations as `prior`
+    # below). Training computes it in the graph either way. In the graph it
+    # took 130 of ONNX Runtime's 460 ms at 1920x1088 on 2 threads: dense
+    # full-resolution operations, where the runtime's touch only the pixels
+    # not fully covered after the pull.
+    prior_input: bool = False
     # Width of a 1x1 convolution on the unshuffled input (0: none); it replaces the
     # first 3x3 layer's many input channels with a cheap mix.
     stem: int = 32
@@ -135,6 +144,11 @@ class ModelConfig:
         if self.prior_depth_tol > 0:
             ch.append("disparity")
         return ch
+
+    def graph_channels(self) -> list[str]:
+        """The exported graph's input channels: ``input_channels`` and, with
+        ``prior_input``, the prior's three."""
+        return self.input_channels() + (["prior.r", "prior.g", "prior.b"] if self.prior_input else [])
 
     def network_channels(self) -> int:
         """Input channels the correction's stem is sized for (the disparity,
@@ -540,13 +554,15 @@ class Enhancer(nn.Module):
             at += n
         return parts
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, prior: torch.Tensor | None = None) -> torch.Tensor:
+        """``prior``: the prior given (``prior_input``: the runtime's), else
+        computed here."""
         parts = self.split(x)
         if self._folds_history_out() and self.cfg.prior:
             # The correction never reads the history channels: they are left out
             # of its input (a 24-channel full-resolution concatenation became 8,
             # 1.2.1: 71 ms less inference at 1920x1088 on 2 threads).
-            p = self.prior(x, parts)
+            p = self.prior(x, parts) if prior is None else prior
             est = p + self.in_holes(self.correction(torch.cat(parts[:3] + [p], 1)), parts)
             return self.after_network(est, parts)
         seen = x[:, : self.cfg.network_channels()]
@@ -555,7 +571,7 @@ class Enhancer(nn.Module):
         elif not self.cfg.correction_history and seen.shape[1] > 5:
             seen = torch.cat([seen[:, :5], torch.zeros_like(seen[:, 5:])], 1)
         if self.cfg.prior:
-            p = self.prior(x, parts)
+            p = self.prior(x, parts) if prior is None else prior
             est = p + self.in_holes(self.correction(torch.cat([seen, p], 1)), parts)
         else:
             est = parts[0] + self.correction(seen)

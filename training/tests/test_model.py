@@ -2,6 +2,7 @@
 
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -651,3 +652,27 @@ def test_averaged_weights_are_the_share_of_each_and_need_one_architecture(tmp_pa
     torch.save({"model": other.state_dict(), "model_cfg": other.cfg.to_dict()}, tmp_path / "o.pt")
     with pytest.raises(ValueError, match="do not match"):
         hz_export.average_weights(a.state_dict(), tmp_path / "o.pt", 0.5, a)
+
+
+@pytest.mark.parametrize("name,tol", [("prior_graph_far", 0.05), ("prior_graph_plain", 0.0)])
+def test_the_committed_prior_fixtures_compute_the_trainers_prior(name, tol):
+    """`core/tests/fixtures/models/prior_graph_*.onnx` stand for `Enhancer.prior`
+    in the runtime's parity test (`the_runtime_prior_is_the_trainers`): they
+    must still compute it (else rerun `make_prior_fixtures.py`)."""
+    ort = pytest.importorskip("onnxruntime")
+    import importlib.util
+
+    here = Path(__file__).resolve().parents[2] / "core/tests/fixtures/models"
+    spec = importlib.util.spec_from_file_location("make_prior_fixtures", here / "make_prior_fixtures.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    model = Enhancer(mod.config(tol)).eval()
+    sess = ort.InferenceSession(str(here / f"{name}.onnx"), providers=["CPUExecutionProvider"])
+    g = torch.Generator().manual_seed(3)
+    x = torch.rand(1, len(model.cfg.input_channels()), 48, 80, generator=g)
+    cov = x[:, 3:4]
+    x[:, 3:4] = torch.where(cov < 0.3, 0.0, torch.where(cov > 0.6, 1.0, cov))
+    with torch.no_grad():
+        want = model.prior(x).numpy()
+    got = sess.run(["output"], {"input": x.numpy()})[0]
+    assert np.abs(got - want).max() < 1e-5

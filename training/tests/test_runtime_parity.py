@@ -38,8 +38,10 @@ def ort_library():
     return str(libs[-1]) if libs else None
 
 
-@pytest.mark.parametrize("depth_tol", [0.0, 0.05])
-def test_harmonize_neural_matches_the_python_contract(tmp_path, depth_tol):
+@pytest.mark.parametrize(
+    "depth_tol,prior_input", [(0.0, False), (0.05, False), (0.0, True), (0.05, True)]
+)
+def test_harmonize_neural_matches_the_python_contract(tmp_path, depth_tol, prior_input):
     exe, lib = harmonize_binary(), ort_library()
     if exe is None or lib is None:
         pytest.skip(
@@ -48,10 +50,13 @@ def test_harmonize_neural_matches_the_python_contract(tmp_path, depth_tol):
         )
     torch.manual_seed(0)
     # With a depth-aware prior the runtime also gives the disparity channel.
-    model = Enhancer(ModelConfig(widths=(8, 8, 12, 16), prior_depth_tol=depth_tol))
+    # With `prior_input` the runtime computes the prior the graph reads
+    # (manifest `prior`); the reference computes it in PyTorch.
+    model = Enhancer(ModelConfig(widths=(8, 8, 12, 16), prior_depth_tol=depth_tol, prior_input=prior_input))
     torch.nn.init.normal_(model.head.weight, std=0.05)
     hz_export.export(model, tmp_path / "model")
     man = json.loads((tmp_path / "model.json").read_text())
+    assert ("prior" in man) == prior_input and (man["input"]["channels"][-1] == "prior.b") == prior_input
 
     rng = np.random.default_rng(0)
     h, w = 75, 109  # not multiples of spatial_multiple: the far-side reflection counts
