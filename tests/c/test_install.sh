@@ -46,9 +46,14 @@ mkdir -p "$WORK/frames"
 "$WORK/enhance_pc_shared" 6 64 36 "$WORK/frames" | tail -n 2
 "$WORK/enhance_pc_static" 3 64 36 | tail -n 1
 [[ -s "$WORK/frames/output_0005.pfm" ]]
-readelf -d "$WORK/enhance_pc_shared" | grep -q "NEEDED.*\[libharmonizer.so.$MAJOR\]" ||
+# Each tool's output is taken whole before it is searched: `tool | grep -q`
+# fails under pipefail when grep stops reading early and the tool gets
+# SIGPIPE (seen once on the CMake check below).
+dynamic=$(readelf -d "$WORK/enhance_pc_shared")
+grep -q "NEEDED.*\[libharmonizer.so.$MAJOR\]" <<<"$dynamic" ||
     { echo "FAIL: the shared build does not record libharmonizer.so.$MAJOR"; exit 1; }
-if ldd "$WORK/enhance_pc_static" | grep -q libharmonizer; then
+static_libs=$(ldd "$WORK/enhance_pc_static")
+if grep -q libharmonizer <<<"$static_libs"; then
     echo "FAIL: the static build links libharmonizer.so"; exit 1
 fi
 
@@ -69,8 +74,9 @@ needed=$(readelf -d "$WORK/cmake-build/enhance_shared" | sed -n 's/.*(NEEDED).*\
 [[ "$needed" == "libharmonizer.so.$MAJOR" ]] ||
     { echo "FAIL: the CMake consumer records '$needed', expected libharmonizer.so.$MAJOR"; exit 1; }
 env -u LD_LIBRARY_PATH "$WORK/cmake-build/enhance_shared" 3 64 36 | tail -n 1
-env -u LD_LIBRARY_PATH ldd "$WORK/cmake-build/enhance_shared" | grep -q "libharmonizer.so.$MAJOR => $PREFIX/lib/libharmonizer.so.$MAJOR" ||
-    { echo "FAIL: the CMake consumer does not load $PREFIX/lib/libharmonizer.so.$MAJOR:"; ldd "$WORK/cmake-build/enhance_shared"; exit 1; }
+loaded=$(env -u LD_LIBRARY_PATH ldd "$WORK/cmake-build/enhance_shared")
+grep -q "libharmonizer.so.$MAJOR => $PREFIX/lib/libharmonizer.so.$MAJOR" <<<"$loaded" ||
+    { echo "FAIL: the CMake consumer does not load $PREFIX/lib/libharmonizer.so.$MAJOR:"; echo "$loaded"; exit 1; }
 echo "ok: the CMake consumer needs libharmonizer.so.$MAJOR and runs"
 "$WORK/cmake-build/enhance_static" 3 64 36 | tail -n 1
 

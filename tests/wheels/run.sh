@@ -58,9 +58,12 @@ assert set(needed) <= system, f"libharmonizer needs {needed}: ONNX Runtime and O
 print("ok: one library, needs only", ", ".join(needed))
 PY
 echo "ok: $(basename "$hz_whl"), auditwheel show agrees ($shown)"
-unzip -p "$usd_whl" '*.dist-info/METADATA' | grep -q '^Requires-Dist: harmonizer==0\.2\.\*$' ||
-    { echo "FAIL: $(basename "$usd_whl") does not require harmonizer==0.2.*:"; unzip -p "$usd_whl" '*.dist-info/METADATA' | grep Requires-Dist; exit 1; }
-if unzip -p "$usd_whl" '*.dist-info/METADATA' | grep -q 'file:'; then
+# The metadata taken whole before it is searched (`unzip | grep -q` fails
+# under pipefail when grep stops reading early and unzip gets SIGPIPE).
+usd_meta=$(unzip -p "$usd_whl" '*.dist-info/METADATA')
+grep -q '^Requires-Dist: harmonizer==0\.2\.\*$' <<<"$usd_meta" ||
+    { echo "FAIL: $(basename "$usd_whl") does not require harmonizer==0.2.*:"; grep Requires-Dist <<<"$usd_meta"; exit 1; }
+if grep -q 'file:' <<<"$usd_meta"; then
     echo "FAIL: $(basename "$usd_whl") names a local path"; exit 1
 fi
 echo "ok: $(basename "$usd_whl") requires harmonizer==0.2.*"
