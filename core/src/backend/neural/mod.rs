@@ -57,8 +57,10 @@ pub struct NeuralModel {
     buffers: Mutex<Vec<Vec<f32>>>,
 }
 
-/// Work buffers kept for reuse per model (two per frame in flight).
-const KEPT_BUFFERS: usize = 4;
+/// Work buffers kept for reuse per model: up to three per frame (the
+/// tile's input, the prior's scratch, the computed planes of a tiled
+/// frame), two frames in flight.
+const KEPT_BUFFERS: usize = 6;
 
 /// A work buffer borrowed from a model; returned to it when dropped.
 struct Buffer<'a> {
