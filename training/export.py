@@ -134,7 +134,11 @@ class _PriorInput(torch.nn.Module):
         self.model = model
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.model(x[:, :-3], prior=x[:, -3:])
+        # The model slices its channel groups from the front of `x` and
+        # never reads past them: `x[:, :-3]` first would copy every plane
+        # (ONNX Runtime fused it with the prior's slice into one Split:
+        # 14 ms at 1920x1088 on 2 threads).
+        return self.model(x, prior=x[:, -3:])
 
 
 def graph_of(model: Enhancer) -> torch.nn.Module:
