@@ -165,6 +165,25 @@ def prior_spec(cfg: ModelConfig) -> dict:
     }
 
 
+def trace_to_onnx(net: torch.nn.Module, dummy: torch.Tensor, path: Path):
+    """``net`` traced on ``dummy`` into ``path`` (one input ``input``, one
+    output ``output``, height and width dynamic, opset ``OPSET``), and the
+    file loaded back as an ``onnx.ModelProto``."""
+    import onnx
+
+    torch.onnx.export(
+        net,
+        (dummy,),
+        str(path),
+        input_names=["input"],
+        output_names=["output"],
+        dynamic_axes={"input": {2: "height", 3: "width"}, "output": {2: "height", 3: "width"}},
+        opset_version=OPSET,
+        dynamo=False,
+    )
+    return onnx.load(str(path))
+
+
 def export(
     model: Enhancer,
     out_stem: Path,
@@ -183,17 +202,7 @@ def export(
     onnx_path = out_stem.with_suffix(".onnx")
     onnx_path.parent.mkdir(parents=True, exist_ok=True)
     tmp = onnx_path.with_suffix(".onnx.tmp")
-    torch.onnx.export(
-        net,
-        (dummy,),
-        str(tmp),
-        input_names=["input"],
-        output_names=["output"],
-        dynamic_axes={"input": {2: "height", 3: "width"}, "output": {2: "height", 3: "width"}},
-        opset_version=OPSET,
-        dynamo=False,
-    )
-    proto = onnx.load(str(tmp))
+    proto = trace_to_onnx(net, dummy, tmp)
     if proto.ir_version > MAX_IR_VERSION:
         proto.ir_version = MAX_IR_VERSION
     # The whole configuration, for `weights_from_onnx`: the graph alone does
