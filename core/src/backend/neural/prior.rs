@@ -143,6 +143,10 @@ impl PriorChannels {
             height,
         };
         let spec = self.spec;
+        // Taken out of its lock, which no parallel work may hold (a worker
+        // waiting in it could pick up another frame's prior and wait on
+        // itself); a frame computed meanwhile starts from empty levels.
+        let mut kept = std::mem::take(&mut *self.scratch.lock().unwrap_or_else(|p| p.into_inner()));
         pool.install(|| {
             chain(&src, &spec, [&mut *r, &mut *g, &mut *b], weight, own);
             let disp = self.disparity.map(plane);
@@ -155,8 +159,7 @@ impl PriorChannels {
                 own,
                 disp,
             };
-            let mut kept = self.scratch.lock().unwrap_or_else(|p| p.into_inner());
-            let Scratch { levels, filled } = &mut *kept;
+            let Scratch { levels, filled } = &mut kept;
             // The pull: level 1 from the full resolution, then halvings.
             levels.resize_with(spec.levels, Level::default);
             pull(&level0, tol, &mut levels[0]);
@@ -188,6 +191,7 @@ impl PriorChannels {
             finish(&f, [r, g, b], weight, width, tol);
             *filled = [f, next];
         });
+        *self.scratch.lock().unwrap_or_else(|p| p.into_inner()) = kept;
     }
 }
 
