@@ -14,7 +14,7 @@ use super::{bbox_below, par_bands_mut, rgba_planes_mut, Rect};
 use crate::frame::Image;
 use crate::temporal::ReprojectedFrame;
 
-mod far;
+pub(crate) mod far;
 mod sparse;
 
 pub use far::{push_pull_far, OwnCoverage, FAR_TOLERANCE};

@@ -218,11 +218,12 @@ impl NeuralModel {
         .map_err(|e| model_err(origin, format!("ONNX Runtime cannot load it: {e}")))?;
 
         let fixed = check_signature(&session, &manifest, origin)?;
+        let channels = manifest.input_channels();
         Ok(Arc::new(NeuralModel {
             name: manifest.name.clone(),
             version: manifest.version.clone(),
-            channels: manifest.input_channels(),
-            prior: prior::PriorChannels::new(manifest.prior, &manifest.input_channels()),
+            prior: prior::PriorChannels::new(manifest.prior, &channels),
+            channels,
             output_order: manifest.output_order(),
             manifest,
             origin: origin.to_string(),

@@ -14,7 +14,8 @@
 //! history chain, then the first halving) and the push writes only the
 //! pixels not fully covered after the chain.
 //!
-//! The pull halves each level to `ceil(size / 2)`, a missing row or
+//! The pull (the classical fill's halving, `crate::ops::inpaint::far::halve`)
+//! halves each level to `ceil(size / 2)`, a missing row or
 //! column counting as empty (the graph's zero padding); a pixel with data
 //! of its own (the frame's coverage, not the history's) whose disparity
 //! exceeds its 2x2 block's smallest by more than `depth_tol` (relative)
@@ -27,6 +28,7 @@
 use rayon::prelude::*;
 
 use crate::model::{InputChannel, PriorSpec};
+use crate::ops::inpaint::far::{halve, Level, Pixels, Px};
 
 /// The classical backend's history gate (`crate::backend::classical`,
 /// mirrored by the trainer's `GATE_RADIUS` and `history_weight`): the
@@ -39,9 +41,6 @@ const GATE_RADIUS: usize = 3;
 fn history_weight(share: f32) -> f32 {
     ((0.3 - share) / 0.075).clamp(0.0, 1.0)
 }
-
-/// Larger than any disparity (`1 / (1 + depth) <= 1`): no depth of its own.
-const NO_DISPARITY: f32 = 4.0;
 
 /// The pyramid's levels, kept between frames (fresh memory costs a page
 /// fault per 4 KiB on every frame).
@@ -150,7 +149,8 @@ impl PriorChannels {
         pool.install(|| {
             chain(&src, &spec, [&mut *r, &mut *g, &mut *b], weight, own);
             let disp = self.disparity.map(plane);
-            let tol = spec.depth_tol;
+            // Without a tolerance, a plain push-pull.
+            let tol = (spec.depth_tol > 0.0).then_some(spec.depth_tol);
             let level0 = Fine {
                 w: width,
                 h: height,
@@ -162,10 +162,10 @@ impl PriorChannels {
             let Scratch { levels, filled } = &mut kept;
             // The pull: level 1 from the full resolution, then halvings.
             levels.resize_with(spec.levels, Level::default);
-            pull(&level0, tol, &mut levels[0]);
+            halve(&level0, tol, &mut levels[0]);
             for l in 1..spec.levels {
                 let (done, rest) = levels.split_at_mut(l);
-                pull(&done[l - 1].view(), tol, &mut rest[0]);
+                halve(&done[l - 1], tol, &mut rest[0]);
             }
             // The push, down to level 1: the filled color and disparity.
             let top = &levels[spec.levels - 1];
@@ -301,18 +301,6 @@ fn share(src: &Sources<'_>, y: usize, x: usize, floor: f32, covered_at: f32) -> 
     sum / (y1 - y0) as f32
 }
 
-/// A pixel of a pulled level: color (premultiplied by the weight), weight,
-/// own weight, disparity (meaningful where the own weight is above 0).
-type Px = [f32; 6];
-
-/// A pulled level.
-#[derive(Default)]
-struct Level {
-    w: usize,
-    h: usize,
-    px: Vec<Px>,
-}
-
 /// The full resolution as the pull reads it.
 struct Fine<'a> {
     w: usize,
@@ -321,12 +309,6 @@ struct Fine<'a> {
     wt: &'a [f32],
     own: &'a [f32],
     disp: Option<&'a [f32]>,
-}
-
-/// What the pull reads of a level.
-trait Pixels: Sync {
-    fn size(&self) -> (usize, usize);
-    fn px(&self, i: usize) -> Px;
 }
 
 impl Pixels for Fine<'_> {
@@ -347,95 +329,6 @@ impl Pixels for Fine<'_> {
     }
 }
 
-/// A pulled level read by the next halving.
-struct LevelView<'a>(&'a Level);
-
-impl Level {
-    fn view(&self) -> LevelView<'_> {
-        LevelView(self)
-    }
-}
-
-impl Pixels for LevelView<'_> {
-    fn size(&self) -> (usize, usize) {
-        (self.0.w, self.0.h)
-    }
-
-    #[inline]
-    fn px(&self, i: usize) -> Px {
-        self.0.px[i]
-    }
-}
-
-/// An empty pixel: what a missing row or column past an odd edge holds.
-const EMPTY: Px = [0.0; 6];
-
-/// One halving into `out` (resized): each coarse pixel sums its 2x2 block
-/// (missing pixels past an odd edge are empty), leaving out, with a
-/// tolerance, the own data nearer than the block's farthest; the weight is
-/// clamped to one with the color scaled alike.
-fn pull(fine: &impl Pixels, tol: f32, out: &mut Level) {
-    let (w, h) = fine.size();
-    let (cw, ch) = (w.div_ceil(2), h.div_ceil(2));
-    out.w = cw;
-    out.h = ch;
-    out.px.clear();
-    out.px.resize(cw * ch, EMPTY);
-    out.px
-        .par_chunks_mut(cw)
-        .with_min_len(4)
-        .enumerate()
-        .for_each(|(i, row)| {
-            let (y0, y1) = (2 * i, 2 * i + 1);
-            for (j, out) in row.iter_mut().enumerate() {
-                let (x0, x1) = (2 * j, 2 * j + 1);
-                let at = |y: usize, x: usize| {
-                    if y < h && x < w {
-                        fine.px(y * w + x)
-                    } else {
-                        EMPTY
-                    }
-                };
-                // In the graph's order: (0, 0), (0, 1), (1, 0), (1, 1).
-                let block = [at(y0, x0), at(y0, x1), at(y1, x0), at(y1, x1)];
-                *out = sum_block(&block, tol);
-            }
-        });
-}
-
-/// A coarse pixel from its four fine ones (see [`pull`]).
-#[inline(always)]
-fn sum_block(block: &[Px; 4], tol: f32) -> Px {
-    let key = |p: &Px| if p[4] > 0.0 { p[5] } else { NO_DISPARITY };
-    let limit = if tol > 0.0 {
-        key(&block[0])
-            .min(key(&block[1]))
-            .min(key(&block[2]))
-            .min(key(&block[3]))
-            * (1.0 + tol)
-    } else {
-        f32::INFINITY
-    };
-    let mut s = [0.0f32; 5];
-    let mut od = 0.0f32;
-    for p in block {
-        let keep = if p[4] > 0.0 && p[5] > limit { 0.0 } else { 1.0 };
-        for c in 0..5 {
-            s[c] += keep * p[c];
-        }
-        od += keep * p[4] * p[5];
-    }
-    let k = s[3].min(1.0) / s[3].max(1e-12);
-    [
-        s[0] * k,
-        s[1] * k,
-        s[2] * k,
-        s[3].min(1.0),
-        s[4],
-        od / s[4].max(1e-12),
-    ]
-}
-
 /// A level's complete color and disparity.
 #[derive(Default)]
 struct Filled {
@@ -445,9 +338,10 @@ struct Filled {
 }
 
 /// The taps of a bilinear resize along one axis from `from` to `to`
-/// samples (half-pixel centres, clamped at the edges): per output sample,
-/// the two input samples and their weights.
-fn taps(from: usize, to: usize) -> Vec<(usize, usize, f32, f32)> {
+/// samples, as the graph's resize computes them (half-pixel centres, the
+/// scale `to / from`, clamped at the edges: odd levels are not exactly
+/// halved): per output sample, the two input samples and their weights.
+fn resize_taps(from: usize, to: usize) -> Vec<(usize, usize, f32, f32)> {
     let scale = to as f32 / from as f32;
     (0..to)
         .map(|o| {
@@ -473,8 +367,8 @@ fn taps(from: usize, to: usize) -> Vec<(usize, usize, f32, f32)> {
 /// own where it has data of its own, else the upsampled one.
 fn push(f: &Filled, level: &Level, out: &mut Filled) {
     let (w, h) = (level.w, level.h);
-    let tx = taps(f.w, w);
-    let ty = taps(f.h, h);
+    let tx = resize_taps(f.w, w);
+    let ty = resize_taps(f.h, h);
     out.w = w;
     out.h = h;
     out.px.clear();
@@ -505,7 +399,10 @@ fn push(f: &Filled, level: &Level, out: &mut Filled) {
 
 /// The bilinear weights of a 2x upsampling along one axis (pixel centres):
 /// fine pixel `2i` takes coarse `i - 1` and `i` with 1/4 and 3/4, `2i + 1`
-/// takes `i` and `i + 1` with 3/4 and 1/4 (edges clamped).
+/// takes `i` and `i + 1` with 3/4 and 1/4, the edge's pixel standing for the
+/// one past it (the graph's replicated padding: both taps are then that
+/// pixel, so a tap beyond the edge never enters the farthest-tap limit, as
+/// it would with `crate::ops::inpaint`'s clamped taps).
 #[inline]
 fn phase(fine: usize, coarse: usize) -> (usize, usize, f32, f32) {
     let i = fine / 2;
@@ -520,7 +417,7 @@ fn phase(fine: usize, coarse: usize) -> (usize, usize, f32, f32) {
 /// not 1 (the others keep their known color exactly): their missing part
 /// takes the 2x upsampling of level 1, with a tolerance only its taps
 /// within it of the farthest.
-fn finish(f: &Filled, out: [&mut [f32]; 3], weight: &[f32], w: usize, tol: f32) {
+fn finish(f: &Filled, out: [&mut [f32]; 3], weight: &[f32], w: usize, tol: Option<f32>) {
     let [r, g, b] = out;
     assert!(
         w == 2 * f.w && weight.len() == w * 2 * f.h,
@@ -545,12 +442,13 @@ fn finish(f: &Filled, out: [&mut [f32]; 3], weight: &[f32], w: usize, tol: f32) 
                     f.px[y1 * f.w + x0],
                     f.px[y1 * f.w + x1],
                 ];
-                let keep: [f32; 4] = if tol > 0.0 {
-                    let far = t.iter().map(|p| p[3]).fold(f32::INFINITY, f32::min);
-                    let limit = far * (1.0 + tol);
-                    t.map(|p| if p[3] <= limit { 1.0 } else { 0.0 })
-                } else {
-                    [1.0; 4]
+                let keep: [f32; 4] = match tol {
+                    Some(tol) => {
+                        let far = t.iter().map(|p| p[3]).fold(f32::INFINITY, f32::min);
+                        let limit = far * (1.0 + tol);
+                        t.map(|p| if p[3] <= limit { 1.0 } else { 0.0 })
+                    }
+                    None => [1.0; 4],
                 };
                 // As the graph sums: across each tap row, then the rows.
                 let col = |n: usize| -> f32 {

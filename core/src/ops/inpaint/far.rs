@@ -75,14 +75,37 @@ impl OwnCoverage {
 /// Larger than any disparity (`1 / (1 + depth) <= 1`): no depth of its own.
 const NO_DISPARITY: f32 = 4.0;
 
-/// A pixel of a level: color (square roots, premultiplied by the weight),
-/// weight, own weight, disparity (meaningful where the own weight is > 0).
-type Px = [f32; 6];
+/// A pixel of a level: color (premultiplied by the weight; here square
+/// roots), weight, own weight, disparity (meaningful where the own weight
+/// is > 0).
+pub(crate) type Px = [f32; 6];
 
-struct Level {
-    w: usize,
-    h: usize,
-    px: Vec<Px>,
+/// A level of the pyramid.
+#[derive(Default)]
+pub(crate) struct Level {
+    pub(crate) w: usize,
+    pub(crate) h: usize,
+    pub(crate) px: Vec<Px>,
+}
+
+/// What a halving reads of a level (a [`Level`], or planes laid out
+/// otherwise by its caller).
+pub(crate) trait Pixels: Sync {
+    /// Width and height.
+    fn size(&self) -> (usize, usize);
+    /// Pixel `i` (row-major).
+    fn px(&self, i: usize) -> Px;
+}
+
+impl Pixels for Level {
+    fn size(&self) -> (usize, usize) {
+        (self.w, self.h)
+    }
+
+    #[inline]
+    fn px(&self, i: usize) -> Px {
+        self.px[i]
+    }
 }
 
 /// The disparity of a planar depth (0 for empty depth, as far as it gets).
@@ -100,26 +123,48 @@ fn disparity(d: f32) -> f32 {
 
 /// The next coarser level: 2x2 sums of the kept pixels (see the module docs).
 fn down(fine: &Level) -> Level {
-    let (w, h) = (fine.w.div_ceil(2), fine.h.div_ceil(2));
-    let mut px = vec![[0.0f32; 6]; w * h];
-    px.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+    let mut out = Level::default();
+    halve(fine, Some(FAR_TOLERANCE), &mut out);
+    out
+}
+
+/// One halving into `out` (resized to `ceil(size / 2)`): each coarse pixel
+/// sums its 2x2 block (in row order; past an odd edge there is nothing),
+/// leaving out, with a tolerance `tol`, the pixels with data of their own
+/// whose disparity exceeds the block's smallest own one by more than it
+/// (without, every pixel counts); the weight is clamped to one with the
+/// color scaled alike, and the disparity is the own-weighted mean of what
+/// was kept. Also the neural runtime's prior
+/// (`crate::backend::neural::prior`).
+pub(crate) fn halve(fine: &impl Pixels, tol: Option<f32>, out: &mut Level) {
+    let (fw, fh) = fine.size();
+    let (w, h) = (fw.div_ceil(2), fh.div_ceil(2));
+    out.w = w;
+    out.h = h;
+    out.px.clear();
+    out.px.resize(w * h, [0.0; 6]);
+    out.px.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
         for (x, out) in row.iter_mut().enumerate() {
-            let mut kids = [None; 4];
+            let mut kids = [[0.0f32; 6]; 4];
             let mut n = 0;
-            for yy in 2 * y..(2 * y + 2).min(fine.h) {
-                for xx in 2 * x..(2 * x + 2).min(fine.w) {
-                    kids[n] = Some(fine.px[yy * fine.w + xx]);
+            for yy in 2 * y..(2 * y + 2).min(fh) {
+                for xx in 2 * x..(2 * x + 2).min(fw) {
+                    kids[n] = fine.px(yy * fw + xx);
                     n += 1;
                 }
             }
-            let far = kids[..n]
-                .iter()
-                .flatten()
-                .filter(|p| p[4] > 0.0)
-                .fold(NO_DISPARITY, |m, p| m.min(p[5]));
-            let limit = far * (1.0 + FAR_TOLERANCE);
+            let limit = match tol {
+                Some(tol) => {
+                    let far = kids[..n]
+                        .iter()
+                        .filter(|p| p[4] > 0.0)
+                        .fold(NO_DISPARITY, |m, p| m.min(p[5]));
+                    far * (1.0 + tol)
+                }
+                None => f32::INFINITY,
+            };
             let mut s = [0.0f32; 6];
-            for p in kids[..n].iter().flatten() {
+            for p in &kids[..n] {
                 if p[4] > 0.0 && p[5] > limit {
                     continue;
                 }
@@ -138,7 +183,6 @@ fn down(fine: &Level) -> Level {
             *out = [s[0] * k, s[1] * k, s[2] * k, s[3].min(1.0), s[4], disp];
         }
     });
-    Level { w, h, px }
 }
 
 /// Completes `fine` from `coarse` (complete: weight 1 everywhere): the
