@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Smoke test of the data generator and the trainer on a tiny configuration:
-# renders one tiny scene (one sample of each stream) with Blender,
+# renders one tiny scene (one sample of each stream) and one of the
+# reconstruction stream alone with Blender,
 # checks the samples and their conventions, trains 2 steps, exports to ONNX
 # and checks the export against PyTorch in ONNX Runtime.
 #
@@ -91,7 +92,42 @@ if fail:
     sys.exit(1)
 PY
 
-echo "== train 2 steps"
+echo "== render 1 tiny scene of the reconstruction stream only (--streams recon, 4 frames)"
+nice -n 10 "$bpy_py" -m training.synth.render_scene --scene-id 1 --out "$work/data/train/scene_000001" \
+  --width 64 --height 48 --frames 4 --samples 4 --threads 2 --streams recon > "$work/render_recon.log" 2>&1 || {
+  tail -40 "$work/render_recon.log" >&2
+  echo "smoke_test: render --streams recon failed" >&2
+  exit 1
+}
+"$train_py" - "$work/data/train/scene_000001" <<'PY'
+import json
+import sys
+from pathlib import Path
+
+from training.synth.dataset import load_sample, scene_streams
+
+d = Path(sys.argv[1])
+fail = []
+if scene_streams(d) != ["s1_recon"]:
+    fail.append(f"streams {scene_streams(d)} != ['s1_recon']")
+if sorted(p.name for p in d.iterdir()) != ["meta.json", "s1_recon.npz", "scene.npz"]:
+    fail.append(f"files {sorted(p.name for p in d.iterdir())}")
+s = load_sample(d, "s1_recon")
+if s["input"].shape != (4, 48, 64, 4):
+    fail.append(f"input shape {s['input'].shape}")
+if s["mask_shadow"].any():
+    fail.append("mask_shadow is not all zeros without a noinsert pass")
+if not (s["input"][..., 3] < 0.95).any():
+    fail.append("the reconstruction has no holes")
+if json.loads((d / "meta.json").read_text()).get("rendered_streams") != "recon":
+    fail.append("meta.json does not say rendered_streams: recon")
+if fail:
+    print("smoke_test: FAILED (--streams recon):\n  " + "\n  ".join(fail), file=sys.stderr)
+    sys.exit(1)
+print(f"s1_recon only: input {s['input'].shape}, coverage mean {s['input'][..., 3].mean():.3f}")
+PY
+
+echo "== train 2 steps (both scenes)"
 "$train_py" -m training.train --data "$work/data" --run "$work/run" --steps 2 --batch 1 --crop 48 64 \
   --unroll 2 --widths 8 8 12 16 --log-every 1 --ckpt-every 1 --p-no-history 0
 

@@ -2,6 +2,10 @@
 
     python -m training.synth.generate --out training/data --scenes 0:400
 
+With ``--train-streams recon --frames 16`` the training scenes are longer and
+render only the reconstruction stream (the one the network is run on), about
+twice as many frames an hour; held-out scenes keep every stream.
+
 Each scene runs in its own bpy process (``render_scene.py``) so a crash or a
 leak cannot take the whole run down; a scene that fails is recorded in
 ``<out>/failed/scene_<id>.txt`` and skipped on the next run unless
@@ -73,6 +77,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--bpy-python", type=Path, default=Path(os.environ.get("HZ_BPY_PYTHON", DEFAULT_BPY_PYTHON)))
     ap.add_argument("--retry-failed", action="store_true")
     ap.add_argument("--timeout", type=float, default=3600.0, help="seconds per scene before it is abandoned")
+    ap.add_argument(
+        "--train-streams",
+        choices=("all", "recon"),
+        default="all",
+        help="recon: training scenes render only what the reconstruction stream needs (the clean frames and "
+        "the context views, a third of the renders per frame); held-out scenes always render every stream",
+    )
     add_render_args(ap)
     args = ap.parse_args(argv)
     if not args.bpy_python.exists():
@@ -120,6 +131,8 @@ def main(argv: list[str] | None = None) -> int:
             str(args.seed),
             "--test-every",
             str(args.test_every),
+            "--streams",
+            args.train_streams if d.parent.name == "train" else "all",
         ]
         ts = time.time()
         child = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)

@@ -10,8 +10,11 @@ and a camera moving over ``frames`` frames. The passes rendered per frame:
 ``truth`` (clean, OIDN-denoised, with depth, vector, normal and Cryptomatte),
 ``noinsert`` (the insert hidden: its shadow is gone), ``relit`` (other light)
 and ``noisy`` (few samples, a new seed per frame); plus 2-3 static context
-views for the reconstruction stream. ``degrade.py`` turns them into the five
-streams; the file layout is documented in ``training/README.md``.
+views for the reconstruction stream. ``degrade.py`` turns them into the six
+streams; the file layout is documented in ``training/README.md``. With
+``--streams recon`` only ``truth`` and the context views are rendered and only
+the reconstruction stream is written (a third of the renders per frame;
+``mask_shadow`` is then all zeros, as no ``noinsert`` pass measures it).
 """
 
 from __future__ import annotations
@@ -493,11 +496,14 @@ def render_scene(scene_id: int, out_dir: Path, cfg: dict, catalog: dict) -> dict
     relight = dict(setup_world(relight_rng, Path(catalog["hdri_dir"])))
     setup_world(rng, Path(catalog["hdri_dir"]), base_light)
     sc.camera = cam
+    recon_only = cfg.get("streams", "all") == "recon"
     for t in range(T):
         sc.frame_set(t + 1)
         cams.append(camera_matrices(cam, W, H))
         set_quality(cfg["samples"], True, scene_id)
         truth.append(render_to(tmp / f"truth_{t:02d}.exr"))
+        if recon_only:
+            continue
         insert.hide_render = True
         noinsert.append(render_to(tmp / f"noinsert_{t:02d}.exr"))
         insert.hide_render = False
@@ -531,14 +537,16 @@ def render_scene(scene_id: int, out_dir: Path, cfg: dict, catalog: dict) -> dict
 
     gt = rgb(truth)
     mask = np.stack([crypto_mask(f, "insert") for f in truth])
-    ni = rgb(noinsert)
-    shadow = degrade.shadow_mask(gt, ni, mask)
+    if recon_only:
+        ni, shadow = None, np.zeros_like(mask)
+    else:
+        ni = rgb(noinsert)
+        shadow = degrade.shadow_mask(gt, ni, mask)
     depth = np.stack([f["depth"] for f in truth]).astype(np.float32)
     motion = np.stack([f["motion"] for f in truth]).astype(np.float32)
     normal = np.stack([f["normal"] for f in truth]).astype(np.float32)
     w2c = np.stack([c[0] for c in cams])
     w2ndc = np.stack([c[1] for c in cams])
-    ones = np.ones(gt.shape[:3] + (1,), np.float32)
     split = "test" if is_test_scene(scene_id, cfg) else "train"
     meta = {
         "format_version": FORMAT_VERSION,
@@ -561,6 +569,7 @@ def render_scene(scene_id: int, out_dir: Path, cfg: dict, catalog: dict) -> dict
         "motion": "pixels, current -> previous, x right, y down",
         "depth": "planar, empty = 1e10",
         "normal": "world space (Blender +z up), from the clean render",
+        "rendered_streams": "recon" if recon_only else "all",
     }
     np.savez_compressed(
         tmp / "scene.npz",
@@ -585,31 +594,9 @@ def render_scene(scene_id: int, out_dir: Path, cfg: dict, catalog: dict) -> dict
         H,
     )
     streams["s1_recon"] = ({"input": rec, "depth": rec_depth, "mask_insert": np.zeros_like(mask)}, p1)
-    # 2: tone mismatch on the insert.
-    tone = degrade.random_tone(np.random.default_rng([cfg["seed"], scene_id, 2]))
-    s2 = degrade.composite(gt, degrade.apply_tone(gt, tone), mask)
-    streams["s2_tone"] = ({"input": np.concatenate([s2, ones], -1)}, tone)
-    # 3: relighting mismatch: the insert from the relit render over the true background.
-    s3 = degrade.composite(gt, rgb(relit), mask)
-    streams["s3_relight"] = ({"input": np.concatenate([s3, ones], -1)}, {"light": relight})
-    # 4: missing contact shadow: the insert over the background rendered without it.
-    s4 = degrade.composite(ni, gt, mask)
-    streams["s4_shadow"] = ({"input": np.concatenate([s4, ones], -1)}, {})
-    # 5: render noise and flicker.
-    streams["s5_noise"] = (
-        {"input": np.concatenate([rgb(noisy), ones], -1), "mask_insert": np.zeros_like(mask)},
-        {"samples": noisy_samples, "denoised": noisy_denoised, "seed": "per frame"},
-    )
-    # 6: an inserted object as hosts really composite it: mismatched (relit or
-    # tone-shifted) and without its contact shadow.
-    mix_rng = np.random.default_rng([cfg["seed"], scene_id, 6])
-    if mix_rng.random() < 0.5:
-        fg, p6 = rgb(relit), {"insert": "relit", "light": relight}
-    else:
-        tone6 = degrade.random_tone(mix_rng)
-        fg, p6 = degrade.apply_tone(gt, tone6), {"insert": "tone", "tone": tone6}
-    s6 = degrade.composite(ni, fg, mask)
-    streams["s6_insert"] = ({"input": np.concatenate([s6, ones], -1)}, p6)
+    if not recon_only:
+        streams.update(_composite_streams(cfg, scene_id, gt, mask, ni, rgb(relit), rgb(noisy), relight))
+        streams["s5_noise"][1].update({"samples": noisy_samples, "denoised": noisy_denoised, "seed": "per frame"})
     meta["streams"] = {}
     for name, (arrays, params) in streams.items():
         arrays = dict(arrays)
@@ -627,6 +614,35 @@ def render_scene(scene_id: int, out_dir: Path, cfg: dict, catalog: dict) -> dict
     shutil.rmtree(out_dir, ignore_errors=True)
     tmp.rename(out_dir)
     return meta
+
+
+def _composite_streams(cfg: dict, scene_id: int, gt, mask, ni, relit, noisy, relight) -> dict:
+    """Streams 2-6, composited from the clean, ``noinsert``, relit and noisy renders."""
+    ones = np.ones(gt.shape[:3] + (1,), np.float32)
+    streams = {}
+    # 2: tone mismatch on the insert.
+    tone = degrade.random_tone(np.random.default_rng([cfg["seed"], scene_id, 2]))
+    s2 = degrade.composite(gt, degrade.apply_tone(gt, tone), mask)
+    streams["s2_tone"] = ({"input": np.concatenate([s2, ones], -1)}, tone)
+    # 3: relighting mismatch: the insert from the relit render over the true background.
+    s3 = degrade.composite(gt, relit, mask)
+    streams["s3_relight"] = ({"input": np.concatenate([s3, ones], -1)}, {"light": relight})
+    # 4: missing contact shadow: the insert over the background rendered without it.
+    s4 = degrade.composite(ni, gt, mask)
+    streams["s4_shadow"] = ({"input": np.concatenate([s4, ones], -1)}, {})
+    # 5: render noise and flicker.
+    streams["s5_noise"] = ({"input": np.concatenate([noisy, ones], -1), "mask_insert": np.zeros_like(mask)}, {})
+    # 6: an inserted object as hosts really composite it: mismatched (relit or
+    # tone-shifted) and without its contact shadow.
+    mix_rng = np.random.default_rng([cfg["seed"], scene_id, 6])
+    if mix_rng.random() < 0.5:
+        fg, p6 = relit, {"insert": "relit", "light": relight}
+    else:
+        tone6 = degrade.random_tone(mix_rng)
+        fg, p6 = degrade.apply_tone(gt, tone6), {"insert": "tone", "tone": tone6}
+    s6 = degrade.composite(ni, fg, mask)
+    streams["s6_insert"] = ({"input": np.concatenate([s6, ones], -1)}, p6)
+    return streams
 
 
 def _json_default(o):
@@ -682,6 +698,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--test-every", type=int, default=10)
     ap.add_argument("--keep-exr", action="store_true", help="keep Blender's EXRs beside the samples")
+    ap.add_argument(
+        "--streams",
+        choices=("all", "recon"),
+        default="all",
+        help="recon: render the clean frames and the context views only, write the reconstruction stream",
+    )
     args = ap.parse_args(argv)
     if not args.catalog.exists():
         print(f"render_scene: no asset catalog at {args.catalog}; run python -m training.synth.assets", file=sys.stderr)
@@ -696,6 +718,7 @@ def main(argv: list[str] | None = None) -> int:
         "seed": args.seed,
         "test_every": args.test_every,
         "keep_exr": args.keep_exr,
+        "streams": args.streams,
     }
     meta = render_scene(args.scene_id, args.out, cfg, catalog)
     print(json.dumps({"scene_id": args.scene_id, "seconds": meta["render_seconds"], "checks": meta["checks"]}))
