@@ -445,6 +445,13 @@ def main(argv: list[str] | None = None) -> int:
         help="a factor on the history blend's weight in holes (ModelConfig.hole_blend; default: the source's)",
     )
     ap.add_argument(
+        "--far-blend",
+        type=float,
+        default=None,
+        help="a factor on the history blend's weight in covered pixels more than 2 px from a hole "
+        "(ModelConfig.far_blend; default: the source's)",
+    )
+    ap.add_argument(
         "--repair-margin",
         type=int,
         default=None,
@@ -473,6 +480,7 @@ def main(argv: list[str] | None = None) -> int:
         "blend_gain": args.blend_gain,
         "hole_correction": args.hole_correction,
         "hole_blend": args.hole_blend,
+        "far_blend": args.far_blend,
         "prior_input": args.prior_input,
     }
     changes = {k: v for k, v in given.items() if v is not None}

@@ -103,6 +103,11 @@ class ModelConfig:
     # out of domain 0.55 (indoors -0.08), the warping error within 0.04 of
     # 1.0's except indoors (7.08 -> 7.42; model card).
     hole_blend: float = 1.0
+    # A factor on the history blend's weight in covered pixels beyond its
+    # nearness band (more than 2 px from a hole, `--far-blend`). There the
+    # blend steadies a render whose errors are the reconstruction's own,
+    # and fixed in the world: the reprojected history repeats them.
+    far_blend: float = 1.0
     # Covered pixels (coverage >= prior_floor) farther than this many pixels
     # (Chebyshev) from a hole keep their input color inside the graph, at
     # exactly this distance 0.4 of the network's (the runtime's
@@ -606,6 +611,8 @@ class Enhancer(nn.Module):
             gain = self.cfg.blend_gain
             if self.cfg.hole_blend != 1.0:
                 gain = torch.where(self.holes(parts), gain * self.cfg.hole_blend, gain)
+            if self.cfg.far_blend != 1.0:
+                gain = torch.where(near > 0, gain, gain * self.cfg.far_blend)
             est = self.blend(est, parts[3], parts[4].clamp(0, 1), cov, near, gain)
         return est
 

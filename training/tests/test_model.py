@@ -18,6 +18,7 @@ from training.model import (  # noqa: E402
     decode,
     encode,
     frame_scale,
+    margin_share,
     reproject_hop,
 )
 from training.synth import degrade  # noqa: E402
@@ -498,6 +499,24 @@ def test_hole_blend_scales_the_blend_in_holes_only():
     assert torch.equal(b[~hole], a[~hole]) and torch.equal(c[~hole], a[~hole])
     assert torch.allclose(b[hole], est[hole]) and not torch.allclose(a[hole], est[hole])
     assert torch.allclose(c[hole], (a[hole] + est[hole]) / 2, atol=1e-6)
+
+
+def test_far_blend_scales_the_blend_beyond_its_nearness_band_only():
+    full = _blend_model(graph_margin=2)
+    none = _blend_model(graph_margin=2, far_blend=0.0)
+    half = _blend_model(graph_margin=2, far_blend=0.5)
+    x = torch.rand(1, len(full.cfg.input_channels()), 32, 48)
+    x[:, 3] = 1.0
+    x[:, 3, 8:20, 10:30] = 0.0
+    x[:, 8] = 1.0  # history frame 0 valid everywhere
+    near = (margin_share(x[:, 3:4], full.cfg.prior_floor, 2) > 0).expand(-1, 3, -1, -1)
+    with torch.no_grad():
+        a, b, c = full(x), none(x), half(x)
+    assert torch.equal(b[near], a[near]) and torch.equal(c[near], a[near])
+    # Beyond the band the repair margin gives the input color back, so
+    # without the blend the output is the input there.
+    assert torch.equal(b[~near], x[:, :3][~near]) and not torch.allclose(a[~near], x[:, :3][~near])
+    assert torch.allclose(c[~near], (a[~near] + b[~near]) / 2, atol=1e-6)
 
 
 def test_the_blend_layer_split_per_tensor_is_the_layer_on_their_concatenation():
