@@ -104,15 +104,22 @@ import json
 import sys
 from pathlib import Path
 
-from training.synth.dataset import load_sample, scene_streams
+import numpy as np
+from training.synth.dataset import load_sample, redegrade, scene_streams
 
 d = Path(sys.argv[1])
 fail = []
 if scene_streams(d) != ["s1_recon"]:
     fail.append(f"streams {scene_streams(d)} != ['s1_recon']")
-if sorted(p.name for p in d.iterdir()) != ["meta.json", "s1_recon.npz", "scene.npz"]:
+if sorted(p.name for p in d.iterdir()) != ["ctx.npz", "meta.json", "s1_recon.npz", "scene.npz"]:
     fail.append(f"files {sorted(p.name for p in d.iterdir())}")
 s = load_sample(d, "s1_recon")
+# The context views kept in ctx.npz give the stream back with the scene's own seed.
+again = redegrade(d, np.random.default_rng([1, 1, 1]))
+if not np.array_equal(again["input"][..., 3], s["input"][..., 3]) or not np.array_equal(again["depth"], s["depth"]):
+    fail.append("re-degrading ctx.npz with the scene's seed changes the coverage or the depth")
+if np.abs(again["input"][..., :3] - s["input"][..., :3]).max() > 2e-3 * max(1.0, float(s["input"][..., :3].max())):
+    fail.append("re-degrading ctx.npz with the scene's seed changes the colors")
 if s["input"].shape != (4, 48, 64, 4):
     fail.append(f"input shape {s['input'].shape}")
 if s["mask_shadow"].any():

@@ -62,3 +62,32 @@ def load_sample(scene_dir: Path, stream: str) -> dict:
     out["meta"] = json.loads((scene_dir / "meta.json").read_text())
     out["stream"] = stream
     return out
+
+
+def has_context(scene_dir: Path) -> bool:
+    """Whether the scene kept its context views (``ctx.npz``, scenes rendered
+    since 2026-11-27), so its reconstruction stream can be degraded again."""
+    return (Path(scene_dir) / "ctx.npz").exists()
+
+
+def redegrade(scene_dir: Path, rng: np.random.Generator) -> dict:
+    """The reconstruction stream of a scene made again from its context views
+    with ``rng``: ``input [T,H,W,4]`` and ``depth [T,H,W]`` as ``load_sample``
+    gives them (the input through float16, as stored). With the scene's own
+    seed (``[seed, scene_id, 1]``) it is the stored ``s1_recon``, colors
+    within float16 rounding (the views are kept in float16)."""
+    from training.synth import degrade
+
+    scene_dir = Path(scene_dir)
+    try:
+        with np.load(scene_dir / "ctx.npz") as c:
+            colors = list(c["color"].astype(np.float32))
+            depths = list(c["depth"])
+            ctx_cams = list(zip(c["world_to_camera"], c["world_to_ndc"], strict=True))
+        with np.load(scene_dir / "scene.npz") as z:
+            cams = list(zip(z["world_to_camera"], z["world_to_ndc"], strict=True))
+    except (OSError, ValueError, KeyError) as e:
+        raise DataError(f"{scene_dir}: cannot read the context views ({e})") from e
+    h, w = depths[0].shape
+    rec, depth, _ = degrade.reconstruction_inputs(rng, colors, depths, ctx_cams, cams, w, h)
+    return {"input": rec.astype(np.float16).astype(np.float32), "depth": depth.astype(np.float32)}

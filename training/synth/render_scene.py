@@ -582,6 +582,15 @@ def render_scene(scene_id: int, out_dir: Path, cfg: dict, catalog: dict) -> dict
         world_to_camera=w2c,
         world_to_ndc=w2ndc,
     )
+    # The context views, so the reconstruction stream can be degraded again
+    # with other seeds (``degrade.reconstruction_inputs``) without rendering.
+    np.savez_compressed(
+        tmp / "ctx.npz",
+        color=np.stack([f["rgba"][..., :3] * k_exp for f in ctx_imgs]).astype(np.float16),
+        depth=np.stack([f["depth"] for f in ctx_imgs]).astype(np.float32),
+        world_to_camera=np.stack([c[0] for c in ctx_cams]),
+        world_to_ndc=np.stack([c[1] for c in ctx_cams]),
+    )
     streams = {}
     # 1: reconstruction artifacts.
     rec, rec_depth, p1 = degrade.reconstruction_inputs(
