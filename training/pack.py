@@ -11,7 +11,9 @@ own arrays replace the scene's), as float16 with the low mantissa bits cleared
 (colour and coverage keep 7 of 10 bits, a relative step of 0.4 %; depth and
 motion 8), bytes split into high and low planes, and LZMA. Depth is clamped to
 float16's range (the sky's 1e10 becomes 65504: a disparity of 1.5e-5 instead
-of 1e-10). Unpacked, a scene is a normal scene directory that
+of 1e-10). A scene's context views (``ctx.npz``) travel with ``s1_recon``
+(colors as the input, depth as depth, its empty pixels empty again on
+unpacking). Unpacked, a scene is a normal scene directory that
 ``training.synth.dataset.load_sample`` reads.
 """
 
@@ -30,7 +32,7 @@ from training.ood.sequences import _shuffle, _unshuffle
 from training.synth.dataset import SCENE_KEYS, list_scenes, scene_streams
 
 # Mantissa bits kept (of float16's 10) per array.
-KEEP_BITS = {"input": 7, "target": 7, "depth": 8, "motion": 8, "mask_insert": 10, "mask_shadow": 10}
+KEEP_BITS = {"input": 7, "target": 7, "color": 7, "depth": 8, "motion": 8, "mask_insert": 10, "mask_shadow": 10}
 F16_MAX = 65504.0
 
 
@@ -56,6 +58,11 @@ def pack_scene(scene_dir: Path, streams: list[str]) -> bytes:
         if k == "normal" or all(k in own[s] for s in streams):
             continue
         arrays[f"scene/{k}"] = scene[k]
+    # The context views travel with the reconstruction stream (`train --redegrade`).
+    if "s1_recon" in streams and (scene_dir / "ctx.npz").exists():
+        with np.load(scene_dir / "ctx.npz") as z:
+            for k in z.files:
+                arrays[f"ctx/{k}"] = z[k]
     blob: dict[str, np.ndarray] = {}
     for name, a in arrays.items():
         key = name.split("/", 1)[1]
@@ -97,6 +104,13 @@ def unpack_scene(data: bytes, out_dir: Path) -> None:
     np.savez(tmp / "scene.npz", **scene)
     for s in header["streams"]:
         np.savez(tmp / f"{s}.npz", **{k.split("/", 1)[1]: v for k, v in arrays.items() if k.startswith(f"{s}/")})
+    ctx = {k.split("/", 1)[1]: v for k, v in arrays.items() if k.startswith("ctx/")}
+    if ctx:
+        # Empty depth (1e10) came back as float16's largest value with its
+        # low bits cleared (65408): empty again.
+        depth = ctx["depth"].astype(np.float32)
+        ctx["depth"] = np.where(depth >= 6.5e4, np.float32(1e10), depth)
+        np.savez(tmp / "ctx.npz", **ctx)
     meta = header["meta"]
     if isinstance(meta.get("streams"), dict):  # only the streams that travelled
         meta["streams"] = {k: v for k, v in meta["streams"].items() if k in header["streams"]}

@@ -34,7 +34,7 @@ import torch
 import torch.nn.functional as F
 
 from training.model import Enhancer, ModelConfig, assemble_input, decode, encode, frame_scale, reproject_hop
-from training.synth.dataset import list_scenes, load_sample, scene_streams
+from training.synth.dataset import has_context, list_scenes, load_sample, redegrade, scene_streams
 
 TRAINING_DIR = Path(__file__).resolve().parent
 
@@ -46,9 +46,16 @@ TRAINING_DIR = Path(__file__).resolve().parent
 class SampleCache:
     """Loads samples on demand and keeps the most recent ``size`` in memory."""
 
-    def __init__(self, scenes: list[Path], size: int = 64, only: tuple[str, ...] = ()):
+    def __init__(
+        self, scenes: list[Path], size: int = 64, only: tuple[str, ...] = (), redegrade: int = 1, seed: int = 1
+    ):
         self.size = size
         self.only = only
+        # Variants of a scene's reconstruction stream (`--redegrade`): 0 is
+        # the stored one, k > 0 made again from its context views with the
+        # seed [seed, scene id, 1, k] (scenes that kept them).
+        self.redegrade = redegrade
+        self.seed = seed
         self.cache: dict = {}
         self.rescan(scenes)
 
@@ -58,13 +65,21 @@ class SampleCache:
         streams = {str(p): [n for n in scene_streams(p) if not self.only or n in self.only] for p in scenes}
         self.scenes = [p for p in scenes if streams[str(p)]]
         self.streams = {k: v for k, v in streams.items() if v}
+        redo = self.redegrade > 1
+        self.variants = {
+            str(p): self.redegrade if redo and "s1_recon" in self.streams[str(p)] and has_context(p) else 1
+            for p in self.scenes
+        }
 
-    def get(self, scene: Path, stream: str) -> dict:
-        key = (str(scene), stream)
+    def get(self, scene: Path, stream: str, variant: int = 0) -> dict:
+        key = (str(scene), stream, variant)
         if key not in self.cache:
             if len(self.cache) >= self.size:
                 self.cache.pop(next(iter(self.cache)))
             s = load_sample(scene, stream)
+            if variant > 0:
+                scene_id = int(Path(scene).name.split("_")[-1])
+                s.update(redegrade(scene, np.random.default_rng([self.seed, scene_id, 1, variant])))
             self.cache[key] = {k: s[k] for k in ("input", "target", "depth", "motion", "mask_insert", "mask_shadow")}
         return self.cache[key]
 
@@ -85,7 +100,8 @@ def make_batch(cache: SampleCache, rng: np.random.Generator, cfg: dict, key: flo
         scene = cache.scenes[int(rng.integers(len(cache.scenes)))]
         names = cache.streams[str(scene)]
         stream = names[int(rng.integers(len(names)))]
-        s = cache.get(scene, stream)
+        n_var = cache.variants[str(scene)] if stream == "s1_recon" else 1
+        s = cache.get(scene, stream, int(rng.integers(n_var)) if n_var > 1 else 0)
         T, H, W = s["input"].shape[:3]
         unroll = min(L, T) if temporal else 1
         pre = min(want_pre, T - unroll)
@@ -432,6 +448,13 @@ def add_args(ap: argparse.ArgumentParser) -> None:
         default=0.0,
         help="seconds: end this run with a checkpoint after this long; rerunning continues the same schedule",
     )
+    ap.add_argument(
+        "--redegrade",
+        type=int,
+        default=1,
+        help="variants of each scene's reconstruction stream drawn from: the stored one and N-1 made again from "
+        "its context views with other seeds (scenes that kept them, ctx.npz); each is made once per cache stay",
+    )
     ap.add_argument("--cache-samples", type=int, default=64, help="(scene, stream) samples kept in memory")
     ap.add_argument("--ckpt-every", type=int, default=200)
     ap.add_argument("--log-every", type=int, default=20)
@@ -470,6 +493,7 @@ def main(argv: list[str] | None = None) -> int:
         "seed": args.seed,
         "train_only": args.train_only,
         "streams": args.streams,
+        "redegrade": args.redegrade,
     }
     ckpt_path = args.run / "ckpt_last.pt"
     torch.manual_seed(args.seed)
@@ -546,7 +570,13 @@ def main(argv: list[str] | None = None) -> int:
     opt = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=args.lr)
     if ck is not None:
         opt.load_state_dict(ck["opt"])
-    cache = SampleCache(scenes, args.cache_samples, tuple(n for n in cfg.get("streams", "").split(",") if n))
+    cache = SampleCache(
+        scenes,
+        args.cache_samples,
+        tuple(n for n in cfg.get("streams", "").split(",") if n),
+        cfg.get("redegrade", 1),
+        cfg["seed"],
+    )
     if not cache.scenes:
         print(f"train: no training scene has the streams {cfg['streams']}", file=sys.stderr)
         return 2

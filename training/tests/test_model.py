@@ -420,6 +420,7 @@ class _FakeCache:
         rng = np.random.default_rng(3)
         self.scenes = ["scene"]
         self.streams = {"scene": ["s5_noise"]}
+        self.variants = {"scene": 1}
         rgb = rng.random((t, h, w, 3)).astype(np.float32) + 0.05
         self.sample = {
             "input": np.concatenate([rgb, np.ones((t, h, w, 1), np.float32)], -1),
@@ -430,7 +431,7 @@ class _FakeCache:
             "mask_shadow": np.zeros((t, h, w), np.float32),
         }
 
-    def get(self, scene, stream):
+    def get(self, scene, stream, variant=0):
         return self.sample
 
 

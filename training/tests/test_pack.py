@@ -38,6 +38,16 @@ def _scene(root, sid: int, rng) -> None:
         mask_insert=np.zeros((t, h, w), np.float16),
     )
     np.savez(d / "s2_tone.npz", input=np.concatenate([target * 0.5, cov * 0 + 1], -1))
+    if sid % 2 == 0:  # the context views, kept by scenes rendered since 2026-11-27
+        ctx_depth = rng.uniform(0.5, 80, (3, h, w)).astype(np.float32)
+        ctx_depth[:, :3] = 1e10
+        np.savez(
+            d / "ctx.npz",
+            color=(rng.random((3, h, w, 3)) * 4).astype(np.float16),
+            depth=ctx_depth,
+            world_to_camera=rng.random((3, 4, 4)).astype(np.float32),
+            world_to_ndc=rng.random((3, 4, 4)).astype(np.float32),
+        )
     (d / "meta.json").write_text(json.dumps({"scene_id": sid, "streams": {"s1_recon": {}, "s2_tone": {}}}))
 
 
@@ -72,6 +82,15 @@ def test_a_packed_scene_unpacks_to_what_the_trainer_reads_within_the_stated_prec
         assert np.array_equal(a["mask_shadow"], b["mask_shadow"])
         assert np.array_equal(a["world_to_ndc"], b["world_to_ndc"])
         assert not b["normal"].any() and b["normal"].shape == a["normal"].shape
+        # The context views travel with the reconstruction stream; empty depth stays empty.
+        assert dataset.has_context(s) == dataset.has_context(tmp_path / "data" / "train" / s.name)
+        if dataset.has_context(s):
+            with np.load(tmp_path / "data" / "train" / s.name / "ctx.npz") as x, np.load(s / "ctx.npz") as y:
+                assert np.all(np.abs(x["color"] - y["color"]) <= 2.0**-7 * np.abs(x["color"]) + 1e-3)
+                sky = x["depth"] >= 1e9
+                assert y["depth"].dtype == np.float32 and np.all(y["depth"][sky] == 1e10)
+                assert np.all(np.abs(x["depth"][~sky] - y["depth"][~sky]) <= 2.0**-8 * x["depth"][~sky])
+                assert np.array_equal(x["world_to_ndc"], y["world_to_ndc"])
 
 
 def test_the_budget_stops_the_pack_before_it_is_exceeded(tmp_path):
