@@ -24,6 +24,22 @@ class DataError(RuntimeError):
     """A sample is missing or malformed."""
 
 
+#: float16's largest value: stored arrays saturate there.
+F16_MAX = 65504.0
+
+
+def saturate(arrays: dict, where: str) -> None:
+    """Infinities in float arrays (float16 overflow in scenes stored before
+    the generator saturated: a sun disk times the exposure) become float16's
+    largest value, in place; NaN is an error naming the array."""
+    for k, a in arrays.items():
+        if not isinstance(a, np.ndarray) or a.dtype.kind != "f" or np.isfinite(a).all():
+            continue
+        if np.isnan(a).any():
+            raise DataError(f"{where}: array '{k}' has NaN")
+        np.clip(a, -F16_MAX, F16_MAX, out=a)
+
+
 def list_scenes(data_dir: Path, split: str) -> list[Path]:
     """Complete scene directories of a split, sorted by id."""
     d = Path(data_dir) / split
@@ -59,6 +75,7 @@ def load_sample(scene_dir: Path, stream: str) -> dict:
     for k in SCENE_KEYS + ("input",):
         if k not in out:
             raise DataError(f"{scene_dir}: array '{k}' missing for stream {stream}")
+    saturate(out, f"{scene_dir} ({stream})")
     out["meta"] = json.loads((scene_dir / "meta.json").read_text())
     out["stream"] = stream
     return out
@@ -70,17 +87,18 @@ def has_context(scene_dir: Path) -> bool:
     return (Path(scene_dir) / "ctx.npz").exists()
 
 
-def redegrade(scene_dir: Path, rng: np.random.Generator) -> dict:
+def redegrade(scene_dir: Path, rng: np.random.Generator, ctx: Path | None = None) -> dict:
     """The reconstruction stream of a scene made again from its context views
     with ``rng``: ``input [T,H,W,4]`` and ``depth [T,H,W]`` as ``load_sample``
     gives them (the input through float16, as stored). With the scene's own
     seed (``[seed, scene_id, 1]``) it is the stored ``s1_recon``, colors
-    within float16 rounding (the views are kept in float16)."""
+    within float16 rounding (the views are kept in float16). ``ctx``: the
+    views from another file than the scene's ``ctx.npz``."""
     from training.synth import degrade
 
     scene_dir = Path(scene_dir)
     try:
-        with np.load(scene_dir / "ctx.npz") as c:
+        with np.load(ctx or scene_dir / "ctx.npz") as c:
             colors = list(c["color"].astype(np.float32))
             depths = list(c["depth"])
             ctx_cams = list(zip(c["world_to_camera"], c["world_to_ndc"], strict=True))
@@ -88,6 +106,9 @@ def redegrade(scene_dir: Path, rng: np.random.Generator) -> dict:
             cams = list(zip(z["world_to_camera"], z["world_to_ndc"], strict=True))
     except (OSError, ValueError, KeyError) as e:
         raise DataError(f"{scene_dir}: cannot read the context views ({e})") from e
+    for c in colors:
+        saturate({"color": c}, f"{ctx or scene_dir / 'ctx.npz'}")
     h, w = depths[0].shape
     rec, depth, _ = degrade.reconstruction_inputs(rng, colors, depths, ctx_cams, cams, w, h)
-    return {"input": rec.astype(np.float16).astype(np.float32), "depth": depth.astype(np.float32)}
+    rec = np.clip(rec, -F16_MAX, F16_MAX).astype(np.float16).astype(np.float32)
+    return {"input": rec, "depth": depth.astype(np.float32)}

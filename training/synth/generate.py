@@ -78,6 +78,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--retry-failed", action="store_true")
     ap.add_argument("--timeout", type=float, default=3600.0, help="seconds per scene before it is abandoned")
     ap.add_argument(
+        "--backfill-context",
+        action="store_true",
+        help="render nothing new: give the training scenes in --scenes that lack ctx.npz their context views "
+        "(about 10 s a scene; kept only where the scene rebuilds the same)",
+    )
+    ap.add_argument(
         "--train-streams",
         choices=("all", "recon"),
         default="all",
@@ -95,6 +101,8 @@ def main(argv: list[str] | None = None) -> int:
         return r.returncode
     signal.signal(signal.SIGTERM, _stop)
     signal.signal(signal.SIGINT, _stop)
+    if args.backfill_context:
+        return backfill_context(args)
     failed_dir = args.out / "failed"
     ids = list(parse_range(args.scenes))
     done = skipped = failed = 0
@@ -179,6 +187,51 @@ def main(argv: list[str] | None = None) -> int:
     }
     print("generate: " + json.dumps(summary), flush=True)
     return 0 if failed == 0 else 1
+
+
+def backfill_context(args: argparse.Namespace) -> int:
+    """``--backfill-context``: ``render_scene --context-only`` on each
+    training scene of the range without ``ctx.npz``. A scene that does not
+    rebuild the same is noted in ``failed/ctx_scene_<id>.txt`` and not
+    tried again."""
+    failed_dir = args.out / "failed"
+    kept = rejected = 0
+    t0 = time.time()
+    for sid in parse_range(args.scenes):
+        d = scene_dir(args.out, sid, args.test_every)
+        note = failed_dir / f"ctx_scene_{sid:06d}.txt"
+        if d.parent.name != "train" or not (d / "meta.json").exists() or (d / "ctx.npz").exists() or note.exists():
+            continue
+        cmd = [str(args.bpy_python), "-m", "training.synth.render_scene", "--scene-id", str(sid), "--out", str(d)]
+        cmd += ["--threads", str(args.threads), "--context-only"]
+        child = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        _current["child"] = child
+        try:
+            out, _ = child.communicate(timeout=args.timeout)
+            rc = child.returncode
+        except subprocess.TimeoutExpired:
+            child.kill()
+            out, _ = child.communicate()
+            rc = -1
+        _current["child"] = None
+        if _current["stopping"] or rc in STOP_SIGNALS:
+            print(f"[{time.strftime('%H:%M:%S')}] stopped during the context views of scene {sid}", flush=True)
+            return 130
+        last = [ln for ln in out.splitlines() if ln.startswith("{")]
+        if rc == 0:
+            kept += 1
+        else:
+            rejected += 1
+            failed_dir.mkdir(parents=True, exist_ok=True)
+            note.write_text(f"exit {rc}\ncommand: {' '.join(cmd)}\n\n{out[-3000:]}\n")
+        print(
+            f"[{time.strftime('%H:%M:%S')}] scene {sid} context views {'kept' if rc == 0 else 'NOT kept'} "
+            f"{last[-1] if last else ''}",
+            flush=True,
+        )
+    summary = {"context_kept": kept, "context_rejected": rejected, "seconds": round(time.time() - t0)}
+    print("generate: " + json.dumps(summary), flush=True)
+    return 0
 
 
 if __name__ == "__main__":

@@ -40,6 +40,8 @@ from training.synth import degrade
 from training.synth.exr import read_blender_exr
 
 FORMAT_VERSION = 1
+#: float16's largest value (storage saturates there).
+F16_MAX = 65504.0
 
 
 # ---------------------------------------------------------------------------
@@ -467,6 +469,13 @@ def crypto_mask(exr: dict, name: str) -> np.ndarray:
     return np.clip(m, 0.0, 1.0)
 
 
+def to_f16(a: np.ndarray) -> np.ndarray:
+    """float16 for storage, saturating at its largest value: a sun disk or a
+    specular glint scaled by the exposure can exceed it, and would be stored
+    as infinity."""
+    return np.clip(a, -F16_MAX, F16_MAX).astype(np.float16)
+
+
 def render_scene(scene_id: int, out_dir: Path, cfg: dict, catalog: dict) -> dict:
     rng = np.random.default_rng([cfg["seed"], scene_id])
     t_start = time.time()
@@ -573,9 +582,9 @@ def render_scene(scene_id: int, out_dir: Path, cfg: dict, catalog: dict) -> dict
     }
     np.savez_compressed(
         tmp / "scene.npz",
-        target=gt.astype(np.float16),
+        target=to_f16(gt),
         depth=depth,
-        motion=motion.astype(np.float16),
+        motion=to_f16(motion),
         normal=normal.astype(np.float16),
         mask_insert=mask.astype(np.float16),
         mask_shadow=shadow.astype(np.float16),
@@ -586,7 +595,7 @@ def render_scene(scene_id: int, out_dir: Path, cfg: dict, catalog: dict) -> dict
     # with other seeds (``degrade.reconstruction_inputs``) without rendering.
     np.savez_compressed(
         tmp / "ctx.npz",
-        color=np.stack([f["rgba"][..., :3] * k_exp for f in ctx_imgs]).astype(np.float16),
+        color=to_f16(np.stack([f["rgba"][..., :3] * k_exp for f in ctx_imgs])),
         depth=np.stack([f["depth"] for f in ctx_imgs]).astype(np.float32),
         world_to_camera=np.stack([c[0] for c in ctx_cams]),
         world_to_ndc=np.stack([c[1] for c in ctx_cams]),
@@ -609,7 +618,7 @@ def render_scene(scene_id: int, out_dir: Path, cfg: dict, catalog: dict) -> dict
     meta["streams"] = {}
     for name, (arrays, params) in streams.items():
         arrays = dict(arrays)
-        arrays["input"] = arrays["input"].astype(np.float16)
+        arrays["input"] = to_f16(arrays["input"])
         if "mask_insert" in arrays:
             arrays["mask_insert"] = arrays["mask_insert"].astype(np.float16)
         np.savez_compressed(tmp / f"{name}.npz", **arrays)
@@ -623,6 +632,63 @@ def render_scene(scene_id: int, out_dir: Path, cfg: dict, catalog: dict) -> dict
     shutil.rmtree(out_dir, ignore_errors=True)
     tmp.rename(out_dir)
     return meta
+
+
+def context_views(scene_id: int, scene_dir: Path, cfg: dict, catalog: dict) -> dict:
+    """Renders the context views of an existing scene again and writes its
+    ``ctx.npz`` (scenes rendered before they were kept). The scene is rebuilt
+    from its seed with the frame count, size and samples in its
+    ``meta.json``, and the views are scaled by its ``exposure_scale``. Kept
+    only if the stored reconstruction stream comes back from them with the
+    scene's own seed (coverage on at least 99.5 % of the pixels): a scene
+    that does not rebuild the same (another asset catalog, generator or
+    Blender) gets no ``ctx.npz``."""
+    from training.synth.dataset import load_sample, redegrade
+
+    meta = json.loads((scene_dir / "meta.json").read_text())
+    t_start = time.time()
+    cfg = dict(cfg, width=meta["width"], height=meta["height"], frames=meta["frames"], samples=meta["samples"])
+    cfg["seed"] = meta["seed"]
+    rng = np.random.default_rng([cfg["seed"], scene_id])
+    info = build_scene(rng, catalog, cfg)
+    sc = bpy.context.scene
+    sc.cycles.samples = cfg["samples"]
+    sc.cycles.use_denoising = True
+    sc.cycles.denoiser = "OPENIMAGEDENOISE"
+    sc.cycles.seed = scene_id
+    setup_world(rng, Path(catalog["hdri_dir"]), info["light"])
+    sc.frame_set(1)
+    ctx = info["ctx_camera"]
+    sc.camera = ctx
+    tmp = scene_dir.with_name(scene_dir.name + ".ctx.tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    imgs, cams = [], []
+    for k, (eye, aim) in enumerate(info["ctx_poses"]):
+        ctx.location = eye
+        ctx.rotation_euler = (aim - eye).to_track_quat("-Z", "Y").to_euler()
+        bpy.context.view_layer.update()
+        cams.append(camera_matrices(ctx, cfg["width"], cfg["height"]))
+        imgs.append(render_to(tmp / f"ctx_{k:02d}.exr"))
+    k_exp = float(meta["exposure_scale"])
+    out = tmp / "ctx.npz"
+    np.savez_compressed(
+        out,
+        color=to_f16(np.stack([f["rgba"][..., :3] * k_exp for f in imgs])),
+        depth=np.stack([f["depth"] for f in imgs]).astype(np.float32),
+        world_to_camera=np.stack([c[0] for c in cams]),
+        world_to_ndc=np.stack([c[1] for c in cams]),
+    )
+    stored = load_sample(scene_dir, "s1_recon")["input"][..., 3]
+    again = redegrade(scene_dir, np.random.default_rng([cfg["seed"], scene_id, 1]), ctx=out)["input"][..., 3]
+    agree = float((again == stored).mean())
+    kept = agree >= 0.995
+    if kept:
+        shutil.copy(out, scene_dir / "ctx.npz.tmp")
+        (scene_dir / "ctx.npz.tmp").rename(scene_dir / "ctx.npz")
+    shutil.rmtree(tmp, ignore_errors=True)
+    seconds = round(time.time() - t_start, 1)
+    return {"scene_id": scene_id, "seconds": seconds, "coverage_agrees": agree, "kept": kept}
 
 
 def _composite_streams(cfg: dict, scene_id: int, gt, mask, ni, relit, noisy, relight) -> dict:
@@ -713,6 +779,11 @@ def main(argv: list[str] | None = None) -> int:
         default="all",
         help="recon: render the clean frames and the context views only, write the reconstruction stream",
     )
+    ap.add_argument(
+        "--context-only",
+        action="store_true",
+        help="render only the context views of the existing scene at --out again and write its ctx.npz",
+    )
     args = ap.parse_args(argv)
     if not args.catalog.exists():
         print(f"render_scene: no asset catalog at {args.catalog}; run python -m training.synth.assets", file=sys.stderr)
@@ -729,6 +800,10 @@ def main(argv: list[str] | None = None) -> int:
         "keep_exr": args.keep_exr,
         "streams": args.streams,
     }
+    if args.context_only:
+        res = context_views(args.scene_id, args.out, cfg, catalog)
+        print(json.dumps(res))
+        return 0 if res["kept"] else 1
     meta = render_scene(args.scene_id, args.out, cfg, catalog)
     print(json.dumps({"scene_id": args.scene_id, "seconds": meta["render_seconds"], "checks": meta["checks"]}))
     return 0

@@ -135,3 +135,15 @@ def test_a_render_stopped_from_outside_is_not_a_failed_scene(tmp_path):
     finally:
         signal.signal(signal.SIGTERM, handlers[0])
         signal.signal(signal.SIGINT, handlers[1])
+
+
+def test_stored_infinities_saturate_and_nan_is_named(tmp_path):
+    import pytest
+
+    from training.synth.dataset import DataError, saturate
+
+    a = np.array([1.0, np.inf, -np.inf], np.float32)
+    saturate({"target": a}, "scene")
+    assert a.tolist() == [1.0, 65504.0, -65504.0]
+    with pytest.raises(DataError, match="'input' has NaN"):
+        saturate({"input": np.array([np.nan], np.float32)}, "scene")
