@@ -94,8 +94,6 @@ def redegrade(scene_dir: Path, rng: np.random.Generator, ctx: Path | None = None
     seed (``[seed, scene_id, 1]``) it is the stored ``s1_recon``, colors
     within float16 rounding (the views are kept in float16). ``ctx``: the
     views from another file than the scene's ``ctx.npz``."""
-    from training.synth import degrade
-
     scene_dir = Path(scene_dir)
     try:
         with np.load(ctx or scene_dir / "ctx.npz") as c:
@@ -108,6 +106,15 @@ def redegrade(scene_dir: Path, rng: np.random.Generator, ctx: Path | None = None
         raise DataError(f"{scene_dir}: cannot read the context views ({e})") from e
     for c in colors:
         saturate({"color": c}, f"{ctx or scene_dir / 'ctx.npz'}")
+    return reconstruct(colors, depths, ctx_cams, cams, rng)
+
+
+def reconstruct(colors: list, depths: list, ctx_cams: list, cams: list, rng: np.random.Generator) -> dict:
+    """``redegrade`` on arrays in memory: the context views' colors ``[H,W,3]``
+    and depths, their cameras and the frames' (``(world_to_camera,
+    world_to_ndc)`` pairs)."""
+    from training.synth import degrade
+
     h, w = depths[0].shape
     rec, depth, _ = degrade.reconstruction_inputs(rng, colors, depths, ctx_cams, cams, w, h)
     rec = np.clip(rec, -F16_MAX, F16_MAX).astype(np.float16).astype(np.float32)

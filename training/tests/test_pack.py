@@ -120,3 +120,57 @@ def test_byte_planes_stored_flat_read_the_same(tmp_path):
     a, b = dataset.load_sample(tmp_path / "a", "s1_recon"), dataset.load_sample(tmp_path / "b", "s1_recon")
     for k in ("input", "target", "depth", "motion"):
         assert np.array_equal(a[k], b[k]) and np.isfinite(b[k]).all()
+
+
+def test_the_reconstruction_is_made_again_from_the_context_views_on_unpacking(tmp_path):
+    from training.synth import degrade
+    from training.tests.test_synth import look_at
+
+    rng = np.random.default_rng(7)
+    sid, seed, t, h, w = 12, 1, 3, 36, 64
+    d = tmp_path / "data" / "train" / f"scene_{sid:06d}"
+    d.mkdir(parents=True)
+    views = [look_at([x, 1.2, -4], [0, 0.5, 0], 0.9, w / h) for x in (-1.0, 1.5)]
+    frames = [look_at([0.4 * k, 1.0, -3.5], [0, 0.5, 0], 0.9, w / h) for k in range(t)]
+    ctx_depth = rng.uniform(3, 6, (2, h, w)).astype(np.float32)
+    ctx_depth[:, :5] = 1e10  # the sky
+    ctx_color = (rng.random((2, h, w, 3)) * 3).astype(np.float16)
+    np.savez(
+        d / "ctx.npz",
+        color=ctx_color,
+        depth=ctx_depth,
+        world_to_camera=np.stack([v[0] for v in views]),
+        world_to_ndc=np.stack([v[1] for v in views]),
+    )
+    rec, rec_depth, _ = degrade.reconstruction_inputs(
+        np.random.default_rng([seed, sid, 1]), list(ctx_color.astype(np.float32)), list(ctx_depth), views, frames, w, h
+    )
+    target = (rng.random((t, h, w, 3)) * 3).astype(np.float16)
+    np.savez(
+        d / "scene.npz",
+        target=target,
+        depth=rng.uniform(3, 6, (t, h, w)).astype(np.float32),
+        motion=np.zeros((t, h, w, 2), np.float16),
+        normal=np.zeros((t, h, w, 3), np.float16),
+        mask_insert=np.zeros((t, h, w), np.float16),
+        mask_shadow=np.zeros((t, h, w), np.float16),
+        world_to_camera=np.stack([f[0] for f in frames]),
+        world_to_ndc=np.stack([f[1] for f in frames]),
+    )
+    zeros = np.zeros((t, h, w), np.float16)
+    np.savez(d / "s1_recon.npz", input=rec.astype(np.float16), depth=rec_depth, mask_insert=zeros)
+    (d / "meta.json").write_text(json.dumps({"scene_id": sid, "seed": seed, "streams": {"s1_recon": {}}}))
+    assert (rec[..., 3] < 0.5).any() and (rec[..., 3] > 0.95).any()  # holes and covered pixels
+
+    blob = pack.pack_scene(d, ["s1_recon"])
+    pack.unpack_scene(blob, tmp_path / "out" / d.name)
+    a = dataset.load_sample(d, "s1_recon")
+    b = dataset.load_sample(tmp_path / "out" / d.name, "s1_recon")
+    # Coverage and depth as made from the views; colors within the views' packed precision.
+    assert np.array_equal(a["input"][..., 3], b["input"][..., 3])
+    assert np.array_equal(a["depth"], b["depth"])
+    assert np.all(np.abs(a["input"][..., :3] - b["input"][..., :3]) <= 2.0**-6 * np.abs(a["input"][..., :3]) + 1e-3)
+    assert dataset.has_context(tmp_path / "out" / d.name)
+    # Without its views the stream's input and depth travel instead.
+    (d / "ctx.npz").unlink()
+    assert len(pack.pack_scene(d, ["s1_recon"])) > len(blob)
