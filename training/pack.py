@@ -16,7 +16,7 @@ of 1e-10). A scene's context views (``ctx.npz``) travel with ``s1_recon``
 seed, instead of that stream's input and depth: unpacking makes them again
 from the views with the scene's own seed (``dataset.reconstruct``; coverage
 and depth as rendered, colors within the packed precision, but for pixels
-that were beyond float16's range), about 40 % less to carry: an 8-frame
+that were beyond float16's range), 34-42 % less to carry: an 8-frame
 scene 1.36 MiB (scene 120), a 16-frame one 2.1 MiB (scene 160); 1 s each
 to unpack on this machine. Unpacked, a scene is a normal scene directory that
 ``training.synth.dataset.load_sample`` reads.
@@ -55,7 +55,7 @@ def pack_scene(scene_dir: Path, streams: list[str]) -> bytes:
     meta = json.loads((scene_dir / "meta.json").read_text())
     # With its context views the reconstruction stream is made again on
     # unpacking (with the scene's own seed: the same coverage and depth), so
-    # its input and depth do not travel: 40 % of a packed scene.
+    # its input and depth do not travel: 34-42 % of a packed scene.
     rebuild = "s1_recon" in streams and (scene_dir / "ctx.npz").exists() and {"seed", "scene_id"} <= set(meta)
     own: dict[str, set] = {}
     for s in streams:
