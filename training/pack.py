@@ -34,15 +34,14 @@ from pathlib import Path
 import numpy as np
 
 from training.ood.sequences import _shuffle, _unshuffle
-from training.synth.dataset import SCENE_KEYS, list_scenes, reconstruct, scene_streams
+from training.synth.dataset import SCENE_KEYS, list_scenes, reconstruct, scene_streams, to_f16
 
 # Mantissa bits kept (of float16's 10) per array.
 KEEP_BITS = {"input": 7, "target": 7, "color": 7, "depth": 8, "motion": 8, "mask_insert": 10, "mask_shadow": 10}
-F16_MAX = 65504.0
 
 
 def _squeeze(a: np.ndarray, keep: int) -> np.ndarray:
-    h = np.ascontiguousarray(np.clip(a, -F16_MAX, F16_MAX).astype(np.float16)).view(np.uint16)
+    h = np.ascontiguousarray(to_f16(a)).view(np.uint16)
     return _shuffle(h & np.uint16((0xFFFF << (10 - keep)) & 0xFFFF))
 
 
@@ -108,11 +107,6 @@ def unpack_scene(data: bytes, out_dir: Path) -> None:
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
     ctx = {k.split("/", 1)[1]: v for k, v in arrays.items() if k.startswith("ctx/")}
-    if ctx and ctx["depth"].dtype != np.float32:
-        # Packed before the views' depth travelled exactly: empty depth (1e10)
-        # came back as float16's largest value with its low bits cleared.
-        depth = ctx["depth"].astype(np.float32)
-        ctx["depth"] = np.where(depth >= 6.5e4, np.float32(1e10), depth)
     meta = header["meta"]
     if header.get("rebuild_recon"):
         cams = list(zip(arrays["scene/world_to_camera"], arrays["scene/world_to_ndc"], strict=True))

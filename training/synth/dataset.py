@@ -28,6 +28,13 @@ class DataError(RuntimeError):
 F16_MAX = 65504.0
 
 
+def to_f16(a: np.ndarray) -> np.ndarray:
+    """float16 for storage, saturating at its largest value: a sun disk or a
+    specular glint scaled by the exposure can exceed it, and would be stored
+    as infinity."""
+    return np.clip(a, -F16_MAX, F16_MAX).astype(np.float16)
+
+
 def saturate(arrays: dict, where: str) -> None:
     """Infinities in float arrays (float16 overflow in scenes stored before
     the generator saturated: a sun disk times the exposure) become float16's
@@ -117,5 +124,4 @@ def reconstruct(colors: list, depths: list, ctx_cams: list, cams: list, rng: np.
 
     h, w = depths[0].shape
     rec, depth, _ = degrade.reconstruction_inputs(rng, colors, depths, ctx_cams, cams, w, h)
-    rec = np.clip(rec, -F16_MAX, F16_MAX).astype(np.float16).astype(np.float32)
-    return {"input": rec, "depth": depth.astype(np.float32)}
+    return {"input": to_f16(rec).astype(np.float32), "depth": depth.astype(np.float32)}

@@ -70,6 +70,22 @@ def _stop(signum, frame) -> None:
         child.terminate()
 
 
+def _run(cmd: list[str], timeout: float) -> tuple[int, str]:
+    """Runs one render process (the one ``_stop`` ends): its exit code (-1
+    when killed after ``timeout`` seconds) and its output."""
+    child = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    _current["child"] = child
+    try:
+        out, _ = child.communicate(timeout=timeout)
+        rc = child.returncode
+    except subprocess.TimeoutExpired:
+        child.kill()
+        out, _ = child.communicate()
+        rc = -1
+    _current["child"] = None
+    return rc, out
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=TRAINING_DIR / "data")
@@ -143,16 +159,8 @@ def main(argv: list[str] | None = None) -> int:
             args.train_streams if d.parent.name == "train" else "all",
         ]
         ts = time.time()
-        child = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-        _current["child"] = child
-        try:
-            out, _ = child.communicate(timeout=args.timeout)
-            rc, tail = child.returncode, out[-3000:]
-        except subprocess.TimeoutExpired:
-            child.kill()
-            out, _ = child.communicate()
-            rc, tail = -1, f"timed out after {args.timeout} s\n{out[-2000:]}"
-        _current["child"] = None
+        rc, out = _run(cmd, args.timeout)
+        tail = f"timed out after {args.timeout} s\n{out[-2000:]}" if rc == -1 else out[-3000:]
         if _current["stopping"]:
             print(f"[{time.strftime('%H:%M:%S')}] stopped during scene {sid}; rerun to resume", flush=True)
             return 130
@@ -204,16 +212,7 @@ def backfill_context(args: argparse.Namespace) -> int:
             continue
         cmd = [str(args.bpy_python), "-m", "training.synth.render_scene", "--scene-id", str(sid), "--out", str(d)]
         cmd += ["--threads", str(args.threads), "--context-only"]
-        child = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-        _current["child"] = child
-        try:
-            out, _ = child.communicate(timeout=args.timeout)
-            rc = child.returncode
-        except subprocess.TimeoutExpired:
-            child.kill()
-            out, _ = child.communicate()
-            rc = -1
-        _current["child"] = None
+        rc, out = _run(cmd, args.timeout)
         if _current["stopping"] or rc in STOP_SIGNALS:
             print(f"[{time.strftime('%H:%M:%S')}] stopped during the context views of scene {sid}", flush=True)
             return 130

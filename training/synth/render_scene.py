@@ -37,11 +37,10 @@ except ImportError:  # pragma: no cover - run with the bpy venv
     raise
 
 from training.synth import degrade
+from training.synth.dataset import load_sample, redegrade, to_f16
 from training.synth.exr import read_blender_exr
 
 FORMAT_VERSION = 1
-#: float16's largest value (storage saturates there).
-F16_MAX = 65504.0
 
 
 # ---------------------------------------------------------------------------
@@ -469,13 +468,6 @@ def crypto_mask(exr: dict, name: str) -> np.ndarray:
     return np.clip(m, 0.0, 1.0)
 
 
-def to_f16(a: np.ndarray) -> np.ndarray:
-    """float16 for storage, saturating at its largest value: a sun disk or a
-    specular glint scaled by the exposure can exceed it, and would be stored
-    as infinity."""
-    return np.clip(a, -F16_MAX, F16_MAX).astype(np.float16)
-
-
 def render_scene(scene_id: int, out_dir: Path, cfg: dict, catalog: dict) -> dict:
     rng = np.random.default_rng([cfg["seed"], scene_id])
     t_start = time.time()
@@ -485,7 +477,7 @@ def render_scene(scene_id: int, out_dir: Path, cfg: dict, catalog: dict) -> dict
     tmp = out_dir.with_name(out_dir.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
-    cam, ctx, insert = info["camera"], info["ctx_camera"], info["insert"]
+    cam, insert = info["camera"], info["insert"]
     sun = bpy.data.objects["sun"]
 
     def set_quality(samples: int, denoise: bool, seed: int) -> None:
@@ -528,17 +520,8 @@ def render_scene(scene_id: int, out_dir: Path, cfg: dict, catalog: dict) -> dict
         set_quality(cfg["samples"], True, scene_id)
         relit.append(render_to(tmp / f"relit_{t:02d}.exr"))
         setup_world(rng, Path(catalog["hdri_dir"]), base_light)
-    # Context views (static camera, frame 1 lighting).
-    sc.frame_set(1)
-    sc.camera = ctx
-    ctx_imgs, ctx_cams = [], []
     set_quality(cfg["samples"], True, scene_id)
-    for k, (eye, aim) in enumerate(info["ctx_poses"]):
-        ctx.location = eye
-        ctx.rotation_euler = (aim - eye).to_track_quat("-Z", "Y").to_euler()
-        bpy.context.view_layer.update()
-        ctx_cams.append(camera_matrices(ctx, W, H))
-        ctx_imgs.append(render_to(tmp / f"ctx_{k:02d}.exr"))
+    ctx_imgs, ctx_cams = render_context_views(info, W, H, tmp)
     sc.camera = cam
     del sun
 
@@ -599,13 +582,7 @@ def render_scene(scene_id: int, out_dir: Path, cfg: dict, catalog: dict) -> dict
     )
     # The context views, so the reconstruction stream can be degraded again
     # with other seeds (``degrade.reconstruction_inputs``) without rendering.
-    np.savez_compressed(
-        tmp / "ctx.npz",
-        color=to_f16(np.stack([f["rgba"][..., :3] * k_exp for f in ctx_imgs])),
-        depth=np.stack([f["depth"] for f in ctx_imgs]).astype(np.float32),
-        world_to_camera=np.stack([c[0] for c in ctx_cams]),
-        world_to_ndc=np.stack([c[1] for c in ctx_cams]),
-    )
+    write_context(tmp / "ctx.npz", ctx_imgs, ctx_cams, k_exp)
     streams = {}
     # 1: reconstruction artifacts.
     rec, rec_depth, p1 = degrade.reconstruction_inputs(
@@ -619,8 +596,8 @@ def render_scene(scene_id: int, out_dir: Path, cfg: dict, catalog: dict) -> dict
     )
     streams["s1_recon"] = ({"input": rec, "depth": rec_depth, "mask_insert": np.zeros_like(mask)}, p1)
     if not recon_only:
-        streams.update(_composite_streams(cfg, scene_id, gt, mask, ni, rgb(relit), rgb(noisy), relight))
-        streams["s5_noise"][1].update({"samples": noisy_samples, "denoised": noisy_denoised, "seed": "per frame"})
+        noise = {"samples": noisy_samples, "denoised": noisy_denoised, "seed": "per frame"}
+        streams.update(_composite_streams(cfg, scene_id, gt, mask, ni, rgb(relit), (rgb(noisy), noise), relight))
     meta["streams"] = {}
     for name, (arrays, params) in streams.items():
         arrays = dict(arrays)
@@ -640,6 +617,42 @@ def render_scene(scene_id: int, out_dir: Path, cfg: dict, catalog: dict) -> dict
     return meta
 
 
+def clean_quality(sc, samples: int, seed: int) -> None:
+    """The clean renders' settings: ``samples`` through OIDN, a fixed seed."""
+    sc.cycles.samples = samples
+    sc.cycles.use_denoising = True
+    sc.cycles.denoiser = "OPENIMAGEDENOISE"
+    sc.cycles.seed = seed
+
+
+def render_context_views(info: dict, width: int, height: int, tmp: Path) -> tuple[list, list]:
+    """The scene's static context views (frame 1, its lighting as set),
+    rendered into ``tmp``: their EXR contents and ``camera_matrices``."""
+    sc = bpy.context.scene
+    sc.frame_set(1)
+    ctx = info["ctx_camera"]
+    sc.camera = ctx
+    imgs, cams = [], []
+    for k, (eye, aim) in enumerate(info["ctx_poses"]):
+        ctx.location = eye
+        ctx.rotation_euler = (aim - eye).to_track_quat("-Z", "Y").to_euler()
+        bpy.context.view_layer.update()
+        cams.append(camera_matrices(ctx, width, height))
+        imgs.append(render_to(tmp / f"ctx_{k:02d}.exr"))
+    return imgs, cams
+
+
+def write_context(path: Path, imgs: list, cams: list, k_exp: float) -> None:
+    """``ctx.npz``: the context views scaled like the frames (``k_exp``)."""
+    np.savez_compressed(
+        path,
+        color=to_f16(np.stack([f["rgba"][..., :3] * k_exp for f in imgs])),
+        depth=np.stack([f["depth"] for f in imgs]).astype(np.float32),
+        world_to_camera=np.stack([c[0] for c in cams]),
+        world_to_ndc=np.stack([c[1] for c in cams]),
+    )
+
+
 def context_views(scene_id: int, scene_dir: Path, cfg: dict, catalog: dict) -> dict:
     """Renders the context views of an existing scene again and writes its
     ``ctx.npz`` (scenes rendered before they were kept). The scene is rebuilt
@@ -649,42 +662,20 @@ def context_views(scene_id: int, scene_dir: Path, cfg: dict, catalog: dict) -> d
     scene's own seed (coverage on at least 99.5 % of the pixels): a scene
     that does not rebuild the same (another asset catalog, generator or
     Blender) gets no ``ctx.npz``."""
-    from training.synth.dataset import load_sample, redegrade
-
     meta = json.loads((scene_dir / "meta.json").read_text())
     t_start = time.time()
     cfg = dict(cfg, width=meta["width"], height=meta["height"], frames=meta["frames"], samples=meta["samples"])
     cfg["seed"] = meta["seed"]
     rng = np.random.default_rng([cfg["seed"], scene_id])
     info = build_scene(rng, catalog, cfg)
-    sc = bpy.context.scene
-    sc.cycles.samples = cfg["samples"]
-    sc.cycles.use_denoising = True
-    sc.cycles.denoiser = "OPENIMAGEDENOISE"
-    sc.cycles.seed = scene_id
+    clean_quality(bpy.context.scene, cfg["samples"], scene_id)
     setup_world(rng, Path(catalog["hdri_dir"]), info["light"])
-    sc.frame_set(1)
-    ctx = info["ctx_camera"]
-    sc.camera = ctx
     tmp = scene_dir.with_name(scene_dir.name + ".ctx.tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
-    imgs, cams = [], []
-    for k, (eye, aim) in enumerate(info["ctx_poses"]):
-        ctx.location = eye
-        ctx.rotation_euler = (aim - eye).to_track_quat("-Z", "Y").to_euler()
-        bpy.context.view_layer.update()
-        cams.append(camera_matrices(ctx, cfg["width"], cfg["height"]))
-        imgs.append(render_to(tmp / f"ctx_{k:02d}.exr"))
-    k_exp = float(meta["exposure_scale"])
+    imgs, cams = render_context_views(info, cfg["width"], cfg["height"], tmp)
     out = tmp / "ctx.npz"
-    np.savez_compressed(
-        out,
-        color=to_f16(np.stack([f["rgba"][..., :3] * k_exp for f in imgs])),
-        depth=np.stack([f["depth"] for f in imgs]).astype(np.float32),
-        world_to_camera=np.stack([c[0] for c in cams]),
-        world_to_ndc=np.stack([c[1] for c in cams]),
-    )
+    write_context(out, imgs, cams, float(meta["exposure_scale"]))
     stored = load_sample(scene_dir, "s1_recon")["input"][..., 3]
     again = redegrade(scene_dir, np.random.default_rng([cfg["seed"], scene_id, 1]), ctx=out)["input"][..., 3]
     agree = float((again == stored).mean())
@@ -697,8 +688,10 @@ def context_views(scene_id: int, scene_dir: Path, cfg: dict, catalog: dict) -> d
     return {"scene_id": scene_id, "seconds": seconds, "coverage_agrees": agree, "kept": kept}
 
 
-def _composite_streams(cfg: dict, scene_id: int, gt, mask, ni, relit, noisy, relight) -> dict:
-    """Streams 2-6, composited from the clean, ``noinsert``, relit and noisy renders."""
+def _composite_streams(cfg: dict, scene_id: int, gt, mask, ni, relit, noisy: tuple, relight) -> dict:
+    """Streams 2-6, composited from the clean, ``noinsert``, relit and noisy
+    renders (``noisy``: the frames and their parameters)."""
+    noisy, noise = noisy
     ones = np.ones(gt.shape[:3] + (1,), np.float32)
     streams = {}
     # 2: tone mismatch on the insert.
@@ -712,7 +705,7 @@ def _composite_streams(cfg: dict, scene_id: int, gt, mask, ni, relit, noisy, rel
     s4 = degrade.composite(ni, gt, mask)
     streams["s4_shadow"] = ({"input": np.concatenate([s4, ones], -1)}, {})
     # 5: render noise and flicker.
-    streams["s5_noise"] = ({"input": np.concatenate([noisy, ones], -1), "mask_insert": np.zeros_like(mask)}, {})
+    streams["s5_noise"] = ({"input": np.concatenate([noisy, ones], -1), "mask_insert": np.zeros_like(mask)}, noise)
     # 6: an inserted object as hosts really composite it: mismatched (relit or
     # tone-shifted) and without its contact shadow.
     mix_rng = np.random.default_rng([cfg["seed"], scene_id, 6])
