@@ -80,34 +80,37 @@ def manifest_for(
     # Tiled equals untiled output when overlap - overlap/2 >= the receptive radius;
     # the 256 px tile allows at most 63 px (tile_size >= 4 * overlap + 2).
     overlap = int(min(max(2 * effective_radius(model), 16), 62))
-    return {
-        "format_version": 1,
-        "name": name,
-        "version": version,
-        "context_frames": cfg.context_frames,
-        "input": {"name": "input", "channels": cfg.graph_channels()},
-        "output": {"name": "output", "channels": ["color.r", "color.g", "color.b"]},
-        "residual": not cfg.prior,
-        "premultiplied": cfg.premultiplied,
-        "encoding": {"kind": "log", "key": cfg.key, "exposure": "frame", "log_range": cfg.log_range},
-        # With the prior a 1920x1080 frame is one window, as 1024x576 is
-        # (push-pull reaches across the whole window; at 1080p one window ran
-        # 11-15 % less inference than two, see the model card); the memory
-        # limit may shrink tiles.
-        "tile_size": 1920 if cfg.prior else 256,
-        "tile_overlap": overlap,
-        "spatial_multiple": cfg.spatial_multiple,
-        "bytes_per_pixel": activation_bytes_per_pixel(model),
-        # The runtime blends the output with its reprojected history, clamped
-        # to the local color range (held-out warping error 0.0215 -> 0.0189 for
-        # harmonizer-small 1.1.x, PSNR 30.30 -> 30.58 dB).
-        "stabilize": stabilize,
-    } | ({"history_read": history_read} if history_read is not None else {}) | (
-        {"prior": prior_spec(cfg)} if cfg.prior and cfg.prior_input else {}
-    ) | (
-        # Covered pixels farther than this from a hole keep their rendered
-        # color (the runtime; measured per model, see the model card).
-        {"repair_margin": repair_margin} if repair_margin is not None else {}
+    return (
+        {
+            "format_version": 1,
+            "name": name,
+            "version": version,
+            "context_frames": cfg.context_frames,
+            "input": {"name": "input", "channels": cfg.graph_channels()},
+            "output": {"name": "output", "channels": ["color.r", "color.g", "color.b"]},
+            "residual": not cfg.prior,
+            "premultiplied": cfg.premultiplied,
+            "encoding": {"kind": "log", "key": cfg.key, "exposure": "frame", "log_range": cfg.log_range},
+            # With the prior a 1920x1080 frame is one window, as 1024x576 is
+            # (push-pull reaches across the whole window; at 1080p one window ran
+            # 11-15 % less inference than two, see the model card); the memory
+            # limit may shrink tiles.
+            "tile_size": 1920 if cfg.prior else 256,
+            "tile_overlap": overlap,
+            "spatial_multiple": cfg.spatial_multiple,
+            "bytes_per_pixel": activation_bytes_per_pixel(model),
+            # The runtime blends the output with its reprojected history, clamped
+            # to the local color range (held-out warping error 0.0215 -> 0.0189 for
+            # harmonizer-small 1.1.x, PSNR 30.30 -> 30.58 dB).
+            "stabilize": stabilize,
+        }
+        | ({"history_read": history_read} if history_read is not None else {})
+        | ({"prior": prior_spec(cfg)} if cfg.prior and cfg.prior_input else {})
+        | (
+            # Covered pixels farther than this from a hole keep their rendered
+            # color (the runtime; measured per model, see the model card).
+            {"repair_margin": repair_margin} if repair_margin is not None else {}
+        )
     )
 
 
@@ -269,6 +272,7 @@ def weights_from_onnx(path: Path, **changes) -> Enhancer:
         )
     levels = sorted({int(k.split(".")[1]) for k in init if k.startswith("enc.")})
     widths = tuple(int(init[f"enc.{i}.0.0.weight"].shape[0]) for i in levels)
+
     # The history blend's first layer as one convolution per feature tensor
     # (1.7.1 on: `HistoryBlend.down_features`), in graph order: their weight
     # slices joined are the layer's weight.
@@ -393,8 +397,7 @@ def main(argv: list[str] | None = None) -> int:
         "--prior-depth-tol",
         type=float,
         default=None,
-        help="the prior's depth-aware push-pull tolerance (ModelConfig.prior_depth_tol; 0: off; "
-        "default: the source's)",
+        help="the prior's depth-aware push-pull tolerance (ModelConfig.prior_depth_tol; 0: off; default: the source's)",
     )
     ap.add_argument(
         "--average-with",

@@ -72,8 +72,8 @@ from pathlib import Path
 
 import numpy as np
 
-from training.ood import sequences as ood
 from training.evaluate import psnr, read_rgb, srgb, ssim_map
+from training.ood import sequences as ood
 from training.synth.degrade import warp_bilinear
 
 REPO = Path(__file__).resolve().parent.parent
@@ -436,7 +436,10 @@ def write_report(out: Path, summary: dict, info: dict, methods: tuple[str, ...])
             rr = rows
             if key == "warp_err":
                 rr = {
-                    s: {m: {"warp_err": None if v.get("warp_err") is None else 1000 * v["warp_err"]} for m, v in r.items()}
+                    s: {
+                        m: {"warp_err": None if v.get("warp_err") is None else 1000 * v["warp_err"]}
+                        for m, v in r.items()
+                    }
                     for s, r in rows.items()
                 }
             if key == "psnr_region":

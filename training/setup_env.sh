@@ -28,4 +28,4 @@ ensure() {
 
 ensure "$bpy_venv" "import bpy, numpy, OpenEXR" "$here/requirements-synth.txt"
 [ "${1:-}" = bpy ] && exit 0  # `setup_env.sh bpy`: the Blender environment only
-ensure "$train_venv" "import torch, numpy, onnx, onnxruntime, OpenEXR, pytest" "$here/requirements.txt"
+ensure "$train_venv" "import torch, numpy, onnx, onnxruntime, OpenEXR, pytest, ruff" "$here/requirements.txt"

@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
 # Smoke test of the data generator and the trainer on a tiny configuration:
+# checks training/'s lint and format (ruff),
 # renders one tiny scene (one sample of each stream) and one of the
 # reconstruction stream alone with Blender,
 # checks the samples and their conventions, trains 2 steps, exports to ONNX
@@ -29,6 +30,10 @@ done
 work="$(mktemp -d "${TMPDIR:-/tmp}/hz-smoke.XXXXXX")"
 trap 'rm -rf "$work"' EXIT
 cd "$repo"
+
+echo "== lint and format (ruff, training/ruff.toml)"
+"$train_py" -m ruff check --quiet --config training/ruff.toml training
+"$train_py" -m ruff format --quiet --check --config training/ruff.toml training
 
 echo "== unit tests (numpy, torch, ONNX Runtime)"
 # test_quality.py needs the benchmark's peers (OpenCV, pyoidn): scripts/quality.sh --smoke runs it in .venv-quality.

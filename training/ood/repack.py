@@ -1,6 +1,6 @@
 """Repacks a scene written unpacked (float arrays) into the committed format of ``sequences.pack``.
 
-    python3 -m training.ood.repack training/ood/data/courtyard
+python3 -m training.ood.repack training/ood/data/courtyard
 """
 
 from __future__ import annotations

@@ -95,8 +95,15 @@ def pack(arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     if "relit" in arrays and "mask_a" in arrays:
         from training.synth.degrade import box_blur
 
-        near = np.stack([box_blur((arrays["mask_a"][t] + arrays["mask_b"][t]).astype(np.float32), 3)
-                         for t in range(arrays["relit"].shape[0])]) > 0
+        near = (
+            np.stack(
+                [
+                    box_blur((arrays["mask_a"][t] + arrays["mask_b"][t]).astype(np.float32), 3)
+                    for t in range(arrays["relit"].shape[0])
+                ]
+            )
+            > 0
+        )
         arrays["relit"] = np.where(near[..., None], arrays["relit"], 0.0)
     for k, a in arrays.items():
         how = PACKING.get(k)

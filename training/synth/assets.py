@@ -35,7 +35,20 @@ CATALOG_VERSION = 2
 TEXTURE_PACKAGE = "nexuiz-textures"
 TEXTURE_LICENSE = "GPL-2+"
 TEXTURE_COPYRIGHT = "the Nexuiz team and texture authors (the package's copyright file)"
-_TEXTURE_WORDS = ("floor", "wall", "tile", "brick", "concrete", "wood", "stone", "rock", "metal", "plate", "ground", "dirt")
+_TEXTURE_WORDS = (
+    "floor",
+    "wall",
+    "tile",
+    "brick",
+    "concrete",
+    "wood",
+    "stone",
+    "rock",
+    "metal",
+    "plate",
+    "ground",
+    "dirt",
+)
 # Normal, gloss, glow and other maps, effects, trims and signs.
 _TEXTURE_SKIP = ("_norm", "_gloss", "_glow", "_bump", "_shirt", "_pants", "_reflect", "_luma", "_alpha")
 _TEXTURE_SKIP += ("sfx", "_fx", "light", "trim", "decal", "sky", "water", "logo", "sign", "font", "_d.", "_e.")
@@ -238,7 +251,11 @@ def ensure_textures(assets_dir: Path = ASSETS_DIR) -> list[dict]:
     with tempfile.TemporaryDirectory() as tmp_s:
         tmp = Path(tmp_s)
         r = subprocess.run(
-            ["apt-get", "download", TEXTURE_PACKAGE], cwd=tmp, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+            ["apt-get", "download", TEXTURE_PACKAGE],
+            cwd=tmp,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
         )
         debs = sorted(tmp.glob("*.deb"))
         if r.returncode != 0 or not debs:

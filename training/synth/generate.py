@@ -169,8 +169,7 @@ def main(argv: list[str] | None = None) -> int:
             # shutting down, someone freeing the cores): not the scene's
             # failure, so a rerun renders it again.
             print(
-                f"[{time.strftime('%H:%M:%S')}] scene {sid}'s render was stopped (signal {-rc}); "
-                "rerun to resume",
+                f"[{time.strftime('%H:%M:%S')}] scene {sid}'s render was stopped (signal {-rc}); rerun to resume",
                 flush=True,
             )
             return 130

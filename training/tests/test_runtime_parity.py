@@ -38,9 +38,7 @@ def ort_library():
     return str(libs[-1]) if libs else None
 
 
-@pytest.mark.parametrize(
-    "depth_tol,prior_input", [(0.0, False), (0.05, False), (0.0, True), (0.05, True)]
-)
+@pytest.mark.parametrize("depth_tol,prior_input", [(0.0, False), (0.05, False), (0.0, True), (0.05, True)])
 def test_harmonize_neural_matches_the_python_contract(tmp_path, depth_tol, prior_input):
     exe, lib = harmonize_binary(), ort_library()
     if exe is None or lib is None:

@@ -1,6 +1,7 @@
 """Checks of the numpy side of the data generator (conventions, degradations)."""
 
 import numpy as np
+
 from training.synth import degrade
 
 
