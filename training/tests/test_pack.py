@@ -174,3 +174,57 @@ def test_the_reconstruction_is_made_again_from_the_context_views_on_unpacking(tm
     # Without its views the stream's input and depth travel instead.
     (d / "ctx.npz").unlink()
     assert len(pack.pack_scene(d, ["s1_recon"])) > len(blob)
+
+
+def test_motion_travels_as_what_the_cameras_do_not_explain(tmp_path):
+    import io
+    import lzma
+
+    from training.tests.test_synth import look_at
+
+    rng = np.random.default_rng(8)
+    t, h, w = 4, 36, 64
+    frames = [look_at([0.3 * k, 1.0 + 0.05 * k, -3.5], [0, 0.5, 0], 0.9, w / h) for k in range(t)]
+    w2c, w2ndc = np.stack([f[0] for f in frames]), np.stack([f[1] for f in frames])
+    depth = np.broadcast_to(np.linspace(2, 9, h, dtype=np.float32)[:, None], (t, h, w)).copy()
+    depth[:, :4] = 1e10  # the sky
+    motion = pack.camera_motion(pack._as_unpacked(depth, pack.KEEP_BITS["depth"]), w2c, w2ndc)
+    assert np.abs(motion[1:, 8:]).max() > 1.0  # the cameras move the pixels
+    motion[:, :4] = 0.0  # the renderer gives the sky none
+    motion[:, 20:23, 30:40] += rng.uniform(-6, 6, (t, 3, 10, 2))  # a silhouette's mixed vectors
+    motion = motion.astype(np.float16)
+    zeros = np.zeros((t, h, w), np.float16)
+    d = tmp_path / "data" / "train" / "scene_000003"
+    d.mkdir(parents=True)
+    target = (rng.random((t, h, w, 3)) * 3).astype(np.float16)
+    np.savez(
+        d / "scene.npz",
+        target=target,
+        depth=depth,
+        motion=motion,
+        normal=np.zeros((t, h, w, 3), np.float16),
+        mask_insert=zeros,
+        mask_shadow=zeros,
+        world_to_camera=w2c,
+        world_to_ndc=w2ndc,
+    )
+    cov = np.ones((t, h, w, 1), np.float16)
+    np.savez(d / "s1_recon.npz", input=np.concatenate([target, cov], -1), depth=depth * 1.01, mask_insert=zeros)
+    (d / "meta.json").write_text(json.dumps({"scene_id": 3, "streams": {"s1_recon": {}}}))
+
+    blob = pack.pack_scene(d, ["s1_recon"])
+    with np.load(io.BytesIO(lzma.decompress(blob))) as z:
+        assert "motion_residual" in z.files and "scene/motion" not in z.files
+    pack.unpack_scene(blob, tmp_path / "out" / d.name)
+    a = dataset.load_sample(d, "s1_recon")
+    b = dataset.load_sample(tmp_path / "out" / d.name, "s1_recon")
+    m_a, m_b = a["motion"].astype(np.float32), b["motion"].astype(np.float32)
+    # Within half a step of 1/256 px and float16's own rounding: finer than the
+    # 8 mantissa bits the motion kept when it travelled itself.
+    assert np.all(np.abs(m_a - m_b) <= 0.5 / pack.MOTION_STEPS + 2.0**-11 * np.abs(m_a) + 1e-6)
+    near = a["depth"] < 6e4  # the stream's own depth still, not the scene's that travelled with the motion
+    assert np.all(np.abs(a["depth"][near] - b["depth"][near]) <= 2.0**-8 * a["depth"][near])
+    # Motion no camera explains within int16's steps travels as itself.
+    np.savez(d / "scene.npz", **{**dict(np.load(d / "scene.npz")), "motion": (motion + 200).astype(np.float16)})
+    with np.load(io.BytesIO(lzma.decompress(pack.pack_scene(d, ["s1_recon"])))) as z:
+        assert "motion_residual" not in z.files and "scene/motion" in z.files
