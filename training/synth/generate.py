@@ -4,7 +4,10 @@
 
 With ``--train-streams recon --frames 16`` the training scenes are longer and
 render only the reconstruction stream (the one the network is run on), about
-twice as many frames an hour; held-out scenes keep every stream.
+twice as many frames an hour; held-out scenes keep every stream. With
+``--train-samples 16`` their clean renders take 16 samples (through OIDN, as
+every clean render) instead of ``--samples``; held-out scenes keep
+``--samples``.
 
 Each scene runs in its own bpy process (``render_scene.py``) so a crash or a
 leak cannot take the whole run down; a scene that fails is recorded in
@@ -106,6 +109,14 @@ def main(argv: list[str] | None = None) -> int:
         help="recon: training scenes render only what the reconstruction stream needs (the clean frames and "
         "the context views, a third of the renders per frame); held-out scenes always render every stream",
     )
+    ap.add_argument(
+        "--train-samples",
+        type=int,
+        default=0,
+        help="samples of the training scenes' clean renders (0: --samples); held-out scenes always take "
+        "--samples. 16 against 32: 44.5 dB against a 128-sample render instead of 47.4, about 1 s less a "
+        "render at 256x144",
+    )
     add_render_args(ap)
     args = ap.parse_args(argv)
     if not args.bpy_python.exists():
@@ -148,7 +159,7 @@ def main(argv: list[str] | None = None) -> int:
             "--frames",
             str(args.frames),
             "--samples",
-            str(args.samples),
+            str((args.train_samples or args.samples) if d.parent.name == "train" else args.samples),
             "--threads",
             str(args.threads),
             "--seed",

@@ -148,3 +148,23 @@ def test_stored_infinities_saturate_and_nan_is_named(tmp_path):
     assert a.tolist() == [1.0, 65504.0, -65504.0]
     with pytest.raises(DataError, match="'input' has NaN"):
         saturate({"input": np.array([np.nan], np.float32)}, "scene")
+
+
+def test_training_scenes_take_their_own_sample_count_held_out_scenes_keep_theirs(tmp_path):
+    import stat
+
+    from training.synth import generate
+
+    log = tmp_path / "calls.txt"
+    fake = tmp_path / "python"
+    fake.write_text(f'#!/bin/sh\necho "$*" >> {log}\nexit 0\n')
+    fake.chmod(fake.stat().st_mode | stat.S_IXUSR)
+    args = ["--scenes", "8:11", "--bpy-python", str(fake), "--samples", "32"]
+    generate.main([*args, "--out", str(tmp_path / "a"), "--train-samples", "16", "--train-streams", "recon"])
+    calls = [c.split() for c in log.read_text().splitlines() if "--scene-id" in c]
+    got = {int(c[c.index("--scene-id") + 1]): (c[c.index("--samples") + 1], c[c.index("--streams") + 1]) for c in calls}
+    assert got == {8: ("16", "recon"), 9: ("32", "all"), 10: ("16", "recon")}  # 9: held out (k*10-1)
+    log.unlink()
+    generate.main([*args, "--out", str(tmp_path / "b")])  # without --train-samples every scene takes --samples
+    calls = [c.split() for c in log.read_text().splitlines() if "--scene-id" in c]
+    assert {c[c.index("--samples") + 1] for c in calls} == {"32"}
