@@ -129,3 +129,35 @@ def test_committed_out_of_domain_sequences_build(name):
         assert quality.regions(s, 1)[s["region"]].sum() > 200, "the degraded region must be visible"
     if name.startswith("recon_"):
         assert (s["input"][..., 3] < 0.5).mean() > 0.005
+
+
+def test_the_report_counts_the_reconstructions_one_db_above_the_best_inpainting_peer(tmp_path):
+    def row(neural, telea, ns):
+        return {
+            "neural": {"psnr": 30.0, "psnr_region": neural},
+            "telea": {"psnr": 29.0, "psnr_region": telea},
+            "navier_stokes": {"psnr": 29.0, "psnr_region": ns},
+            "truth": {"warp_err": 0.001},
+        }
+
+    summary = {
+        "ood": {"recon_a": row(22.0, 20.5, 20.9), "insert_b": row(15.0, 14.0, 14.0)},
+        "in_domain": {"scene_9/s1_recon": row(25.0, 24.8, 24.2), "scene_9/s2_tone": row(9.0, 1.0, 1.0)},
+    }
+    regions = {
+        "ood": {"recon_a": "hole", "insert_b": "insert"},
+        "in_domain": {"scene_9/s1_recon": "hole", "scene_9/s2_tone": "insert"},
+    }
+    m = quality.hole_margins(summary, regions)
+    # Only the hole sequences, each against its better peer.
+    assert [(x["sequence"], x["peer"], round(x["margin"], 2)) for x in m] == [
+        ("recon_a", "navier_stokes", 1.1),
+        ("scene_9/s1_recon", "telea", 0.2),
+    ]
+    info = {"command": "test", "machine": "test", "seconds": 0.0, "about": {"ood": {}}, "region": regions}
+    quality.write_report(tmp_path, summary, info, ("telea", "navier_stokes", "neural"))
+    report = (tmp_path / "report.md").read_text()
+    assert "Navier-Stokes in the holes: 1 of 2 sequences." in report
+    assert "| in_domain | scene_9/s1_recon | 25.00 | telea 24.80 | +0.20 |" in report
+    # Without a peer that ran there is nothing to compare with.
+    assert quality.hole_margins({"ood": {"recon_a": {"neural": {"psnr_region": 22.0}}}}, regions) == []
