@@ -16,13 +16,14 @@ of 1e-10). A scene's context views (``ctx.npz``) travel with ``s1_recon``
 seed, instead of that stream's input and depth: unpacking makes them again
 from the views with the scene's own seed (``dataset.reconstruct``; coverage
 and depth as rendered, colors within the packed precision, but for pixels
-that were beyond float16's range), 34-42 % less to carry. The motion vectors travel as what the
-cameras and the scene's depth do not explain (silhouettes, the sky, moving
-things), in steps of 1/256 px, and unpacking adds back the cameras' motion:
-3-6x finer than 8 mantissa bits, and 20-32 % less to carry. Packed with both,
-an 8-frame scene is 1.08 MiB (scene 120; packed before either, 2.07 MiB),
-a 16-frame one 1.58 MiB (scene 160; 3.61 before); 1-1.5 s each to unpack on this
-machine. Unpacked, a scene is a normal scene directory that
+that were beyond float16's range), 34-42 % less to carry. The motion vectors
+travel as what the cameras and the scene's depth do not explain
+(silhouettes, the sky, moving things), in steps of 1/256 px, and unpacking
+adds back the cameras' motion (``degrade.camera_motion``): 3-6x finer than 8
+mantissa bits, and 20-32 % less to carry. Packed with both, an 8-frame scene
+is 1.08 MiB (scene 120; packed before either, 2.07 MiB), a 16-frame one 1.58
+MiB (scene 160; 3.61 before); 1-1.5 s each to unpack on this machine.
+Unpacked, a scene is a normal scene directory that
 ``training.synth.dataset.load_sample`` reads.
 """
 
@@ -39,7 +40,7 @@ import numpy as np
 
 from training.ood.sequences import _shuffle, _unshuffle
 from training.synth.dataset import SCENE_KEYS, list_scenes, reconstruct, scene_streams, to_f16
-from training.synth.degrade import project, unproject
+from training.synth.degrade import camera_motion
 
 # Mantissa bits kept (of float16's 10) per array.
 KEEP_BITS = {"input": 7, "target": 7, "color": 7, "depth": 8, "motion": 8, "mask_insert": 10, "mask_shadow": 10}
@@ -58,21 +59,6 @@ def _squeeze(a: np.ndarray, keep: int) -> np.ndarray:
 def _as_unpacked(a: np.ndarray, keep: int) -> np.ndarray:
     """``a`` as ``unpack_scene`` gives it back from ``_squeeze``."""
     return _unshuffle(_squeeze(a.astype(np.float32), keep), np.float16, a.shape).astype(np.float32)
-
-
-def camera_motion(depth: np.ndarray, w2c: np.ndarray, w2ndc: np.ndarray) -> np.ndarray:
-    """The motion vectors ``[T, H, W, 2]`` (pixels, to the previous frame) of a
-    world that stands still while the camera moves: each pixel at its depth
-    seen from the previous camera. Frame 0, and pixels the previous camera
-    cannot place, get none."""
-    t, h, w = depth.shape
-    out = np.zeros((t, h, w, 2), np.float32)
-    jj, ii = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
-    for k in range(1, t):
-        x, y, _ = project(unproject(depth[k], w2c[k], w2ndc[k]).reshape(-1, 3), w2c[k - 1], w2ndc[k - 1], w, h)
-        m = np.stack([x.reshape(h, w) - jj, y.reshape(h, w) - ii], -1)
-        out[k] = np.where(np.isfinite(m) & (np.abs(m) < 1e4), m, 0.0)
-    return out
 
 
 def pack_scene(scene_dir: Path, streams: list[str]) -> bytes:
@@ -153,8 +139,9 @@ def unpack_scene(data: bytes, out_dir: Path) -> None:
         if header.get("motion_from_cameras"):
             depth = arrays["scene/depth"]
             q = _unshuffle(z["motion_residual"].reshape(2, -1), np.int16, (*depth.shape, 2))
-            cams = arrays["scene/world_to_camera"], arrays["scene/world_to_ndc"]
-            pred = camera_motion(depth.astype(np.float32), *cams)
+            pred = camera_motion(
+                depth.astype(np.float32), arrays["scene/world_to_camera"], arrays["scene/world_to_ndc"]
+            )
             arrays["scene/motion"] = to_f16(pred + q.astype(np.float32) / MOTION_STEPS)
     tmp = out_dir.with_name(out_dir.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)

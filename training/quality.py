@@ -382,16 +382,17 @@ def summarize(results: dict, truth_warp: list) -> dict:
 INPAINTING_PEERS = ("telea", "navier_stokes")
 
 
-def hole_margins(summary: dict, regions: dict, ours: str = "neural") -> list[dict]:
-    """Per sequence whose region is the holes: ``ours``'s PSNR there against
-    the best single-frame inpainting peer's (issue 18 asks +1 dB on every
-    reconstruction sequence). Empty unless ``ours`` and a peer both ran."""
+def hole_margins(summary: dict, regions: dict) -> list[dict]:
+    """Per sequence whose region is the holes: ``neural``'s PSNR there (the
+    default's) against the best single-frame inpainting peer's (issue 18 asks
+    +1 dB on every reconstruction sequence). Empty unless ``neural`` and a
+    peer both ran."""
     out = []
     for set_name, rows in summary.items():
         for seq, row in rows.items():
             if regions.get(set_name, {}).get(seq) != "hole":
                 continue
-            mine = (row.get(ours) or {}).get("psnr_region")
+            mine = (row.get("neural") or {}).get("psnr_region")
             peers = {p: (row.get(p) or {}).get("psnr_region") for p in INPAINTING_PEERS}
             peers = {p: v for p, v in peers.items() if v is not None}
             if mine is None or not peers:
@@ -401,7 +402,7 @@ def hole_margins(summary: dict, regions: dict, ours: str = "neural") -> list[dic
                 {
                     "set": set_name,
                     "sequence": seq,
-                    ours: mine,
+                    "neural": mine,
                     "peer": best,
                     "peer_psnr": peers[best],
                     "margin": mine - peers[best],

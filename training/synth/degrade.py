@@ -58,6 +58,21 @@ def project(points: np.ndarray, w2c: np.ndarray, w2ndc: np.ndarray, width: int, 
     return x, y, cam[:, 2]
 
 
+def camera_motion(depth: np.ndarray, w2c: np.ndarray, w2ndc: np.ndarray) -> np.ndarray:
+    """The motion vectors ``[T, H, W, 2]`` (pixels, to the previous frame) of a
+    world that stands still while the camera moves: each pixel at its depth
+    seen from the previous camera. Frame 0, and pixels the previous camera
+    cannot place, get none."""
+    t, h, w = depth.shape
+    out = np.zeros((t, h, w, 2), np.float32)
+    jj, ii = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    for k in range(1, t):
+        x, y, _ = project(unproject(depth[k], w2c[k], w2ndc[k]).reshape(-1, 3), w2c[k - 1], w2ndc[k - 1], w, h)
+        m = np.stack([x.reshape(h, w) - jj, y.reshape(h, w) - ii], -1)
+        out[k] = np.where(np.isfinite(m) & (np.abs(m) < 1e4), m, 0.0)
+    return out
+
+
 def focal_px(w2c: np.ndarray, w2ndc: np.ndarray, width: int) -> float:
     """Horizontal focal length in pixels."""
     cam_to_ndc = w2ndc.T.astype(np.float64) @ np.linalg.inv(w2c.T.astype(np.float64))

@@ -732,6 +732,7 @@ def scene_checks(gt, motion, depth, w2c, w2ndc) -> dict:
     frame, and cameras + depth agree with the motion vectors."""
     errs_mv, errs_id, errs_cam = [], [], []
     T, H, W = depth.shape
+    cam_motion = degrade.camera_motion(depth, w2c, w2ndc)
     for t in range(1, T):
         aligned, valid = degrade.warp_bilinear(gt[t - 1], motion[t])
         d = np.abs(aligned - gt[t]).mean(-1)
@@ -739,13 +740,8 @@ def scene_checks(gt, motion, depth, w2c, w2ndc) -> dict:
         v = valid > 0
         errs_mv.append(float(np.mean(d[v])))
         errs_id.append(float(np.mean(d0[v])))
-        pts = degrade.unproject(depth[t], w2c[t], w2ndc[t])
         fin = depth[t] < 1e9
-        x, y, _ = degrade.project(pts.reshape(-1, 3), w2c[t - 1], w2ndc[t - 1], W, H)
-        jj, ii = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
-        mx = x.reshape(H, W) - jj
-        my = y.reshape(H, W) - ii
-        e = np.hypot(mx - motion[t, ..., 0], my - motion[t, ..., 1])
+        e = np.hypot(*np.moveaxis(cam_motion[t] - motion[t, ..., :2], -1, 0))
         errs_cam.append(float(np.median(e[fin])) if fin.any() else 0.0)
     return {
         "mean_abs_err_warped_prev": float(np.mean(errs_mv)) if errs_mv else 0.0,

@@ -180,6 +180,7 @@ def test_motion_travels_as_what_the_cameras_do_not_explain(tmp_path):
     import io
     import lzma
 
+    from training.synth import degrade
     from training.tests.test_synth import look_at
 
     rng = np.random.default_rng(8)
@@ -188,7 +189,7 @@ def test_motion_travels_as_what_the_cameras_do_not_explain(tmp_path):
     w2c, w2ndc = np.stack([f[0] for f in frames]), np.stack([f[1] for f in frames])
     depth = np.broadcast_to(np.linspace(2, 9, h, dtype=np.float32)[:, None], (t, h, w)).copy()
     depth[:, :4] = 1e10  # the sky
-    motion = pack.camera_motion(pack._as_unpacked(depth, pack.KEEP_BITS["depth"]), w2c, w2ndc)
+    motion = degrade.camera_motion(pack._as_unpacked(depth, pack.KEEP_BITS["depth"]), w2c, w2ndc)
     assert np.abs(motion[1:, 8:]).max() > 1.0  # the cameras move the pixels
     motion[:, :4] = 0.0  # the renderer gives the sky none
     motion[:, 20:23, 30:40] += rng.uniform(-6, 6, (t, 3, 10, 2))  # a silhouette's mixed vectors
