@@ -4,6 +4,11 @@
         --scenes 40 --out .pack
     python3 -m training.pack unpack --pack .pack --data /tmp/data
 
+More scenes than one call carries: ``--budget-mb 57 --parts`` writes
+``.pack/part01``, ``.pack/part02``, ... each within the budget; each device
+call carries one and unpacks it into the same ignored directory of the
+checkout, which stays on the machine between calls while it is held.
+
 A device call carries 64 MiB with the checkout. A scene's ``scene.npz`` and
 ``s1_recon.npz`` are about 5 MB as written; packed they are about 1.7 MB:
 only the arrays the trainer reads (``normal`` comes back as zeros, a stream's
@@ -190,6 +195,12 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--streams", nargs="+", default=["s1_recon"])
     p.add_argument("--scenes", type=int, default=0, help="that many scenes spread over the ids (0: all)")
     p.add_argument("--budget-mb", type=float, default=0, help="stop adding scenes past this size (0: none)")
+    p.add_argument(
+        "--parts",
+        action="store_true",
+        help="past the budget, go on into the next part instead of stopping: OUT/part01, OUT/part02, ... "
+        "each within the budget (one device call each; unpack each with --pack OUT/partNN)",
+    )
     p.add_argument("--out", type=Path, required=True)
     u = sub.add_parser("unpack")
     u.add_argument("--pack", type=Path, required=True)
@@ -199,16 +210,28 @@ def main(argv: list[str] | None = None) -> None:
         scenes = [d for d in list_scenes(args.data, args.split) if set(args.streams) <= set(scene_streams(d))]
         if args.scenes:
             scenes = spread(scenes, args.scenes)
-        out = args.out / args.split
-        out.mkdir(parents=True, exist_ok=True)
-        total = 0
+        if args.parts and not args.budget_mb:
+            ap.error("--parts needs --budget-mb")
+        budget = args.budget_mb * 2**20
+        part, total = 1, 0
+
+        def out_dir() -> Path:
+            return (args.out / f"part{part:02d}" if args.parts else args.out) / args.split
+
         for d in scenes:
             blob = pack_scene(d, args.streams)
-            if args.budget_mb and total + len(blob) > args.budget_mb * 2**20:
-                break
+            if budget and total + len(blob) > budget:
+                if not args.parts:
+                    break
+                if len(blob) > budget:
+                    raise SystemExit(f"{d}: {len(blob) / 2**20:.2f} MiB packed, more than the budget of one part")
+                part, total = part + 1, 0
+            out = out_dir()
+            out.mkdir(parents=True, exist_ok=True)
             (out / f"{d.name}.xz").write_bytes(blob)
             total += len(blob)
-            print(f"{d.name}: {len(blob) / 2**20:.2f} MiB (total {total / 2**20:.1f})", flush=True)
+            where = f"part {part:02d}, " if args.parts else ""
+            print(f"{d.name}: {len(blob) / 2**20:.2f} MiB ({where}total {total / 2**20:.1f})", flush=True)
     else:
         for split_dir in sorted(p for p in args.pack.iterdir() if p.is_dir()):
             for f in sorted(split_dir.glob("*.xz")):

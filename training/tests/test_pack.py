@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 
 from training import pack
 from training.synth import dataset
@@ -102,6 +103,42 @@ def test_the_budget_stops_the_pack_before_it_is_exceeded(tmp_path):
     pack.main(["pack", "--data", str(tmp_path / "data"), "--budget-mb", str(budget), "--out", str(tmp_path / "pk")])
     files = list((tmp_path / "pk" / "train").iterdir())
     assert 1 <= len(files) <= 2 and sum(f.stat().st_size for f in files) <= budget * 2**20
+
+
+def test_parts_carry_every_scene_once_each_within_the_budget(tmp_path):
+    rng = np.random.default_rng(8)
+    for sid in range(5):
+        _scene(tmp_path / "data", sid, rng)
+    sizes = [len(pack.pack_scene(d, ["s1_recon"])) for d in sorted((tmp_path / "data" / "train").iterdir())]
+    budget = 2.2 * max(sizes) / 2**20
+    args = ["pack", "--data", str(tmp_path / "data"), "--budget-mb", str(budget), "--out", str(tmp_path / "pk")]
+    pack.main([*args, "--parts"])
+    parts = sorted((tmp_path / "pk").iterdir())
+    assert [p.name for p in parts] == [f"part{i:02d}" for i in range(1, len(parts) + 1)] and len(parts) >= 3
+    names = []
+    for p in parts:
+        files = list((p / "train").iterdir())
+        assert files and sum(f.stat().st_size for f in files) <= budget * 2**20
+        names += [f.stem for f in files]
+        pack.main(["unpack", "--pack", str(p), "--data", str(tmp_path / "back")])
+    assert sorted(names) == [f"scene_{i:06d}" for i in range(5)]
+    back = dataset.list_scenes(tmp_path / "back", "train")
+    assert [d.name for d in back] == sorted(names)
+    assert dataset.load_sample(back[-1], "s1_recon")["input"].shape[0] == 4
+    # A scene larger than one part is an error, not a part over the budget.
+    with pytest.raises(SystemExit, match="more than the budget"):
+        pack.main(
+            [
+                "pack",
+                "--data",
+                str(tmp_path / "data"),
+                "--budget-mb",
+                str(0.5 * min(sizes) / 2**20),
+                "--out",
+                str(tmp_path / "small"),
+                "--parts",
+            ]
+        )
 
 
 def test_byte_planes_stored_flat_read_the_same(tmp_path):
