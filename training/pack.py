@@ -178,6 +178,10 @@ def unpack_scene(data: bytes, out_dir: Path) -> None:
     tmp.rename(out_dir)
 
 
+def _unpack_file(f: Path, out: Path) -> None:
+    unpack_scene(f.read_bytes(), out)
+
+
 def spread(items: list, n: int) -> list:
     """``n`` items spread evenly over the list, the last included."""
     if n >= len(items):
@@ -205,6 +209,7 @@ def main(argv: list[str] | None = None) -> None:
     u = sub.add_parser("unpack")
     u.add_argument("--pack", type=Path, required=True)
     u.add_argument("--data", type=Path, required=True)
+    u.add_argument("--jobs", type=int, default=1, help="scenes unpacked at once (processes)")
     args = ap.parse_args(argv)
     if args.cmd == "pack":
         scenes = [d for d in list_scenes(args.data, args.split) if set(args.streams) <= set(scene_streams(d))]
@@ -234,9 +239,17 @@ def main(argv: list[str] | None = None) -> None:
             print(f"{d.name}: {len(blob) / 2**20:.2f} MiB ({where}total {total / 2**20:.1f})", flush=True)
     else:
         for split_dir in sorted(p for p in args.pack.iterdir() if p.is_dir()):
-            for f in sorted(split_dir.glob("*.xz")):
-                unpack_scene(f.read_bytes(), args.data / split_dir.name / f.stem)
-            print(f"{split_dir.name}: {len(list(split_dir.glob('*.xz')))} scenes -> {args.data / split_dir.name}")
+            files = sorted(split_dir.glob("*.xz"))
+            jobs = [(f, args.data / split_dir.name / f.stem) for f in files]
+            if args.jobs > 1 and jobs:
+                from concurrent.futures import ProcessPoolExecutor
+
+                with ProcessPoolExecutor(args.jobs) as pool:
+                    list(pool.map(_unpack_file, *zip(*jobs, strict=True), chunksize=1))
+            else:
+                for f, out in jobs:
+                    _unpack_file(f, out)
+            print(f"{split_dir.name}: {len(files)} scenes -> {args.data / split_dir.name}")
 
 
 if __name__ == "__main__":

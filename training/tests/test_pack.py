@@ -125,6 +125,13 @@ def test_parts_carry_every_scene_once_each_within_the_budget(tmp_path):
     back = dataset.list_scenes(tmp_path / "back", "train")
     assert [d.name for d in back] == sorted(names)
     assert dataset.load_sample(back[-1], "s1_recon")["input"].shape[0] == 4
+    # Unpacked by several processes: the same scenes, bit for bit.
+    pack.main(["unpack", "--pack", str(parts[0]), "--data", str(tmp_path / "par"), "--jobs", "2"])
+    par = dataset.list_scenes(tmp_path / "par", "train")
+    assert par and [d.name for d in par] == [f.stem for f in sorted((parts[0] / "train").iterdir())]
+    for d in par:
+        a, b = dataset.load_sample(d, "s1_recon"), dataset.load_sample(tmp_path / "back" / "train" / d.name, "s1_recon")
+        assert all(np.array_equal(a[k], b[k]) for k in ("input", "target", "depth", "motion"))
     # A scene larger than one part is an error, not a part over the budget.
     with pytest.raises(SystemExit, match="more than the budget"):
         pack.main(
