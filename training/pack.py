@@ -217,6 +217,9 @@ def main(argv: list[str] | None = None) -> None:
             scenes = spread(scenes, args.scenes)
         if args.parts and not args.budget_mb:
             ap.error("--parts needs --budget-mb")
+        if args.parts and any(args.out.glob("part[0-9]*")):
+            # A part left from an earlier pack would travel as if it were one of these.
+            ap.error(f"{args.out} already holds parts: remove them or pack elsewhere")
         budget = args.budget_mb * 2**20
         part, total = 1, 0
 

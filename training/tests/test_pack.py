@@ -122,6 +122,9 @@ def test_parts_carry_every_scene_once_each_within_the_budget(tmp_path):
         names += [f.stem for f in files]
         pack.main(["unpack", "--pack", str(p), "--data", str(tmp_path / "back")])
     assert sorted(names) == [f"scene_{i:06d}" for i in range(5)]
+    # Packing again over them is refused: a stale part would travel as one of the new ones.
+    with pytest.raises(SystemExit):
+        pack.main([*args, "--parts"])
     back = dataset.list_scenes(tmp_path / "back", "train")
     assert [d.name for d in back] == sorted(names)
     assert dataset.load_sample(back[-1], "s1_recon")["input"].shape[0] == 4
