@@ -222,10 +222,6 @@ def main(argv: list[str] | None = None) -> None:
             ap.error(f"{args.out} already holds parts: remove them or pack elsewhere")
         budget = args.budget_mb * 2**20
         part, total = 1, 0
-
-        def out_dir() -> Path:
-            return (args.out / f"part{part:02d}" if args.parts else args.out) / args.split
-
         for d in scenes:
             blob = pack_scene(d, args.streams)
             if budget and total + len(blob) > budget:
@@ -234,7 +230,7 @@ def main(argv: list[str] | None = None) -> None:
                 if len(blob) > budget:
                     raise SystemExit(f"{d}: {len(blob) / 2**20:.2f} MiB packed, more than the budget of one part")
                 part, total = part + 1, 0
-            out = out_dir()
+            out = (args.out / f"part{part:02d}" if args.parts else args.out) / args.split
             out.mkdir(parents=True, exist_ok=True)
             (out / f"{d.name}.xz").write_bytes(blob)
             total += len(blob)
@@ -243,14 +239,14 @@ def main(argv: list[str] | None = None) -> None:
     else:
         for split_dir in sorted(p for p in args.pack.iterdir() if p.is_dir()):
             files = sorted(split_dir.glob("*.xz"))
-            jobs = [(f, args.data / split_dir.name / f.stem) for f in files]
-            if args.jobs > 1 and jobs:
+            outs = [args.data / split_dir.name / f.stem for f in files]
+            if args.jobs > 1 and files:
                 from concurrent.futures import ProcessPoolExecutor
 
                 with ProcessPoolExecutor(args.jobs) as pool:
-                    list(pool.map(_unpack_file, *zip(*jobs, strict=True), chunksize=1))
+                    list(pool.map(_unpack_file, files, outs))
             else:
-                for f, out in jobs:
+                for f, out in zip(files, outs, strict=True):
                     _unpack_file(f, out)
             print(f"{split_dir.name}: {len(files)} scenes -> {args.data / split_dir.name}")
 
