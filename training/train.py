@@ -204,6 +204,14 @@ def ssim(x: torch.Tensor, y: torch.Tensor, win: int = 7) -> torch.Tensor:
     return s.mean()
 
 
+def display(x: torch.Tensor) -> torch.Tensor:
+    """Linear color to the sRGB transfer, clipped to 0..1 as the benchmark
+    encodes its frames (``training.evaluate.srgb``); differentiable (the
+    power's input kept above the linear segment's end)."""
+    c = x.clamp(0.0, 1.0)
+    return torch.where(c <= 0.0031308, 12.92 * c, 1.055 * c.clamp(min=0.0031308) ** (1 / 2.4) - 0.055)
+
+
 def patch_loss(out: torch.Tensor, gt: torch.Tensor, rng: np.random.Generator, n: int) -> torch.Tensor:
     """Multi-scale random-patch SSIM + gradient loss: ``n`` patches of random
     size and position, each compared at its own scale."""
@@ -278,7 +286,14 @@ def run_window(model: Enhancer, batch: dict, cfg: dict, rng: np.random.Generator
         # Holes (coverage below 1) weigh 1 + w_hole: they are a small share of
         # the pixels but where the input says nothing.
         wmap = 1 + cfg.get("w_hole", 0.0) * (1 - rgba[:, 3:4].clamp(0, 1))
-        l2 = (((out - gt_enc) * lg) ** 2 * wmap).mean()
+        if cfg.get("l2_space", "encoded") == "display":
+            # The benchmark's space: its PSNR is over sRGB-encoded frames, and
+            # the mean of an uncertain pixel (a hole) in the log encoding is
+            # darker there than its mean in sRGB.
+            d = display(decode(out, scale, mcfg.log_range)) - display(tgt[:, f])
+            l2 = ((d * lg) ** 2 * wmap).mean()
+        else:
+            l2 = (((out - gt_enc) * lg) ** 2 * wmap).mean()
         pl = patch_loss(out * lg, gt_enc * lg, rng, cfg["patches"])
         loss = loss + l2 * cfg["w_l2"] + pl * cfg["w_patch"]
         parts["l2"] += l2.item()
@@ -429,6 +444,12 @@ def add_args(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--w-temporal", type=float, default=0.5)
     ap.add_argument("--w-hole", type=float, default=2.0, help="extra L2 weight in holes (coverage 0)")
     ap.add_argument(
+        "--l2-space",
+        choices=("encoded", "display"),
+        default="encoded",
+        help="where the L2 loss compares: the network's log encoding, or sRGB-encoded frames (the benchmark's PSNR)",
+    )
+    ap.add_argument(
         "--workers",
         type=int,
         default=0,
@@ -489,6 +510,7 @@ def main(argv: list[str] | None = None) -> int:
         "w_patch": args.w_patch,
         "w_temporal": args.w_temporal,
         "w_hole": args.w_hole,
+        "l2_space": args.l2_space,
         "lr": args.lr,
         "seed": args.seed,
         "train_only": args.train_only,

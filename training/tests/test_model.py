@@ -378,7 +378,8 @@ def test_export_matches_pytorch_in_onnx_runtime(tmp_path, prior, depth_tol):
     assert on_disk["input"]["channels"][:5] == ["color.r", "color.g", "color.b", "coverage", "insert"]
 
 
-def test_training_steps_reduce_the_loss_on_a_fixed_window():
+@pytest.mark.parametrize("space", ["encoded", "display"])
+def test_training_steps_reduce_the_loss_on_a_fixed_window(space):
     from training.train import run_window
 
     torch.manual_seed(0)
@@ -399,7 +400,7 @@ def test_training_steps_reduce_the_loss_on_a_fixed_window():
         "prefill": 1,
         "temporal": True,
     }
-    cfg = {"loss_gain": 4.0, "w_l2": 1.0, "w_patch": 0.2, "w_temporal": 0.5, "patches": 2}
+    cfg = {"loss_gain": 4.0, "w_l2": 1.0, "w_patch": 0.2, "w_temporal": 0.5, "patches": 2, "l2_space": space}
     model = Enhancer(ModelConfig(widths=(8, 8, 12, 16)))
     opt = torch.optim.Adam(model.parameters(), lr=3e-3)
     losses = []
@@ -411,6 +412,34 @@ def test_training_steps_reduce_the_loss_on_a_fixed_window():
         losses.append(parts["l2"])
     assert len(outs) == fr - 1  # the prefilled frame is not predicted
     assert np.mean(losses[-5:]) < 0.3 * np.mean(losses[:3])
+
+
+@pytest.mark.parametrize("scale", [1.0, 40.0])
+def test_the_display_l2_fits_the_benchmarks_mean_where_the_encoded_one_misses_it(scale):
+    from training.evaluate import srgb
+    from training.train import display
+
+    x = np.linspace(-0.5, 2.0, 401, dtype=np.float32)
+    np.testing.assert_allclose(display(torch.from_numpy(x)).numpy(), srgb(x), atol=1e-6)
+    # A hole pixel whose truth is dark in half the training items and light
+    # in the other half: the best single answer under each loss. The
+    # encoding's optimum depends on the frame's exposure scale (brighter than
+    # the sRGB mean in a bright frame, darker in a dark one).
+    y = torch.tensor([0.02, 0.6]).view(2, 1, 1, 1)
+    scale = torch.tensor([scale])
+    enc = encode(y, scale, 4.0).mean()  # the encoded L2's optimum: the mean code
+    c = enc.clone().requires_grad_(True)
+    opt = torch.optim.Adam([c], lr=1e-2)
+    for _ in range(600):
+        loss = ((display(decode(c.view(1, 1, 1, 1), scale, 4.0)) - display(y)) ** 2).mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    want = srgb(y.numpy()).mean()
+    got = display(decode(c.detach().view(1, 1, 1, 1), scale, 4.0)).item()
+    encoded = display(decode(enc.view(1, 1, 1, 1), scale, 4.0)).item()
+    assert abs(got - want) < 2e-3
+    assert abs(encoded - want) > 0.05
 
 
 class _FakeCache:
