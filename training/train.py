@@ -288,8 +288,9 @@ def run_window(model: Enhancer, batch: dict, cfg: dict, rng: np.random.Generator
         wmap = 1 + cfg.get("w_hole", 0.0) * (1 - rgba[:, 3:4].clamp(0, 1))
         if cfg.get("l2_space", "encoded") == "display":
             # The benchmark's space: its PSNR is over sRGB-encoded frames, and
-            # the mean of an uncertain pixel (a hole) in the log encoding is
-            # darker there than its mean in sRGB.
+            # the best answer for an uncertain pixel (a hole) in the log
+            # encoding is brighter or darker there than the sRGB mean,
+            # depending on the frame's exposure scale.
             d = display(decode(out, scale, mcfg.log_range)) - display(tgt[:, f])
             l2 = ((d * lg) ** 2 * wmap).mean()
         else:
