@@ -286,12 +286,13 @@ def run_window(model: Enhancer, batch: dict, cfg: dict, rng: np.random.Generator
         # Holes (coverage below 1) weigh 1 + w_hole: they are a small share of
         # the pixels but where the input says nothing.
         wmap = 1 + cfg.get("w_hole", 0.0) * (1 - rgba[:, 3:4].clamp(0, 1))
+        out_lin = decode(out, scale, mcfg.log_range)
         if cfg.get("l2_space", "encoded") == "display":
             # The benchmark's space: its PSNR is over sRGB-encoded frames, and
             # the best answer for an uncertain pixel (a hole) in the log
             # encoding is brighter or darker there than the sRGB mean,
             # depending on the frame's exposure scale.
-            d = display(decode(out, scale, mcfg.log_range)) - display(tgt[:, f])
+            d = display(out_lin) - display(tgt[:, f])
             l2 = ((d * lg) ** 2 * wmap).mean()
         else:
             l2 = (((out - gt_enc) * lg) ** 2 * wmap).mean()
@@ -299,7 +300,6 @@ def run_window(model: Enhancer, batch: dict, cfg: dict, rng: np.random.Generator
         loss = loss + l2 * cfg["w_l2"] + pl * cfg["w_patch"]
         parts["l2"] += l2.item()
         parts["patch"] += pl.item()
-        out_lin = decode(out, scale, mcfg.log_range)
         if prev_out is not None:
             po, ps, pg = prev_out
             d_prev, d_cur, mv = dep[:, f - 1], dep[:, f], mot[:, f]
