@@ -8,7 +8,7 @@
 #   scripts/quality.sh --quick             # 12 frames a sequence, one in-domain scene (~5 min after the build)
 #   scripts/quality.sh                     # every frame and scene
 #   scripts/quality.sh --render-in-domain  # first render the held-out scenes 9, 19, 29 (Blender; root for apt-get)
-#   scripts/quality.sh --render-ood        # first re-render the out-of-domain scenes (Blender, about 40 min)
+#   scripts/quality.sh --render-ood        # first re-render the out-of-domain scenes (Blender, about 50 min)
 #   scripts/quality.sh --smoke             # CI: the harness's tests and 3 frames of 3 sequences
 #   scripts/quality.sh --out DIR ...       # other arguments go to training/quality.py
 set -euo pipefail
@@ -42,7 +42,7 @@ if [ "$render_ood" = 1 ] || [ "$render_in" = 1 ]; then
     training/setup_env.sh bpy
 fi
 if [ "$render_ood" = 1 ]; then
-    for s in courtyard hall; do
+    for s in courtyard hall ruins; do
         rm -rf "training/ood/data/$s"
         nice -n 5 .venv-bpy/bin/python -m training.ood.render --scene "$s" --out training/ood/data
     done

@@ -2,6 +2,7 @@
 
     .venv-bpy/bin/python -m training.ood.render --scene courtyard --out training/ood/data
     .venv-bpy/bin/python -m training.ood.render --scene hall --out training/ood/data
+    .venv-bpy/bin/python -m training.ood.render --scene ruins --out training/ood/data
 
 Nothing here comes from the training generator's world: no Sweet Home 3D
 furniture, no bundled HDRI, no room of procedural plaster. The geometry is
@@ -17,6 +18,8 @@ Per frame of ``courtyard`` (outdoor; two inserts ``insert_a`` and ``insert_b``):
 reconstruction. Per frame of ``hall`` (indoor): ``truth`` and ``noisy`` (4
 samples, a new seed per frame, stored raw and through Cycles' own denoiser,
 with the denoiser's albedo and normal passes), plus three context views.
+Per frame of ``ruins`` (outdoor, no inserts): ``truth``, plus four context
+views; the camera arcs round a colonnade, so pillars uncover what they hid.
 
 Clean passes: ``--samples`` (default 128) samples, adaptive (noise threshold
 0.005), then OIDN with albedo and normal, which Cycles' production renders use.
@@ -49,7 +52,7 @@ from training.synth import degrade
 from training.synth.exr import _channels, read_blender_exr
 from training.synth.render_scene import camera_matrices, crypto_mask, reset_blender, scene_checks
 
-SCENES = ("courtyard", "hall")
+SCENES = ("courtyard", "hall", "ruins")
 
 
 def reset(width: int, height: int, threads: int) -> bpy.types.Scene:
@@ -316,6 +319,57 @@ def build_hall(frames: int) -> dict:
     return {"camera": cam, "light": {"panels": 2, "lamp": 1}, "inserts": [], "ctx_poses": ctx_poses, "kind": "indoor"}
 
 
+def build_ruins(frames: int) -> dict:
+    ground = textured("mud", "mud.png", 0.4, 0.95, bump=0.4)
+    bpy.ops.mesh.primitive_plane_add(size=80.0)
+    bpy.context.active_object.data.materials.append(ground)
+    bpy.ops.mesh.primitive_plane_add(size=1.0, location=(0.0, 0.0, 0.004))
+    court = bpy.context.active_object
+    court.scale = (7.0, 5.0, 1.0)
+    court.data.materials.append(textured("pebbles", "pebbles.png", 0.8, 0.8, bump=0.5))
+    stone = textured("blocks", "blocks.jpg", 0.45, 0.8, tint=(1.2, 1.1, 1.0), bump=0.4)
+    # A broken back wall: segments of different heights with gaps between them.
+    segments = ((-4.6, 1.8, 2.6), (-2.2, 1.4, 1.5), (0.4, 2.2, 3.0), (3.4, 1.2, 1.1), (5.2, 1.4, 2.2))
+    for i, (x, w, hgt) in enumerate(segments):
+        box(f"wall_{i}", (w, 0.5, hgt), (x, 3.6, hgt / 2), 2 * i - 4, stone, bevel=0.02)
+    conc = textured("concrete", "concrete.jpg", 0.9, 0.75, tint=(1.7, 1.6, 1.45), bump=0.2)
+    # A colonnade across the middle, some columns broken off.
+    for i, (x, hgt) in enumerate(((-3.6, 2.9), (-1.8, 1.3), (0.0, 2.9), (1.8, 2.1), (3.6, 2.9))):
+        cylinder(f"column_{i}", 0.24, hgt, (x, 1.2, 0), conc)
+    box("lintel", (4.3, 0.5, 0.35), (-1.8, 1.2, 3.07), 0, conc, bevel=0.02)
+    rk = textured("rock", "rock.png", 1.1, 0.85, bump=0.6)
+    rocks = ((-1.0, -0.6, 0.4), (2.4, -1.4, 0.3), (-3.0, 2.2, 0.55), (4.4, 0.2, 0.45), (0.9, 2.6, 0.35))
+    for i, (x, y, r) in enumerate(rocks):
+        rock(f"rock_{i}", r, (x, y, r * 0.25), rk)
+    crate = textured("crates", "diamond.jpg", 1.0, 0.5)
+    box("block_0", (0.9, 0.6, 0.5), (-2.6, -1.6, 0.25), 25, crate, bevel=0.03)
+    box("block_1", (0.5, 0.5, 0.9), (1.2, -0.2, 0.45), -12, textured("rust", "rusted.jpg", 1.0, 0.55), 0.03)
+    bpy.ops.object.light_add(type="SUN")
+    sun = bpy.context.active_object
+    sun.name = "sun"
+    sun.data.angle = math.radians(0.8)
+    light = {"sun_elev": 24.0, "sun_azim": 235.0, "sun_energy": 4.0, "sun_color": (1.0, 0.86, 0.7), "sky": 0.45}
+
+    def orbit(u: float):
+        # An arc of 60 degrees round the colonnade, 6-7 m out, descending.
+        ang = math.radians(-120 + 60 * u)
+        rad = 7.0 - 1.0 * u
+        eye = (rad * math.cos(ang), 1.2 + rad * math.sin(ang), 2.2 - 0.8 * u)
+        return eye, (0.0, 1.6, 1.0)
+
+    cam = add_camera(28, frames, orbit)
+    ctx_poses = [
+        ((-4.2, -4.0, 2.0), (-0.5, 1.5, 1.0)),
+        ((0.0, -5.4, 1.6), (0.0, 1.6, 1.0)),
+        ((3.6, -3.8, 2.4), (0.5, 1.5, 1.0)),
+        ((-1.8, -3.0, 1.2), (0.0, 2.0, 1.2)),
+    ]
+    return {"camera": cam, "sun": sun, "light": light, "inserts": [], "ctx_poses": ctx_poses, "kind": "outdoor"}
+
+
+BUILDERS = {"courtyard": build_courtyard, "hall": build_hall, "ruins": build_ruins}
+
+
 def render(path: Path) -> tuple[dict, dict]:
     sc = bpy.context.scene
     sc.render.filepath = str(path)
@@ -354,7 +408,7 @@ def render_scene(name: str, out_root: Path, cfg: dict) -> dict:
     t0 = time.time()
     sc = reset(cfg["width"], cfg["height"], cfg["threads"])
     T = cfg["frames"]
-    info = build_courtyard(T) if name == "courtyard" else build_hall(T)
+    info = BUILDERS[name](T)
     W, H = cfg["width"], cfg["height"]
     out = out_root / name
     tmp = out_root / f"{name}.tmp"
@@ -374,7 +428,7 @@ def render_scene(name: str, out_root: Path, cfg: dict) -> dict:
     def keep(key: str, arr: np.ndarray) -> None:
         passes.setdefault(key, []).append(arr)
 
-    seed = 7 if sky else 11
+    seed = {"courtyard": 7, "hall": 11, "ruins": 13}[name]
     for t in range(T):
         sc.frame_set(t + 1)
         cams.append(camera_matrices(cam, W, H))
@@ -394,7 +448,7 @@ def render_scene(name: str, out_root: Path, cfg: dict) -> dict:
         fr["normal"] = truth["normal"]
         for i, o in enumerate(info["inserts"]):
             fr[f"mask_{'ab'[i]}"] = crypto_mask(truth, o.name)
-        if sky:
+        if sky and info["inserts"]:
             a, b = info["inserts"]
             a.hide_render = b.hide_render = True
             fr["noinsert_ab"] = render(tmp / "noinsert_ab.exr")[0]["rgba"][..., :3]
@@ -402,7 +456,7 @@ def render_scene(name: str, out_root: Path, cfg: dict) -> dict:
             light(info["relit"])
             fr["relit"] = render(tmp / "relit.exr")[0]["rgba"][..., :3]
             light(info["light"])
-        else:
+        elif not sky:
             vl = sc.view_layers[0]
             vl.cycles.denoising_store_passes = True
             quality(4, True, 1000 + t, adaptive=False)

@@ -18,6 +18,7 @@ Sequences (``SEQUENCES``; the parameters are fixed, so building is deterministic
 |---|---|---|
 | ``recon_courtyard`` | courtyard (outdoor) | three static views re-rendered as point splats: holes, ghosting, seams |
 | ``recon_hall`` | hall (indoor) | the same with the hall's three views |
+| ``recon_ruins`` | ruins (outdoor) | the same with four views of a colonnade the camera arcs round |
 | ``insert_tone`` | courtyard | insert A with +0.9 stop, warm white balance, more saturation; its shadow present |
 | ``insert_relight`` | courtyard | insert A lit by another sun and sky (low, warm, from the side); shadow present |
 | ``insert_noshadow`` | courtyard | inserts A and B correctly lit, composited over the plate: no contact shadows |
@@ -50,6 +51,9 @@ SEQUENCES = (
     "clean_hall",
     "noisy_raw",
     "noisy_denoised",
+    # Last, so the sequences before it keep their seeds (each reconstruction
+    # is drawn from its index here).
+    "recon_ruins",
 )
 
 TONE_A = {"exposure": 0.9, "wb": [1.22, 0.98, 0.72], "gamma": 1.0, "saturation": 1.25}
@@ -164,7 +168,12 @@ def build(name: str, data: Path = DATA, cache: dict | None = None, frames: int =
     """One sequence (``frames`` > 0: only its first frames)."""
     if name not in SEQUENCES:
         raise SequenceError(f"unknown sequence '{name}' (have {', '.join(SEQUENCES)})")
-    scene_name = "hall" if name in ("recon_hall", "clean_hall", "noisy_raw", "noisy_denoised") else "courtyard"
+    if name in ("recon_hall", "clean_hall", "noisy_raw", "noisy_denoised"):
+        scene_name = "hall"
+    elif name == "recon_ruins":
+        scene_name = "ruins"
+    else:
+        scene_name = "courtyard"
     cache = {} if cache is None else cache
     if scene_name not in cache:
         cache[scene_name] = load_scene(scene_name, data)
