@@ -52,8 +52,6 @@ from training.synth import degrade
 from training.synth.exr import _channels, read_blender_exr
 from training.synth.render_scene import camera_matrices, crypto_mask, reset_blender, scene_checks
 
-SCENES = ("courtyard", "hall", "ruins")
-
 
 def reset(width: int, height: int, threads: int) -> bpy.types.Scene:
     """The training renderer's settings (passes, EXR, 4 bounces, no motion blur)."""
@@ -259,6 +257,7 @@ def build_courtyard(frames: int) -> dict:
         "inserts": [ins_a, ins_b],
         "ctx_poses": ctx_poses,
         "kind": "outdoor",
+        "seed": 7,
     }
 
 
@@ -316,7 +315,14 @@ def build_hall(frames: int) -> dict:
         ((-1.5, -3.2, 1.4), (0.5, 1.0, 1.0)),
         ((0.0, -2.0, 1.8), (2.0, 2.5, 1.0)),
     ]
-    return {"camera": cam, "light": {"panels": 2, "lamp": 1}, "inserts": [], "ctx_poses": ctx_poses, "kind": "indoor"}
+    return {
+        "camera": cam,
+        "light": {"panels": 2, "lamp": 1},
+        "inserts": [],
+        "ctx_poses": ctx_poses,
+        "kind": "indoor",
+        "seed": 11,
+    }
 
 
 def build_ruins(frames: int) -> dict:
@@ -364,10 +370,19 @@ def build_ruins(frames: int) -> dict:
         ((3.6, -3.8, 2.4), (0.5, 1.5, 1.0)),
         ((-1.8, -3.0, 1.2), (0.0, 2.0, 1.2)),
     ]
-    return {"camera": cam, "sun": sun, "light": light, "inserts": [], "ctx_poses": ctx_poses, "kind": "outdoor"}
+    return {
+        "camera": cam,
+        "sun": sun,
+        "light": light,
+        "inserts": [],
+        "ctx_poses": ctx_poses,
+        "kind": "outdoor",
+        "seed": 13,
+    }
 
 
 BUILDERS = {"courtyard": build_courtyard, "hall": build_hall, "ruins": build_ruins}
+SCENES = tuple(BUILDERS)
 
 
 def render(path: Path) -> tuple[dict, dict]:
@@ -428,7 +443,7 @@ def render_scene(name: str, out_root: Path, cfg: dict) -> dict:
     def keep(key: str, arr: np.ndarray) -> None:
         passes.setdefault(key, []).append(arr)
 
-    seed = {"courtyard": 7, "hall": 11, "ruins": 13}[name]
+    seed = info["seed"]
     for t in range(T):
         sc.frame_set(t + 1)
         cams.append(camera_matrices(cam, W, H))
