@@ -322,6 +322,8 @@ def build_hall(frames: int) -> dict:
         "ctx_poses": ctx_poses,
         "kind": "indoor",
         "seed": 11,
+        # Also rendered at 4 samples, raw and through Cycles' denoiser.
+        "noisy": True,
     }
 
 
@@ -463,7 +465,7 @@ def render_scene(name: str, out_root: Path, cfg: dict) -> dict:
         fr["normal"] = truth["normal"]
         for i, o in enumerate(info["inserts"]):
             fr[f"mask_{'ab'[i]}"] = crypto_mask(truth, o.name)
-        if sky and info["inserts"]:
+        if info["inserts"]:
             a, b = info["inserts"]
             a.hide_render = b.hide_render = True
             fr["noinsert_ab"] = render(tmp / "noinsert_ab.exr")[0]["rgba"][..., :3]
@@ -471,7 +473,7 @@ def render_scene(name: str, out_root: Path, cfg: dict) -> dict:
             light(info["relit"])
             fr["relit"] = render(tmp / "relit.exr")[0]["rgba"][..., :3]
             light(info["light"])
-        elif not sky:
+        if info.get("noisy"):
             vl = sc.view_layers[0]
             vl.cycles.denoising_store_passes = True
             quality(4, True, 1000 + t, adaptive=False)
@@ -527,7 +529,7 @@ def render_scene(name: str, out_root: Path, cfg: dict) -> dict:
         "frames": T,
         "samples_clean": cfg["samples"],
         "clean": "adaptive (threshold 0.005) + OIDN with albedo and normal, fixed seed",
-        "noisy": "4 samples, no adaptive sampling, seed per frame; raw and Cycles OIDN" if not sky else None,
+        "noisy": "4 samples, no adaptive sampling, seed per frame; raw and Cycles OIDN" if info.get("noisy") else None,
         "exposure_scale": k_exp,
         "light": info["light"],
         "relit": info.get("relit"),
