@@ -173,6 +173,13 @@ pub struct Params {
     /// and repainted correctly lit objects (docs/inserts.md); for
     /// composites known to carry a tone or white-balance mismatch.
     pub match_tone: bool,
+    /// With `harmonize`, and the frame's albedo and normals: correct each
+    /// inserted object's colors by a 3x3 matrix fitted so that its albedo
+    /// is shaded as the scene's light shades the background's
+    /// (`albedo_tone`, [`crate::ops::albedo_tone`]). A correctly lit object
+    /// stays as it is (a dead zone of half a stop). On by default; frames
+    /// without an albedo are not touched by it.
+    pub albedo_tone: bool,
     /// With `harmonize`, a light direction and a camera: give an inserted
     /// object lit by another light the scene light's shading (`relight`,
     /// [`crate::ops::relight`]).
@@ -249,6 +256,7 @@ impl Default for Params {
             coverage_floor: 0.95,
             harmonize: true,
             match_tone: false,
+            albedo_tone: true,
             relight: true,
             contact_shadows: true,
             shadow_strength: 0.6,
@@ -283,6 +291,7 @@ pub const PARAM_NAMES: &[&str] = &[
     "coverage_floor",
     "harmonize",
     "match_tone",
+    "albedo_tone",
     "relight",
     "contact_shadows",
     "shadow_strength",
@@ -388,6 +397,7 @@ impl Params {
             "coverage_floor" => self.coverage_floor = want_float(name, v, 0.0, 1.0)?,
             "harmonize" => self.harmonize = want_bool(name, v)?,
             "match_tone" => self.match_tone = want_bool(name, v)?,
+            "albedo_tone" => self.albedo_tone = want_bool(name, v)?,
             "relight" => self.relight = want_bool(name, v)?,
             "contact_shadows" => self.contact_shadows = want_bool(name, v)?,
             "shadow_strength" => self.shadow_strength = want_float(name, v, 0.0, 1.0)?,
@@ -462,6 +472,7 @@ impl Params {
             "coverage_floor" => ParamValue::Float(self.coverage_floor as f64),
             "harmonize" => ParamValue::Bool(self.harmonize),
             "match_tone" => ParamValue::Bool(self.match_tone),
+            "albedo_tone" => ParamValue::Bool(self.albedo_tone),
             "relight" => ParamValue::Bool(self.relight),
             "contact_shadows" => ParamValue::Bool(self.contact_shadows),
             "shadow_strength" => ParamValue::Float(self.shadow_strength as f64),

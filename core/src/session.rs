@@ -324,15 +324,21 @@ impl Session {
         let denoise = self.may_denoise();
         let aux = denoise && shape.albedo;
         let denoise_normal = aux && (shape.denoise_normal || shape.normal);
-        let normals =
-            shape.normal && (self.backend.uses_normals() || (aux && !shape.denoise_normal));
+        // The insert color matrix: the albedo and the normals.
+        let insert_albedo = p.harmonize
+            && p.albedo_tone
+            && shape.albedo
+            && shape.normal
+            && (shape.insert_mask || shape.insert_id);
+        let normals = shape.normal
+            && (self.backend.uses_normals() || (aux && !shape.denoise_normal) || insert_albedo);
         let aovs = b(shape.coverage)
             + b(shape.insert_mask || shape.insert_id)
             + b(shape.insert_id)
             + b(shape.depth)
             + 2 * b(shape.motion)
             + 3 * b(normals)
-            + 3 * b(aux)
+            + 3 * b(aux || insert_albedo)
             + 3 * b(aux && shape.denoise_normal)
             + if denoise {
                 Stage::working_planes(aux, denoise_normal)
@@ -517,10 +523,19 @@ impl Session {
         // after it reads that color (`apply_strength` does).
         let in_place = self.backend.works_in_place() && self.params.strength >= 1.0;
         let aux = may_denoise && input.albedo.is_some();
+        // The insert color matrix reads the albedo and the normals.
+        let insert_albedo = self.params.harmonize
+            && self.params.albedo_tone
+            && input.albedo.is_some()
+            && input.normal.is_some()
+            && (input.insert_mask.is_some() || input.insert_id.is_some());
         let options = PrepareOptions {
-            normals: self.backend.uses_normals() || (aux && input.denoise_normal.is_none()),
+            normals: self.backend.uses_normals()
+                || (aux && input.denoise_normal.is_none())
+                || insert_albedo,
             rgba: in_place,
             denoise_aux: aux,
+            albedo: insert_albedo,
         };
         let mut frame = stages.time("prepare", || {
             PreparedFrame::from_input_with(

@@ -14,8 +14,10 @@ cameras orbit).
 
 Per frame of ``courtyard`` (outdoor; two inserts ``insert_a`` and ``insert_b``):
 ``truth``, ``noinsert_ab`` (both inserts hidden), ``relit``
-(another sun and sky), plus three static context views for the sparse-view
-reconstruction. Per frame of ``hall`` (indoor): ``truth`` and ``noisy`` (4
+(another sun and sky), ``albedo`` (Cycles' Denoising Albedo of the truth
+render: what a host gives as the albedo AOV), plus three static context views
+for the sparse-view reconstruction (``--add-albedo`` adds the albedo to a
+render made before it was kept). Per frame of ``hall`` (indoor): ``truth`` and ``noisy`` (4
 samples, a new seed per frame, stored raw and through Cycles' own denoiser,
 with the denoiser's albedo and normal passes), plus three context views.
 Per frame of ``ruins`` (outdoor, no inserts): ``truth``, plus four context
@@ -458,8 +460,14 @@ def render_scene(name: str, out_root: Path, cfg: dict) -> dict:
             continue
         fr: dict[str, np.ndarray] = {}
         quality(cfg["samples"], True, seed)
-        truth, _ = render(tmp / "truth.exr")
+        # A scene with inserts keeps the albedo the denoiser saw (a host's
+        # albedo AOV: what tells an insert's tone from its paint).
+        sc.view_layers[0].cycles.denoising_store_passes = bool(info["inserts"])
+        truth, chans = render(tmp / "truth.exr")
+        sc.view_layers[0].cycles.denoising_store_passes = False
         fr["truth"] = truth["rgba"][..., :3]
+        if info["inserts"]:
+            fr["albedo"] = pass_rgb(chans, ["Denoising Albedo"])
         fr["depth"] = truth["depth"]
         fr["motion"] = truth["motion"]
         fr["normal"] = truth["normal"]
@@ -534,6 +542,7 @@ def render_scene(name: str, out_root: Path, cfg: dict) -> dict:
         "light": info["light"],
         "relit": info.get("relit"),
         "inserts": [o.name for o in info["inserts"]],
+        "albedo": "Cycles' Denoising Albedo of the truth render" if info["inserts"] else None,
         "render_seconds": round(time.time() - t0, 1),
         "checks": scene_checks(
             gt * k_exp,
@@ -554,6 +563,45 @@ def render_scene(name: str, out_root: Path, cfg: dict) -> dict:
     return meta
 
 
+def add_albedo(name: str, out_root: Path, cfg: dict) -> Path:
+    """Adds the albedo pass to a scene rendered before it kept one.
+
+    Renders only what the albedo needs (the same scene, cameras and seed,
+    ``cfg["samples"]`` samples, no adaptive sampling) and writes it into the
+    existing ``scene.npz`` beside the packed arrays, which are copied as they
+    are (bit for bit).
+    """
+    out = out_root / name / "scene.npz"
+    if not out.exists():
+        raise SystemExit(f"ood.render: {out} missing: render the scene first")
+    fetch()
+    sc = reset(cfg["width"], cfg["height"], cfg["threads"])
+    info = BUILDERS[name](cfg["frames"])
+    if not info["inserts"]:
+        raise SystemExit(f"ood.render: {name} has no inserts; only insert scenes keep an albedo")
+    if info["kind"] == "outdoor":
+        p = info["light"]
+        set_sky(p["sun_elev"], p["sun_azim"], p["sky"])
+        set_sun(info["sun"], p["sun_elev"], p["sun_azim"], p["sun_energy"], p["sun_color"])
+    tmp = out_root / f"{name}.albedo.tmp"
+    tmp.mkdir(parents=True, exist_ok=True)
+    sc.view_layers[0].cycles.denoising_store_passes = True
+    albedo = []
+    for t in range(cfg["frames"]):
+        sc.frame_set(t + 1)
+        quality(cfg["samples"], True, info["seed"], adaptive=False)
+        _, chans = render(tmp / "albedo.exr")
+        albedo.append(pass_rgb(chans, ["Denoising Albedo"]))
+        print(f"ood.render: {name} albedo frame {t}", flush=True)
+    with np.load(out) as z:
+        raw = {k: z[k] for k in z.files}
+    raw.update(pack({"albedo": np.stack(albedo).astype(np.float32)}))
+    np.savez_compressed(tmp / "scene.npz", **raw)
+    (tmp / "scene.npz").replace(out)
+    shutil.rmtree(tmp, ignore_errors=True)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", choices=SCENES, required=True)
@@ -563,8 +611,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, default=24)
     ap.add_argument("--samples", type=int, default=128)
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument(
+        "--add-albedo",
+        action="store_true",
+        help="add the albedo pass to an existing render of an insert scene (its other passes unchanged)",
+    )
     args = ap.parse_args(argv)
     cfg = vars(args)
+    if args.add_albedo:
+        print(f"ood.render: wrote {add_albedo(args.scene, args.out, cfg)}")
+        return 0
     meta = render_scene(args.scene, args.out, cfg)
     print(json.dumps({"scene": args.scene, "seconds": meta["render_seconds"], "checks": meta["checks"]}))
     return 0

@@ -6,7 +6,8 @@ Every sequence is a dict of float32 arrays, the same for every method:
   coverage, A = coverage), ``depth [T,H,W]`` (planar, empty 1e10), ``motion
   [T,H,W,2]`` (pixels, current -> previous, y down), ``normal [T,H,W,3]``
   (world), ``mask_insert [T,H,W]``, optionally ``albedo``/``aux_normal``
-  (the noisy render's denoising passes, for the OIDN peer);
+  (the noisy render's denoising passes, for the OIDN peer; on the courtyard's
+  insert sequences the clean render's albedo, what a Cycles host gives);
 - what only the metrics see: ``target [T,H,W,3]`` (the clean render), the clean
   ``gt_depth``/``gt_motion`` (occlusion-masked warping error), ``mask_shadow``;
 - ``region``: which region the sequence degrades (``hole``, ``insert``,
@@ -20,6 +21,7 @@ Sequences (``SEQUENCES``; the parameters are fixed, so building is deterministic
 | ``recon_hall`` | hall (indoor) | the same with the hall's three views |
 | ``recon_ruins`` | ruins (outdoor) | the same with four views of a colonnade the camera arcs round |
 | ``insert_tone`` | courtyard | insert A with +0.9 stop, warm white balance, more saturation; its shadow present |
+| ``insert_tone_rgb`` | courtyard | the same without the albedo AOV (the frame alone) |
 | ``insert_relight`` | courtyard | insert A lit by another sun and sky (low, warm, from the side); shadow present |
 | ``insert_noshadow`` | courtyard | inserts A and B correctly lit, composited over the plate: no contact shadows |
 | ``two_inserts`` | courtyard | A tone-shifted (cool, darker) and B relit, over the plate: no contact shadows |
@@ -51,9 +53,10 @@ SEQUENCES = (
     "clean_hall",
     "noisy_raw",
     "noisy_denoised",
-    # Last, so the sequences before it keep their seeds (each reconstruction
-    # is drawn from its index here).
+    # After the reconstructions, so they keep their seeds (each
+    # reconstruction is drawn from its index here).
     "recon_ruins",
+    "insert_tone_rgb",
 )
 
 TONE_A = {"exposure": 0.9, "wb": [1.22, 0.98, 0.72], "gamma": 1.0, "saturation": 1.25}
@@ -199,6 +202,10 @@ def build(name: str, data: Path = DATA, cache: dict | None = None, frames: int =
         "region": None,
     }
     if scene_name == "courtyard":
+        # The render's albedo, which a Cycles host gives with its inserts
+        # (Denoising Albedo): every insert sequence but ``insert_tone_rgb``.
+        if "albedo" in sc and name != "insert_tone_rgb":
+            s["albedo"] = sc["albedo"][:T]
         a, b = sc["mask_a"][:T], sc["mask_b"][:T]
         ab = np.clip(a + b, 0.0, 1.0)
         plate = sc["noinsert_ab"][:T]
@@ -215,9 +222,16 @@ def build(name: str, data: Path = DATA, cache: dict | None = None, frames: int =
         )
         s.update(input=rgba, depth=depth, region="hole", params=params)
         s["about"] = f"sparse-view reconstruction ({len(sc['ctx_rgb'])} views, point splats), {s['kind']}"
-    elif name == "insert_tone":
+    elif name in ("insert_tone", "insert_tone_rgb"):
         s.update(input=np.concatenate([degrade.composite(gt, _tone(gt, TONE_A), a), ones], -1), mask_insert=a)
         s.update(region="insert", about="insert with a tone / white-balance mismatch (shadow present)")
+        if name == "insert_tone_rgb":
+            s["about"] += ", no albedo AOV"
+        elif "albedo" not in s:
+            raise SequenceError(
+                f"{name}: the courtyard render has no albedo: add it with "
+                "`.venv-bpy/bin/python -m training.ood.render --scene courtyard --add-albedo --samples 32`"
+            )
     elif name == "insert_relight":
         s.update(input=np.concatenate([degrade.composite(gt, sc["relit"][:T], a), ones], -1), mask_insert=a)
         s.update(region="insert", about="insert lit by another sun and sky (shadow present)")

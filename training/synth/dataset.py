@@ -17,6 +17,8 @@ from pathlib import Path
 import numpy as np
 
 STREAMS = ("s1_recon", "s2_tone", "s3_relight", "s4_shadow", "s5_noise", "s6_insert")
+#: The streams that carry the scene's ``albedo`` when it has one.
+ALBEDO_STREAMS = ("s2_tone", "s3_relight", "s4_shadow", "s6_insert")
 SCENE_KEYS = ("target", "depth", "motion", "normal", "mask_insert", "mask_shadow", "world_to_camera", "world_to_ndc")
 
 
@@ -65,7 +67,8 @@ def load_sample(scene_dir: Path, stream: str) -> dict:
     """One sample as float32 arrays: ``input [T,H,W,4]`` (RGB premultiplied,
     A = coverage), ``target [T,H,W,3]``, ``depth [T,H,W]``, ``motion [T,H,W,2]``,
     ``normal [T,H,W,3]``, ``mask_insert``/``mask_shadow [T,H,W]``,
-    ``world_to_camera``/``world_to_ndc [T,4,4]`` (OpenEXR row-vector), ``meta``."""
+    ``world_to_camera``/``world_to_ndc [T,4,4]`` (OpenEXR row-vector), ``meta``,
+    and ``albedo [T,H,W,3]`` on the insert streams of scenes that kept it."""
     scene_dir = Path(scene_dir)
     if stream not in STREAMS:
         raise DataError(f"unknown stream '{stream}' (expected one of {', '.join(STREAMS)})")
@@ -82,6 +85,12 @@ def load_sample(scene_dir: Path, stream: str) -> dict:
     for k in SCENE_KEYS + ("input",):
         if k not in out:
             raise DataError(f"{scene_dir}: array '{k}' missing for stream {stream}")
+    # The clean render's albedo (scenes rendered since 2026-11-28) goes with
+    # the insert streams, as a host gives it with its composite; not with the
+    # reconstruction (no renderer's albedo behind a splat fit) nor the noisy
+    # frames (whose own albedo would be noisy too).
+    if stream not in ALBEDO_STREAMS:
+        out.pop("albedo", None)
     saturate(out, f"{scene_dir} ({stream})")
     out["meta"] = json.loads((scene_dir / "meta.json").read_text())
     out["stream"] = stream

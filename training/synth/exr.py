@@ -31,7 +31,8 @@ def _channels(path: Path) -> tuple[dict[str, np.ndarray], dict]:
 
 def read_blender_exr(path: Path, layer: str = "ViewLayer") -> dict:
     """Returns ``rgba [H,W,4]``, ``depth [H,W]`` (planar), ``motion [H,W,2]``
-    (library convention), ``normal [H,W,3]`` (world), ``crypto`` (list of
+    (library convention), ``normal [H,W,3]`` (world), ``albedo [H,W,3]``
+    (the Denoising Albedo pass, when stored), ``crypto`` (list of
     (id, coverage) rank pairs) and ``crypto_manifest`` (object name -> hex id);
     entries whose passes are absent are missing from the dict, except Combined."""
     path = Path(path)
@@ -50,6 +51,8 @@ def read_blender_exr(path: Path, layer: str = "ViewLayer") -> dict:
         out["motion"] = np.stack([get("Vector.X"), -get("Vector.Y")], -1)
     if f"{layer}.Normal.X" in chans:
         out["normal"] = np.stack([get(f"Normal.{c}") for c in "XYZ"], -1)
+    if f"{layer}.Denoising Albedo.R" in chans:
+        out["albedo"] = np.stack([get(f"Denoising Albedo.{c}") for c in "RGB"], -1)
     ranks = []
     k = 0
     while f"{layer}.CryptoObject{k:02d}.r" in chans:

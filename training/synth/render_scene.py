@@ -508,7 +508,11 @@ def render_scene(scene_id: int, out_dir: Path, cfg: dict, catalog: dict) -> dict
         sc.frame_set(t + 1)
         cams.append(camera_matrices(cam, W, H))
         set_quality(cfg["samples"], True, scene_id)
+        # With the insert streams, the truth keeps the albedo the denoiser
+        # saw: what a host gives as its albedo AOV with a composite.
+        sc.view_layers[0].cycles.denoising_store_passes = not recon_only
         truth.append(render_to(tmp / f"truth_{t:02d}.exr"))
+        sc.view_layers[0].cycles.denoising_store_passes = False
         if recon_only:
             continue
         insert.hide_render = True
@@ -569,8 +573,12 @@ def render_scene(scene_id: int, out_dir: Path, cfg: dict, catalog: dict) -> dict
         "normal": "world space (Blender +z up), from the clean render",
         "rendered_streams": "recon" if recon_only else "all",
     }
+    extra = {}
+    if not recon_only:
+        extra["albedo"] = np.stack([f["albedo"] for f in truth]).astype(np.float16)
     np.savez_compressed(
         tmp / "scene.npz",
+        **extra,
         target=to_f16(gt),
         depth=depth,
         motion=to_f16(motion),

@@ -129,6 +129,15 @@ def test_committed_out_of_domain_sequences_build(name):
         assert quality.regions(s, 1)[s["region"]].sum() > 200, "the degraded region must be visible"
     if name.startswith("recon_"):
         assert (s["input"][..., 3] < 0.5).mean() > 0.005
+    # The courtyard's insert sequences carry the render's albedo (a Cycles
+    # host's Denoising Albedo); the frame-alone twin does not.
+    if s["scene"] == "courtyard" and name != "insert_tone_rgb":
+        alb = s["albedo"]
+        assert alb.shape == (T, h, w, 3) and np.isfinite(alb).all()
+        inside = s["mask_insert"] > 0.5 if s["mask_insert"].any() else np.ones((T, h, w), bool)
+        assert 0.02 < float(np.median(alb[inside])) < 1.0
+    else:
+        assert "albedo" not in s or name.startswith("noisy")
 
 
 def test_the_report_counts_the_reconstructions_one_db_above_the_best_inpainting_peer(tmp_path):

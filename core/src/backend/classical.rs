@@ -23,9 +23,12 @@
 //!    light's shading (`relight`, with a light direction, depth and a
 //!    camera; [`relight`]) and, with `match_tone` (off by default), its
 //!    color statistics matched part of the way to a ring of background
-//!    around it (with ids, the other objects left out of it); each object's
-//!    filter and shading are smoothed over time in the [`Carry`] (keys
-//!    [`TONE_KEY`] and [`SHADE_KEY`], the objects followed by their ids,
+//!    around it (with ids, the other objects left out of it), and with the
+//!    frame's albedo and normals (`albedo_tone`, on by default) a color
+//!    matrix that shades its albedo as the background's light does
+//!    ([`albedo_tone`]); each object's filter, shading and matrix are
+//!    smoothed over time in the [`Carry`] (keys [`TONE_KEY`],
+//!    [`SHADE_KEY`] and [`MATRIX_KEY`], the objects followed by their ids,
 //!    [`ID_KEY`], else by their centroids) with the weight
 //!    `temporal_blend` on the past.
 //! 3. **shadow** (`contact_shadows`, needs mask and depth): a soft contact
@@ -45,7 +48,7 @@ use super::{Backend, BackendInput, Carry, KeptColor, Progress, Stages};
 use crate::error::Result;
 use crate::frame::{Image, PreparedFrame};
 use crate::ops::{
-    cast_shadow, harmonize, inpaint, par_bands_mut, relight, shadow, stabilize, Rect,
+    albedo_tone, cast_shadow, harmonize, inpaint, par_bands_mut, relight, shadow, stabilize, Rect,
 };
 use crate::temporal::ReprojectionMode;
 
@@ -61,6 +64,11 @@ pub const ID_KEY: &str = "classical.harmonize.id";
 /// ([`relight::Shade`]: target, current), one per track of [`TONE_KEY`] in
 /// its order.
 pub const SHADE_KEY: &str = "classical.harmonize.shade";
+
+/// Carry key of the smoothed color matrices from the albedo
+/// ([`albedo_tone::ColorMatrix::to_vec`], 9 values each), one per track of
+/// [`TONE_KEY`] in its order.
+pub const MATRIX_KEY: &str = "classical.harmonize.albedo_matrix";
 
 /// Carry key of the smoothed shares of the contact and the cast shadow still
 /// missing from the render ([`shadow::missing_share`]) and of the cast
@@ -473,6 +481,28 @@ fn run_ops_on(
                 .filter(|v| v.len() == previous.len() && v.iter().all(|x| x.is_finite()))
                 .cloned()
                 .unwrap_or_else(|| vec![0.0; previous.len()]);
+            // The color matrices from the albedo, one per track of `previous`.
+            let previous_matrices: Vec<albedo_tone::ColorMatrix> = carry
+                .values
+                .get(MATRIX_KEY)
+                .filter(|v| v.len() == albedo_tone::ColorMatrix::LEN * previous.len())
+                .and_then(|v| {
+                    v.chunks(albedo_tone::ColorMatrix::LEN)
+                        .map(albedo_tone::ColorMatrix::from_slice)
+                        .collect()
+                })
+                .unwrap_or_default();
+            // The albedo and normals the matrices are fitted with.
+            let albedo_aovs = match (&frame.albedo, &frame.normal) {
+                (Some(albedo), Some(normal)) if params.albedo_tone => Some(albedo_tone::Aovs {
+                    albedo,
+                    normal,
+                    coverage: frame.coverage.as_deref(),
+                    depth: frame.depth.as_deref(),
+                }),
+                _ => None,
+            };
+            let mut matrices = Vec::with_capacity(albedo_tone::ColorMatrix::LEN * parts.len());
             let current: Vec<(f32, [f32; 2])> = parts.iter().map(|p| (p.id, p.centroid)).collect();
             let seen: Vec<(f32, [f32; 2])> = previous_ids
                 .iter()
@@ -551,18 +581,39 @@ fn run_ops_on(
                     stages.time("harmonize", || {
                         pool.install(|| harmonize::apply(img, pmask, part.rect, &tone))
                     });
+                    // Last, on the shaded and filtered colors: the matrix
+                    // from the albedo (the identity without one).
+                    let previous_matrix = m.and_then(|j| previous_matrices.get(j)).copied();
+                    let matrix = albedo_aovs.as_ref().and_then(|aovs| {
+                        stages.time("harmonize", || {
+                            albedo_tone::estimate(img, aovs, pmask, mask, part.rect)
+                        })
+                    });
+                    let matrix = match (previous_matrix, matrix) {
+                        (Some(p), Some(e)) => p.toward(&e.matrix, 1.0 - params.temporal_blend),
+                        (p, e) => e
+                            .map(|e| e.matrix)
+                            .or(p)
+                            .unwrap_or(albedo_tone::ColorMatrix::IDENTITY),
+                    };
+                    stages.time("harmonize", || {
+                        albedo_tone::apply(img, pmask, part.rect, &matrix)
+                    });
+                    matrices.extend(matrix.to_vec());
                     tracks.push((part.centroid, tone));
                     track_ids.push(part.id);
                     let shade = shade.unwrap_or(relight::Shade::IDENTITY);
                     shades.extend([shade.target, shade.current]);
                     recolored |= !tone.is_near_identity(RECOLOR_TOLERANCE)
-                        || shade.stops().abs() > RECOLOR_TOLERANCE;
+                        || shade.stops().abs() > RECOLOR_TOLERANCE
+                        || !matrix.is_near_identity(RECOLOR_TOLERANCE);
                 }
             }
             carry
                 .values
                 .insert(TONE_KEY.to_string(), harmonize::tracks_to_vec(&tracks));
             carry.values.insert(SHADE_KEY.to_string(), shades);
+            carry.values.insert(MATRIX_KEY.to_string(), matrices);
             if track_ids.iter().any(|&id| id > 0.0) {
                 carry.values.insert(ID_KEY.to_string(), track_ids);
             } else {
@@ -572,6 +623,7 @@ fn run_ops_on(
         _ => {
             carry.values.remove(TONE_KEY);
             carry.values.remove(SHADE_KEY);
+            carry.values.remove(MATRIX_KEY);
             carry.values.remove(ID_KEY);
         }
     }

@@ -381,7 +381,8 @@ pub struct PreparedFrame {
     pub normal: Option<Image>,
     /// Albedo (3 planes): non-finite samples 0, the rest clamped to
     /// `[0, 1]`. Prepared only for the denoise stage
-    /// ([`PrepareOptions::denoise_aux`]).
+    /// ([`PrepareOptions::denoise_aux`]) and the insert color matrix
+    /// ([`PrepareOptions::albedo`]).
     pub albedo: Option<Image>,
     /// The denoise stage's normals (3 planes, non-finite samples 0), from
     /// [`FrameInput::denoise_normal`]; prepared as `albedo` is.
@@ -459,6 +460,9 @@ pub struct PrepareOptions {
     pub rgba: bool,
     /// Read the albedo and the denoise stage's normals.
     pub denoise_aux: bool,
+    /// Read the albedo (without the denoise stage's normals): the insert
+    /// color matrix fits with it ([`crate::ops::albedo_tone`]).
+    pub albedo: bool,
 }
 
 impl Default for PrepareOptions {
@@ -468,6 +472,7 @@ impl Default for PrepareOptions {
             normals: true,
             rgba: false,
             denoise_aux: true,
+            albedo: true,
         }
     }
 }
@@ -577,6 +582,7 @@ impl PreparedFrame {
             normals,
             rgba,
             denoise_aux: false,
+            albedo: false,
         };
         Self::from_input_with(input, depth_kind, pool, recycler, options)
     }
@@ -642,6 +648,7 @@ impl PreparedFrame {
             normals,
             rgba,
             denoise_aux,
+            albedo: albedo_wanted,
         } = options;
         let (w, h) = (input.width(), input.height());
         if input.color.channels() < 3 {
@@ -870,7 +877,7 @@ impl PreparedFrame {
             let Some(v) = v else {
                 return Ok((None, 0));
             };
-            if !denoise_aux {
+            if !(denoise_aux || (albedo && albedo_wanted)) {
                 return Ok((None, count_non_finite(pool, v, 3)));
             }
             let hi = if albedo { 1.0 } else { f32::MAX };

@@ -7,6 +7,7 @@
 //! into bands of [`BAND_ROWS`] rows, a constant, and reductions are summed per
 //! band and then sequentially, so results do not depend on the thread count.
 
+pub mod albedo_tone;
 pub mod cast_shadow;
 pub mod harmonize;
 pub mod inpaint;

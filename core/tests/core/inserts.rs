@@ -27,6 +27,10 @@ struct Scene {
     mask: Vec<f32>,
     /// The ground point each pixel sees (None on the box or the sky).
     ground: Vec<Option<DVec3>>,
+    /// Each pixel's albedo (RGB interleaved; 0 on the sky).
+    albedo: Vec<f32>,
+    /// Each pixel's world normal (XYZ interleaved; 0 on the sky).
+    normal: Vec<f32>,
 }
 
 fn hash(i: u64) -> f32 {
@@ -81,6 +85,7 @@ fn scene_lit(eye_x: f32, shadowed: Option<f32>, box_light: Option<f64>) -> Scene
     let n = W * H;
     let (mut rgb, mut depth, mut mask) = (vec![0.0; 3 * n], vec![1e10; n], vec![0.0; n]);
     let mut ground = vec![None; n];
+    let (mut albedo, mut normal) = (vec![0.0f32; 3 * n], vec![0.0f32; 3 * n]);
     for y in 0..H {
         for x in 0..W {
             let i = y * W + x;
@@ -100,18 +105,20 @@ fn scene_lit(eye_x: f32, shadowed: Option<f32>, box_light: Option<f64>) -> Scene
                 mask[i] = 1.0;
                 let p = eye + dir * t0;
                 let base = [0.7f32, 0.45, 0.3];
+                // The face hit: the coordinate on its slab's bound.
+                let face = if (p.y - 1.0).abs() < 1e-6 {
+                    DVec3::Y
+                } else if (p.x.abs() - 0.5).abs() < 1e-6 {
+                    DVec3::X * p.x.signum()
+                } else {
+                    DVec3::Z * p.z.signum()
+                };
+                albedo[3 * i..3 * i + 3].copy_from_slice(&base);
+                normal[3 * i..3 * i + 3].copy_from_slice(&face.as_vec3().to_array());
                 let c = match box_light {
                     None => base,
                     Some(k) => {
-                        // The face hit: the coordinate on its slab's bound.
-                        let n = if (p.y - 1.0).abs() < 1e-6 {
-                            DVec3::Y
-                        } else if (p.x.abs() - 0.5).abs() < 1e-6 {
-                            DVec3::X * p.x.signum()
-                        } else {
-                            DVec3::Z * p.z.signum()
-                        };
-                        let c = n.dot(DVec3::from(LIGHT).normalize()).max(0.0);
+                        let c = face.dot(DVec3::from(LIGHT).normalize()).max(0.0);
                         base.map(|v| v * (0.2 * (1.0 + k * c)) as f32)
                     }
                 };
@@ -126,6 +133,8 @@ fn scene_lit(eye_x: f32, shadowed: Option<f32>, box_light: Option<f64>) -> Scene
                     Some(s) if box_shadows(p) => s,
                     _ => 1.0,
                 };
+                albedo[3 * i..3 * i + 3].copy_from_slice(&[v, v * 0.95, v * 0.9]);
+                normal[3 * i..3 * i + 3].copy_from_slice(&[0.0, 1.0, 0.0]);
                 (p, [v * k, v * 0.95 * k, v * 0.9 * k])
             } else {
                 rgb[3 * i..3 * i + 3].copy_from_slice(&[0.6, 0.7, 0.9]);
@@ -141,6 +150,8 @@ fn scene_lit(eye_x: f32, shadowed: Option<f32>, box_light: Option<f64>) -> Scene
         depth,
         mask,
         ground,
+        albedo,
+        normal,
     }
 }
 
@@ -165,6 +176,21 @@ fn process(s: &mut Session, sc: &Scene, index: i64, with_mask: bool) -> Image {
     input.depth = Some(ImageView::from_f32("depth", &sc.depth, W, H, 1).unwrap());
     if with_mask {
         input.insert_mask = Some(ImageView::from_f32("insert", &sc.mask, W, H, 1).unwrap());
+    }
+    input.camera = Some(sc.camera);
+    input.frame_index = Some(index);
+    s.process(&input, None).unwrap().0
+}
+
+/// [`process`] with the insert mask and the scene's albedo, and its normals
+/// when `normals`.
+fn process_with_albedo(s: &mut Session, sc: &Scene, index: i64, normals: bool) -> Image {
+    let mut input = FrameInput::new(ImageView::from_f32("color", &sc.rgb, W, H, 3).unwrap());
+    input.depth = Some(ImageView::from_f32("depth", &sc.depth, W, H, 1).unwrap());
+    input.insert_mask = Some(ImageView::from_f32("insert", &sc.mask, W, H, 1).unwrap());
+    input.albedo = Some(ImageView::from_f32("albedo", &sc.albedo, W, H, 3).unwrap());
+    if normals {
+        input.normal = Some(ImageView::from_f32("normal", &sc.normal, W, H, 3).unwrap());
     }
     input.camera = Some(sc.camera);
     input.frame_index = Some(index);
@@ -581,4 +607,63 @@ fn inserts_with_ids_keep_their_filters_when_they_swap_places() {
         "the wrong box's correction went from {first:.3} to {wrong:.3} stops"
     );
     assert!(right < 0.02, "the correct box changed {right:.3} stops");
+}
+
+/// Issue 19: with the renderer's albedo and normals, an insert graded a
+/// stop and a half too bright and warm is brought back (its albedo shaded
+/// as the ground's light shades the ground's albedo: on the faces whose
+/// normal the ground shows, its top), over a few frames as its matrix
+/// settles (`temporal_blend`); a correctly lit insert is left exactly as it
+/// came; without normals, or with `albedo_tone` off, nothing changes.
+#[test]
+fn an_insert_graded_off_its_albedo_is_brought_back() {
+    let k = 4.0 / std::f64::consts::FRAC_1_SQRT_2;
+    let truth = scene_lit(1.5, Some(0.2), Some(k));
+    let mut graded = scene_lit(1.5, Some(0.2), Some(k));
+    let n = W * H;
+    for i in (0..n).filter(|&i| graded.mask[i] > 0.0) {
+        for (c, g) in [2.6f32, 2.2, 1.6].iter().enumerate() {
+            graded.rgb[3 * i + c] *= g;
+        }
+    }
+    let no_shadows = ("contact_shadows", ParamValue::Bool(false));
+    let input_image = |sc: &Scene| {
+        let mut img = Image::zeros(W, H, 3);
+        for i in 0..n {
+            for c in 0..3 {
+                img.data[c * n + i] = sc.rgb[3 * i + c];
+            }
+        }
+        img
+    };
+    let before = insert_log_error(&input_image(&graded), &truth);
+    let mut s = session(std::slice::from_ref(&no_shadows));
+    let mut after = f64::MAX;
+    for t in 0..6 {
+        after = insert_log_error(&process_with_albedo(&mut s, &graded, t, true), &truth);
+    }
+    assert!(
+        after < 0.2 * before,
+        "insert error {before:.3} -> {after:.3} stops"
+    );
+    // Left alone: the correctly lit insert; the graded one without normals
+    // or with `albedo_tone` off.
+    let off = ("albedo_tone", ParamValue::Bool(false));
+    for (sc, normals, extra) in [
+        (&truth, true, vec![no_shadows.clone()]),
+        (&graded, false, vec![no_shadows.clone()]),
+        (&graded, true, vec![no_shadows.clone(), off]),
+    ] {
+        let mut s = session(&extra);
+        let out = process_with_albedo(&mut s, sc, 0, normals);
+        for i in (0..n).filter(|&i| sc.mask[i] > 0.0) {
+            for c in 0..3 {
+                assert_eq!(
+                    out.data[c * n + i],
+                    sc.rgb[3 * i + c],
+                    "pixel {i}, normals {normals}, {extra:?}"
+                );
+            }
+        }
+    }
 }

@@ -1,0 +1,647 @@
+//! Insert tone from the albedo AOV: an inserted object's colors corrected
+//! by a 3x3 color matrix, estimated from how the scene lights its
+//! background.
+//!
+//! From the frame alone, an insert that is a stop too bright cannot be told
+//! from a brighter paint ([`super::harmonize`]): a global tone change keeps
+//! every ratio inside the object. The renderer's albedo (Cycles' Denoising
+//! Albedo, any renderer's albedo AOV) removes the ambiguity: color divided
+//! by albedo is shading, and the insert and its background share one light.
+//!
+//! 1. **The scene's light**, from the background (not an insert, a surface,
+//!    covered, albedo luminance at least [`MIN_ALBEDO`]; sampled on a
+//!    lattice of at most [`MAX_BACKGROUND_SAMPLES`]): per channel, the log2
+//!    shading `log2((c + eps) / (a + eps))` fitted as an affine function of
+//!    the normal, `b0 + b . n`, by robust (Huber) least squares, so the
+//!    background's cast shadows and highlights weigh little.
+//! 2. **What the insert should look like**: its albedo times that shading at
+//!    its normals, `p = a * 2^(b0 + b . n)`, on the insert's pixels whose
+//!    normal the background shows too (bins of about 22 degrees,
+//!    [`normal_bin`]): a model of the light fitted on a ground plane says
+//!    nothing of a face turned away from the sun.
+//! 3. **The matrix** `M` with `p ~ M c` over the insert's pixels (at most
+//!    [`MAX_INSERT_SAMPLES`]), robust least squares with relative weights:
+//!    exposure, white balance and saturation in one linear map.
+//! 4. **Confidence**: the fit's own bias on a correctly lit insert (self
+//!    occlusion, highlights, a shading model of four terms) is a few tenths
+//!    of a stop, so a matrix that changes the insert's brightness by less
+//!    than [`EXPOSURE_DEAD_ZONE`] stops and its chroma by less than
+//!    [`CHROMA_DEAD_ZONE`] stops (RMS) is left out: the identity. Beyond,
+//!    a smooth step over the knees brings in the whole matrix. A fit that
+//!    changes the insert by more than [`MAX_CHANGE`] stops is not trusted
+//!    (the identity too).
+//!
+//! Color is unpremultiplied for the fit and the matrix applies to the
+//! premultiplied color (linear, so the same), weighted by the mask.
+
+use super::{Rect, EMPTY_DEPTH, LUMA};
+use crate::frame::Image;
+
+/// Albedo luminance below this is too dark for its shading to be read.
+pub const MIN_ALBEDO: f32 = 0.03;
+/// Brightness changes (stops) up to this are the fit's own bias: ignored.
+pub const EXPOSURE_DEAD_ZONE: f32 = 0.5;
+/// Width (stops) of the smooth step beyond [`EXPOSURE_DEAD_ZONE`].
+pub const EXPOSURE_KNEE: f32 = 0.3;
+/// RMS chroma changes (stops) up to this are ignored.
+pub const CHROMA_DEAD_ZONE: f32 = 0.15;
+/// Width (stops) of the smooth step beyond [`CHROMA_DEAD_ZONE`].
+pub const CHROMA_KNEE: f32 = 0.1;
+/// A fit that changes brightness or chroma by more stops than this is not trusted.
+pub const MAX_CHANGE: f32 = 3.5;
+/// Background samples at most (a lattice over the frame).
+pub const MAX_BACKGROUND_SAMPLES: usize = 16384;
+/// Insert samples at most (a lattice over its bounding box).
+pub const MAX_INSERT_SAMPLES: usize = 8192;
+/// Fewest samples that make a fit (each of background and insert).
+pub const MIN_SAMPLES: usize = 32;
+
+/// Offset inside the logarithms (scene-linear units).
+const EPS: f32 = 1e-3;
+/// Share of a pixel's luminance added to each channel when measuring the
+/// matrix's chroma change.
+const CHANNEL_FLOOR: f32 = 0.05;
+/// Offset of the relative weights' denominator (luminance).
+const REL: f32 = 0.02;
+/// Huber threshold in robust standard deviations.
+const HUBER: f32 = 1.345;
+/// Reweighting rounds of the shading fit and of the matrix fit.
+const ROUNDS: usize = 6;
+/// Ridge of both fits, relative to the summed weight.
+const RIDGE: f64 = 1e-3;
+
+/// A 3x3 color matrix, rows are output channels: `c'_i = sum_j m[i][j] c_j`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ColorMatrix(pub [[f32; 3]; 3]);
+
+impl ColorMatrix {
+    /// The matrix that changes nothing.
+    pub const IDENTITY: ColorMatrix =
+        ColorMatrix([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]);
+
+    /// Number of values in [`ColorMatrix::to_vec`].
+    pub const LEN: usize = 9;
+
+    /// Row after row (for the backend's carry).
+    pub fn to_vec(&self) -> Vec<f32> {
+        self.0.iter().flatten().copied().collect()
+    }
+
+    /// Reads [`ColorMatrix::to_vec`]'s layout; `None` for a wrong length or
+    /// non-finite values.
+    pub fn from_slice(v: &[f32]) -> Option<ColorMatrix> {
+        if v.len() != Self::LEN || v.iter().any(|x| !x.is_finite()) {
+            return None;
+        }
+        let mut m = [[0.0; 3]; 3];
+        for (i, row) in m.iter_mut().enumerate() {
+            row.copy_from_slice(&v[3 * i..3 * i + 3]);
+        }
+        Some(ColorMatrix(m))
+    }
+
+    /// Moves a share `t` of the way to `target`, element by element.
+    pub fn toward(&self, target: &ColorMatrix, t: f32) -> ColorMatrix {
+        let mut m = self.0;
+        for (row, trow) in m.iter_mut().zip(&target.0) {
+            for (v, tv) in row.iter_mut().zip(trow) {
+                *v += t * (tv - *v);
+            }
+        }
+        ColorMatrix(m)
+    }
+
+    /// Whether no element differs from the identity's by more than `tol`.
+    pub fn is_near_identity(&self, tol: f32) -> bool {
+        self.0.iter().enumerate().all(|(i, row)| {
+            row.iter()
+                .enumerate()
+                .all(|(j, v)| (v - if i == j { 1.0 } else { 0.0 }).abs() <= tol)
+        })
+    }
+
+    /// Whether this is exactly the identity.
+    pub fn is_identity(&self) -> bool {
+        *self == Self::IDENTITY
+    }
+
+    fn mul(&self, c: [f32; 3]) -> [f32; 3] {
+        let m = &self.0;
+        [0, 1, 2].map(|i| m[i][0] * c[0] + m[i][1] * c[1] + m[i][2] * c[2])
+    }
+}
+
+/// What [`estimate`] found for one insert.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Estimate {
+    /// The matrix to apply: the identity moved toward the fitted matrix by
+    /// `confidence`.
+    pub matrix: ColorMatrix,
+    /// The fitted matrix's change of the insert's brightness (median, stops).
+    pub exposure: f32,
+    /// The fitted matrix's RMS change of the insert's chroma (stops).
+    pub chroma: f32,
+    /// 0 (left alone) to 1 (the whole fitted matrix).
+    pub confidence: f32,
+}
+
+/// The AOVs [`estimate`] reads besides the color.
+pub struct Aovs<'a> {
+    /// Albedo, 3 planes, linear.
+    pub albedo: &'a Image,
+    /// Normals, 3 planes (world or camera space: one frame's are consistent).
+    pub normal: &'a Image,
+    /// Coverage (pixels under 0.95 are holes and not sampled).
+    pub coverage: Option<&'a [f32]>,
+    /// Planar depth (empty pixels, the sky, are not background).
+    pub depth: Option<&'a [f32]>,
+}
+
+fn smoothstep(x: f32, edge: f32, knee: f32) -> f32 {
+    let u = ((x - edge) / knee).clamp(0.0, 1.0);
+    u * u * (3.0 - 2.0 * u)
+}
+
+/// The median of `v` (reordered); 0 for an empty slice.
+fn median(v: &mut [f32]) -> f32 {
+    if v.is_empty() {
+        return 0.0;
+    }
+    let k = v.len() / 2;
+    *v.select_nth_unstable_by(k, f32::total_cmp).1
+}
+
+/// Solves the symmetric positive system `a x = b` (Cholesky, f64; reads
+/// `a`'s lower triangle only); `None` when it is singular.
+fn solve<const N: usize>(a: [[f64; N]; N], b: [f64; N]) -> Option<[f64; N]> {
+    let mut l = [[0.0f64; N]; N];
+    for i in 0..N {
+        for j in 0..=i {
+            let s: f64 = (0..j).map(|k| l[i][k] * l[j][k]).sum();
+            if i == j {
+                let d = a[i][i] - s;
+                if d.partial_cmp(&(1e-12 * a[i][i].abs().max(1e-30)))
+                    != Some(std::cmp::Ordering::Greater)
+                {
+                    return None;
+                }
+                l[i][i] = d.sqrt();
+            } else {
+                l[i][j] = (a[i][j] - s) / l[j][j];
+            }
+        }
+    }
+    let mut y = [0.0f64; N];
+    for i in 0..N {
+        y[i] = (b[i] - (0..i).map(|k| l[i][k] * y[k]).sum::<f64>()) / l[i][i];
+    }
+    let mut x = [0.0f64; N];
+    for i in (0..N).rev() {
+        x[i] = (y[i] - (i + 1..N).map(|k| l[k][i] * x[k]).sum::<f64>()) / l[i][i];
+    }
+    x.iter().all(|v| v.is_finite()).then_some(x)
+}
+
+/// Weighted least squares of `y ~ x . beta` with Huber reweighting;
+/// `base` are the samples' fixed weights.
+fn robust_fit<const N: usize>(x: &[[f32; N]], y: &[f32], base: &[f32]) -> Option<[f64; N]> {
+    let mut w = base.to_vec();
+    let mut beta = None;
+    let mut r = vec![0.0f32; y.len()];
+    for _ in 0..ROUNDS {
+        let mut a = [[0.0f64; N]; N];
+        let mut b = [0.0f64; N];
+        for ((xi, &yi), &wi) in x.iter().zip(y).zip(&w) {
+            for i in 0..N {
+                let wx = (wi * xi[i]) as f64;
+                b[i] += wx * yi as f64;
+                for j in 0..=i {
+                    a[i][j] += wx * xi[j] as f64;
+                }
+            }
+        }
+        // A light ridge on the normal's terms: a background of one or two
+        // planes leaves some directions unseen, and those stay at 0.
+        let ridge = RIDGE * a[0][0];
+        for (i, row) in a.iter_mut().enumerate().skip(1) {
+            row[i] += ridge;
+        }
+        let bt = solve(a, b)?;
+        for ((ri, xi), &yi) in r.iter_mut().zip(x).zip(y) {
+            let p: f64 = (0..N).map(|i| bt[i] * xi[i] as f64).sum();
+            *ri = (yi as f64 - p).abs() as f32;
+        }
+        let mut sorted = r.clone();
+        let scale = 1.4826 * median(&mut sorted) + 1e-6;
+        for ((wi, &ri), &bi) in w.iter_mut().zip(&r).zip(base) {
+            *wi = bi / (ri / (HUBER * scale)).max(1.0);
+        }
+        beta = Some(bt);
+    }
+    beta
+}
+
+fn lum(c: [f32; 3]) -> f32 {
+    LUMA[0] * c[0] + LUMA[1] * c[1] + LUMA[2] * c[2]
+}
+
+/// One pixel's unpremultiplied color, albedo and normal, when it can be
+/// sampled: finite, covered, albedo luminance at least [`MIN_ALBEDO`], a
+/// normal of length above 0.5.
+fn sample(img: &Image, aovs: &Aovs<'_>, p: usize) -> Option<([f32; 3], [f32; 3], [f32; 3])> {
+    let n = img.width * img.height;
+    let alpha = img.data[3 * n + p];
+    if aovs.coverage.is_some_and(|c| c[p] < 0.95) || alpha < 0.95 {
+        return None;
+    }
+    let c = [0, 1, 2].map(|k| img.data[k * n + p] / alpha);
+    let a = [0, 1, 2].map(|k| aovs.albedo.data[k * n + p]);
+    let nr = [0, 1, 2].map(|k| aovs.normal.data[k * n + p]);
+    let ok = c.iter().chain(&a).chain(&nr).all(|v| v.is_finite())
+        && c.iter().all(|&v| v >= 0.0)
+        && lum(a) >= MIN_ALBEDO
+        && nr.iter().map(|v| v * v).sum::<f32>() > 0.25;
+    ok.then_some((c, a.map(|v| v.max(0.0)), nr))
+}
+
+/// Bins per side of the octahedral map of normals ([`normal_bin`]).
+pub const NORMAL_BINS: usize = 8;
+/// A normal bin counts as seen in the background with at least this many
+/// samples and at least [`MIN_BIN_SHARE`] of them.
+pub const MIN_BIN_SAMPLES: usize = 8;
+/// See [`MIN_BIN_SAMPLES`].
+pub const MIN_BIN_SHARE: f32 = 0.002;
+
+/// The bin of a normal (any length) on an octahedral map of the sphere,
+/// [`NORMAL_BINS`] x [`NORMAL_BINS`] bins of about 22 degrees.
+pub fn normal_bin(n: [f32; 3]) -> usize {
+    let l1 = n[0].abs() + n[1].abs() + n[2].abs();
+    if l1.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
+        return 0;
+    }
+    let (mut u, mut v) = (n[0] / l1, n[1] / l1);
+    if n[2] < 0.0 {
+        let (au, av) = (u.abs(), v.abs());
+        u = (1.0 - av).copysign(u);
+        v = (1.0 - au).copysign(v);
+    }
+    let cell = |t: f32| (((t + 1.0) * 0.5 * NORMAL_BINS as f32) as usize).min(NORMAL_BINS - 1);
+    cell(v) * NORMAL_BINS + cell(u)
+}
+
+/// Lattice step so that a `w x h` area gives at most `max` samples.
+fn step(w: usize, h: usize, max: usize) -> usize {
+    let mut s = 1;
+    while w.div_ceil(s) * h.div_ceil(s) > max {
+        s += 1;
+    }
+    s
+}
+
+/// The insert's color matrix (see the module documentation): `mask` is
+/// this object's mask, `inserts` every insert's (kept out of the
+/// background), `insert` the object's bounding box. `None` when the albedo
+/// or normals do not match the frame's size or too few background or
+/// insert pixels can be read.
+pub fn estimate(
+    img: &Image,
+    aovs: &Aovs<'_>,
+    mask: &[f32],
+    inserts: &[f32],
+    insert: Rect,
+) -> Option<Estimate> {
+    let (w, h) = (img.width, img.height);
+    let n = w * h;
+    let sized = |i: &Image| i.width == w && i.height == h && i.channels >= 3;
+    if !sized(aovs.albedo)
+        || !sized(aovs.normal)
+        || mask.len() != n
+        || inserts.len() != n
+        || img.channels < 4
+        || insert.is_empty()
+    {
+        return None;
+    }
+    // 1. The background's shading as a function of the normal.
+    let s = step(w, h, MAX_BACKGROUND_SAMPLES);
+    let mut xs: Vec<[f32; 4]> = Vec::new();
+    let mut ys: [Vec<f32>; 3] = Default::default();
+    for y in (s / 2..h).step_by(s) {
+        for x in (s / 2..w).step_by(s) {
+            let p = y * w + x;
+            if inserts[p] >= 0.01
+                || aovs
+                    .depth
+                    .is_some_and(|d| d[p].is_nan() || d[p] >= EMPTY_DEPTH)
+            {
+                continue;
+            }
+            if let Some((c, a, nr)) = sample(img, aovs, p) {
+                xs.push([1.0, nr[0], nr[1], nr[2]]);
+                for k in 0..3 {
+                    ys[k].push(((c[k] + EPS) / (a[k] + EPS)).log2());
+                }
+            }
+        }
+    }
+    if xs.len() < MIN_SAMPLES {
+        return None;
+    }
+    // Which normals the background shows: the fit is a model of the light
+    // only there (a ground plane says nothing of the light on a face
+    // turned away from the sun).
+    let mut seen = [0usize; NORMAL_BINS * NORMAL_BINS];
+    for x in &xs {
+        seen[normal_bin([x[1], x[2], x[3]])] += 1;
+    }
+    let enough = MIN_BIN_SAMPLES.max((MIN_BIN_SHARE * xs.len() as f32) as usize);
+    let ones = vec![1.0f32; xs.len()];
+    let mut light = [[0.0f64; 4]; 3];
+    for k in 0..3 {
+        light[k] = robust_fit(&xs, &ys[k], &ones)?;
+    }
+    // 2. The insert's colors and what the light makes of its albedo.
+    let si = step(insert.width(), insert.height(), MAX_INSERT_SAMPLES);
+    let mut cs: Vec<[f32; 3]> = Vec::new();
+    let mut ps: Vec<[f32; 3]> = Vec::new();
+    for y in (insert.y0 + si / 2..insert.y1).step_by(si) {
+        for x in (insert.x0 + si / 2..insert.x1).step_by(si) {
+            let p = y * w + x;
+            if mask[p] < 0.99 {
+                continue;
+            }
+            if let Some((c, a, nr)) = sample(img, aovs, p) {
+                if seen[normal_bin(nr)] < enough {
+                    continue;
+                }
+                let pred = [0, 1, 2].map(|k| {
+                    let b = &light[k];
+                    let l = b[0] + b[1] * nr[0] as f64 + b[2] * nr[1] as f64 + b[3] * nr[2] as f64;
+                    a[k] * (l.clamp(-60.0, 60.0) as f32).exp2()
+                });
+                cs.push(c);
+                ps.push(pred);
+            }
+        }
+    }
+    if cs.len() < MIN_SAMPLES {
+        return None;
+    }
+    // 3. The matrix: one weighted system per output channel, same weights.
+    let base: Vec<f32> = ps.iter().map(|&p| 1.0 / (lum(p) + REL).powi(2)).collect();
+    let mut wts = base.clone();
+    let mut m = ColorMatrix::IDENTITY;
+    let mut r = vec![0.0f32; cs.len()];
+    for _ in 0..ROUNDS {
+        let mut a = [[0.0f64; 3]; 3];
+        let mut b = [[0.0f64; 3]; 3];
+        for ((c, p), &wi) in cs.iter().zip(&ps).zip(&wts) {
+            for i in 0..3 {
+                let wc = (wi * c[i]) as f64;
+                for j in 0..3 {
+                    a[i][j] += wc * c[j] as f64;
+                    b[j][i] += wc * p[j] as f64;
+                }
+            }
+        }
+        // A light ridge toward the identity: a grey insert (its channels
+        // proportional) does not tell the channels apart.
+        let ridge = RIDGE * (a[0][0] + a[1][1] + a[2][2]) / 3.0;
+        for (i, row) in a.iter_mut().enumerate() {
+            row[i] += ridge;
+            b[i][i] += ridge;
+        }
+        let mut next = [[0.0f32; 3]; 3];
+        for (row, bk) in next.iter_mut().zip(b) {
+            *row = solve(a, bk)?.map(|v| v as f32);
+        }
+        m = ColorMatrix(next);
+        for ((ri, c), p) in r.iter_mut().zip(&cs).zip(&ps) {
+            let q = m.mul(*c);
+            *ri = (0..3).map(|k| (p[k] - q[k]).abs()).sum::<f32>() / (lum(*p) + REL);
+        }
+        let mut sorted = r.clone();
+        let scale = 1.4826 * median(&mut sorted) + 1e-6;
+        for ((wi, &ri), &bi) in wts.iter_mut().zip(&r).zip(&base) {
+            *wi = bi / (ri / (HUBER * scale)).max(1.0);
+        }
+    }
+    // 4. How much the matrix changes the insert, and the confidence.
+    let mut dl = Vec::with_capacity(cs.len());
+    let mut dk: [Vec<f32>; 3] = Default::default();
+    for c in &cs {
+        let q = m.mul(*c).map(|v| v.max(0.0));
+        dl.push((lum(q) + EPS).log2() - (lum(*c) + EPS).log2());
+        // A channel near black changes by few stops in this measure, not by
+        // the ratio of two tiny values.
+        let off = CHANNEL_FLOOR * lum(*c) + EPS;
+        for k in 0..3 {
+            dk[k].push((q[k] + off).log2() - (c[k] + off).log2());
+        }
+    }
+    let exposure = median(&mut dl);
+    let d = [0, 1, 2].map(|k| median(&mut dk[k]));
+    let mean = (d[0] + d[1] + d[2]) / 3.0;
+    let chroma = (d.iter().map(|v| (v - mean).powi(2)).sum::<f32>() / 3.0).sqrt();
+    let trusted = exposure.abs() <= MAX_CHANGE
+        && chroma <= MAX_CHANGE
+        && m.to_vec().iter().all(|v| v.is_finite());
+    let confidence = if trusted {
+        smoothstep(exposure.abs(), EXPOSURE_DEAD_ZONE, EXPOSURE_KNEE).max(smoothstep(
+            chroma,
+            CHROMA_DEAD_ZONE,
+            CHROMA_KNEE,
+        ))
+    } else {
+        0.0
+    };
+    let matrix = if confidence > 0.0 {
+        ColorMatrix::IDENTITY.toward(&m, confidence)
+    } else {
+        ColorMatrix::IDENTITY
+    };
+    Some(Estimate {
+        matrix,
+        exposure,
+        chroma,
+        confidence,
+    })
+}
+
+/// Applies `m` to the insert in place, weighted by the mask:
+/// `c' = c + mask * (max(M c, 0) - c)` on premultiplied color. Only pixels
+/// inside `insert` are touched; the identity touches none.
+pub fn apply(img: &mut Image, mask: &[f32], insert: Rect, m: &ColorMatrix) {
+    if m.is_identity() || insert.is_empty() {
+        return;
+    }
+    let (w, n) = (img.width, img.width * img.height);
+    for y in insert.y0..insert.y1 {
+        for x in insert.x0..insert.x1 {
+            let p = y * w + x;
+            let t = mask[p];
+            if t <= 0.0 {
+                continue;
+            }
+            let c = [0, 1, 2].map(|k| img.data[k * n + p]);
+            let q = m.mul(c);
+            for k in 0..3 {
+                img.data[k * n + p] = c[k] + t * (q[k].max(0.0) - c[k]);
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const W: usize = 160;
+    const H: usize = 120;
+
+    /// A lit scene: ground (normal up) and a wall (normal toward the camera)
+    /// of textured albedo, and a sphere-like insert (normals over a hemisphere)
+    /// of orange albedo; sun from above-front plus sky. `grade` maps the
+    /// insert's correct color to what the frame shows.
+    fn scene(grade: impl Fn([f32; 3]) -> [f32; 3]) -> (Image, Image, Image, Vec<f32>) {
+        let n = W * H;
+        let mut img = Image::filled(W, H, 4, 1.0);
+        let mut albedo = Image::zeros(W, H, 3);
+        let mut normal = Image::zeros(W, H, 3);
+        let mut mask = vec![0.0; n];
+        let sun = [0.3f32, -0.5, 0.81];
+        let light = |nr: [f32; 3]| {
+            let d = (nr[0] * sun[0] + nr[1] * sun[1] + nr[2] * sun[2]).max(0.0);
+            [0.25 + 1.6 * d, 0.3 + 1.5 * d, 0.4 + 1.3 * d]
+        };
+        let (cx, cy, r) = (80.0f32, 60.0f32, 26.0f32);
+        for y in 0..H {
+            for x in 0..W {
+                let p = y * W + x;
+                let t = 0.5 + 0.35 * ((x as f32 * 0.37).sin() * (y as f32 * 0.23).cos());
+                let (dx, dy) = ((x as f32 + 0.5 - cx) / r, (y as f32 + 0.5 - cy) / r);
+                let inside = dx * dx + dy * dy < 1.0;
+                let (a, nr) = if inside {
+                    let nz = (1.0 - dx * dx - dy * dy).max(0.0).sqrt();
+                    // Camera looks along +y; image up is world +z.
+                    ([0.75, 0.32, 0.08], [dx, -nz, -dy])
+                } else if y < H / 2 {
+                    ([0.5 * t, 0.45 * t, 0.4 * t], [0.0, -1.0, 0.0])
+                } else {
+                    (
+                        [0.3 + 0.3 * t, 0.35 + 0.2 * t, 0.2 * t + 0.1],
+                        [0.0, 0.0, 1.0],
+                    )
+                };
+                let lit = light(nr);
+                let mut c = [0, 1, 2].map(|k| a[k] * lit[k]);
+                if inside {
+                    c = grade(c);
+                    mask[p] = 1.0;
+                }
+                for k in 0..3 {
+                    img.data[k * n + p] = c[k];
+                    albedo.data[k * n + p] = a[k];
+                    normal.data[k * n + p] = nr[k];
+                }
+            }
+        }
+        (img, albedo, normal, mask)
+    }
+
+    fn run(img: &Image, albedo: &Image, normal: &Image, mask: &[f32]) -> Option<Estimate> {
+        let aovs = Aovs {
+            albedo,
+            normal,
+            coverage: None,
+            depth: None,
+        };
+        let rect = super::super::harmonize::insert_rect(mask, W, H).unwrap();
+        estimate(img, &aovs, mask, mask, rect)
+    }
+
+    fn region_error(a: &Image, b: &Image, mask: &[f32]) -> f32 {
+        let n = W * H;
+        let mut s = 0.0;
+        let mut k = 0;
+        for (p, _) in mask.iter().enumerate().filter(|(_, &m)| m > 0.5) {
+            for c in 0..3 {
+                s += (a.data[c * n + p] - b.data[c * n + p]).abs();
+                k += 1;
+            }
+        }
+        s / k as f32
+    }
+
+    #[test]
+    fn a_correctly_lit_insert_is_left_alone() {
+        let (img, albedo, normal, mask) = scene(|c| c);
+        let e = run(&img, &albedo, &normal, &mask).unwrap();
+        assert!(e.matrix.is_identity(), "{e:?}");
+        // The fit's own bias (a clamped cosine fitted by an affine map).
+        assert!(e.exposure.abs() < 0.3 && e.chroma < 0.05, "{e:?}");
+    }
+
+    #[test]
+    fn a_graded_insert_is_brought_back() {
+        let (truth, ..) = scene(|c| c);
+        // A stop brighter, warm, more saturated (linear, around luminance).
+        let grade = |c: [f32; 3]| {
+            let g = [2.4 * c[0], 1.9 * c[1], 1.3 * c[2]];
+            let y = lum(g);
+            g.map(|v| (y + 1.25 * (v - y)).max(0.0))
+        };
+        let (mut img, albedo, normal, mask) = scene(grade);
+        let before = region_error(&img, &truth, &mask);
+        let e = run(&img, &albedo, &normal, &mask).unwrap();
+        assert!(e.confidence == 1.0 && e.exposure < -0.8, "{e:?}");
+        let rect = super::super::harmonize::insert_rect(&mask, W, H).unwrap();
+        apply(&mut img, &mask, rect, &e.matrix);
+        let after = region_error(&img, &truth, &mask);
+        assert!(after < 0.1 * before, "error {before} -> {after}");
+        // The background is untouched.
+        let n = W * H;
+        for p in (0..n).filter(|&p| mask[p] == 0.0) {
+            assert_eq!(img.data[p], truth.data[p]);
+        }
+    }
+
+    #[test]
+    fn small_differences_are_the_fits_own_bias() {
+        // A fifth of a stop darker: inside the dead zone.
+        let (img, albedo, normal, mask) = scene(|c| c.map(|v| v * 0.87));
+        let e = run(&img, &albedo, &normal, &mask).unwrap();
+        assert!(e.matrix.is_identity() && e.exposure > 0.1, "{e:?}");
+    }
+
+    #[test]
+    fn no_estimate_without_albedo_to_read() {
+        let (img, mut albedo, normal, mask) = scene(|c| c);
+        // A black albedo everywhere (a host that wrote an empty pass).
+        albedo.data.iter_mut().for_each(|v| *v = 0.0);
+        assert!(run(&img, &albedo, &normal, &mask).is_none());
+        // Wrong size.
+        let small = Image::zeros(8, 8, 3);
+        let aovs = Aovs {
+            albedo: &small,
+            normal: &normal,
+            coverage: None,
+            depth: None,
+        };
+        let rect = super::super::harmonize::insert_rect(&mask, W, H).unwrap();
+        assert!(estimate(&img, &aovs, &mask, &mask, rect).is_none());
+    }
+
+    #[test]
+    fn matrix_round_trips_and_blends() {
+        let m = ColorMatrix([[1.2, 0.1, 0.0], [0.0, 0.9, 0.05], [0.0, 0.0, 1.4]]);
+        assert_eq!(ColorMatrix::from_slice(&m.to_vec()), Some(m));
+        assert!(ColorMatrix::from_slice(&[1.0; 8]).is_none());
+        assert!(ColorMatrix::from_slice(&[f32::NAN; 9]).is_none());
+        assert_eq!(ColorMatrix::IDENTITY.toward(&m, 1.0), m);
+        assert_eq!(m.toward(&ColorMatrix::IDENTITY, 1.0), ColorMatrix::IDENTITY);
+        assert!(ColorMatrix::IDENTITY
+            .toward(&m, 0.01)
+            .is_near_identity(0.01));
+    }
+}
