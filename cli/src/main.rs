@@ -133,6 +133,10 @@ enum Command {
         /// albedo and Open Image Denoise alone is timed on them too.
         #[arg(long = "set", value_name = "NAME=VALUE")]
         set: Vec<String>,
+        /// The frames carry their albedo (what a host that renders its
+        /// inserts gives): the insert color matrix (`albedo_tone`) is timed.
+        #[arg(long)]
+        albedo: bool,
     },
     /// Write a synthetic sequence with ground truth as `generic` EXRs
     /// (DIR/input/shot.####.exr, DIR/truth/shot.####.exr): inputs for tests,
@@ -204,7 +208,10 @@ fn main() -> ExitCode {
             model,
             context,
             set,
-        } => cmd_bench(json, threads, &sizes, frames, backend, model, context, &set),
+            albedo,
+        } => cmd_bench(
+            json, threads, &sizes, frames, backend, model, context, &set, albedo,
+        ),
         Command::Synth {
             out,
             frames,
@@ -785,6 +792,7 @@ fn bench_one(
     frames: usize,
     context: usize,
     sets: &[String],
+    albedo: bool,
 ) -> Result<Value> {
     // Steady state: the first `context` frames fill the history, and until
     // it is full every frame's kept buffers are fresh memory (page faults).
@@ -819,7 +827,7 @@ fn bench_one(
         // 35-60 % slower on a 2-core machine, an effect of the bench's own
         // extra threads on scheduling, not of the library.
         let f = device.pool().install(|| scene.frame(1 + t as i64));
-        let input = match denoise {
+        let input = match denoise || albedo {
             true => f.input.frame_input_with_albedo(),
             false => f.input.frame_input(),
         };
@@ -885,6 +893,9 @@ fn bench_one(
     if !sets.is_empty() {
         run["set"] = json!(sets);
     }
+    if albedo {
+        run["albedo"] = json!(true);
+    }
     if !alone_ms.is_empty() {
         run["oidn_alone_ms"] = json!(median(alone_ms));
     }
@@ -901,6 +912,7 @@ fn cmd_bench(
     model: Option<PathBuf>,
     context: usize,
     sets: &[String],
+    albedo: bool,
 ) -> Result<()> {
     let sizes = parse_sizes(sizes)?;
     if frames == 0 {
@@ -937,11 +949,12 @@ fn cmd_bench(
                 "denoise" => {
                     let mut with = sets.to_vec();
                     with.push("denoise=on".to_string());
-                    let mut run = bench_one(&device, "classical", size, frames, context, &with)?;
+                    let mut run =
+                        bench_one(&device, "classical", size, frames, context, &with, albedo)?;
                     run["backend"] = json!("denoise");
                     run
                 }
-                _ => bench_one(&device, b, size, frames, context, sets)?,
+                _ => bench_one(&device, b, size, frames, context, sets, albedo)?,
             };
             if !as_json {
                 let stages: Vec<String> = run["stages"]

@@ -597,7 +597,7 @@ fn run_ops_on(
                             .unwrap_or(albedo_tone::ColorMatrix::IDENTITY),
                     };
                     stages.time("harmonize", || {
-                        albedo_tone::apply(img, pmask, part.rect, &matrix)
+                        pool.install(|| albedo_tone::apply(img, pmask, part.rect, &matrix))
                     });
                     matrices.extend(matrix.to_vec());
                     tracks.push((part.centroid, tone));

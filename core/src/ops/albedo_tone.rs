@@ -34,7 +34,9 @@
 //! Color is unpremultiplied for the fit and the matrix applies to the
 //! premultiplied color (linear, so the same), weighted by the mask.
 
-use super::{Rect, EMPTY_DEPTH, LUMA};
+use rayon::prelude::*;
+
+use super::{par_bands_mut, Rect, EMPTY_DEPTH, LUMA};
 use crate::frame::Image;
 
 /// Albedo luminance below this is too dark for its shading to be read.
@@ -475,21 +477,26 @@ pub fn apply(img: &mut Image, mask: &[f32], insert: Rect, m: &ColorMatrix) {
     if m.is_identity() || insert.is_empty() {
         return;
     }
-    let (w, n) = (img.width, img.width * img.height);
-    for y in insert.y0..insert.y1 {
-        for x in insert.x0..insert.x1 {
-            let p = y * w + x;
-            let t = mask[p];
-            if t <= 0.0 {
-                continue;
-            }
-            let c = [0, 1, 2].map(|k| img.data[k * n + p]);
-            let q = m.mul(c);
-            for k in 0..3 {
-                img.data[k * n + p] = c[k] + t * (q[k].max(0.0) - c[k]);
+    let (w, m) = (img.width, *m);
+    par_bands_mut(img, insert.y0, insert.y1).for_each(|(y0, [r, g, b, _])| {
+        let rows = r.len() / w;
+        for dy in 0..rows {
+            let row = dy * w;
+            let mrow = &mask[(y0 + dy) * w..(y0 + dy + 1) * w];
+            for x in insert.x0..insert.x1 {
+                let t = mrow[x];
+                if t <= 0.0 {
+                    continue;
+                }
+                let p = row + x;
+                let c = [r[p], g[p], b[p]];
+                let q = m.mul(c);
+                r[p] = c[0] + t * (q[0].max(0.0) - c[0]);
+                g[p] = c[1] + t * (q[1].max(0.0) - c[1]);
+                b[p] = c[2] + t * (q[2].max(0.0) - c[2]);
             }
         }
-    }
+    });
 }
 
 #[cfg(test)]
