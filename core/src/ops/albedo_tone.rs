@@ -483,8 +483,7 @@ pub fn apply(img: &mut Image, mask: &[f32], insert: Rect, m: &ColorMatrix) {
         for dy in 0..rows {
             let row = dy * w;
             let mrow = &mask[(y0 + dy) * w..(y0 + dy + 1) * w];
-            for x in insert.x0..insert.x1 {
-                let t = mrow[x];
+            for (x, &t) in mrow.iter().enumerate().take(insert.x1).skip(insert.x0) {
                 if t <= 0.0 {
                     continue;
                 }
