@@ -72,6 +72,9 @@ class RENDER_PT_harmonizer(bpy.types.Panel):
             col.prop(s, "mask_crypto_layer")
             col.prop(s, "mask_names")
         if s.mask_source != "NONE":
+            col.prop(s, "albedo_tone")
+            if s.albedo_tone and vl is not None and not denoise.guides_on(vl):
+                col.label(text="Albedo Tone reads the Denoising Data passes", icon="INFO")
             col.prop(s, "match_tone")
         col.prop(s, "light_source")
         if s.light_source == "MANUAL":

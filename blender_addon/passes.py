@@ -119,6 +119,25 @@ def check(
             out.append(("WARNING", f"Harmonizer: More Indices {', '.join(map(repr, bad))} are not pass indices"))
         if mask_indices(scene) and 0 in mask_indices(scene):
             out.append(("WARNING", "Harmonizer: pass index 0 is every object without one; it cannot name an object"))
+    # The inserts' albedo (Albedo Tone) is the Denoising Data passes' albedo.
+    if s.mask_source != "NONE" and s.albedo_tone and denoise.guides_available(scene, vl) and not denoise.guides_on(vl):
+        if apply:
+            vl.cycles.denoising_store_passes = True
+            out.append(
+                (
+                    "INFO",
+                    f"Harmonizer: enabled the Denoising Data passes on view layer {vl.name!r} "
+                    "(the albedo Albedo Tone corrects the inserts' colors with)",
+                )
+            )
+        else:
+            out.append(
+                (
+                    "WARNING",
+                    f"Harmonizer: the Denoising Data passes are off on view layer {vl.name!r}: "
+                    "Albedo Tone has no albedo and leaves the inserts' colors as rendered",
+                )
+            )
     out += denoise.check_guides(scene, vl, apply=apply and denoising_data, at_render=at_render)
     return out
 

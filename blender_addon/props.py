@@ -126,6 +126,15 @@ class HarmonizerSceneSettings(bpy.types.PropertyGroup):
         ),
         default=False,
     )
+    albedo_tone: BoolProperty(
+        name="Albedo Tone",
+        description=(
+            "Correct each inserted object's exposure, white balance and saturation so that its albedo is "
+            "shaded as the scene's light shades the background's (needs the Denoising Data passes: the "
+            "albedo). A correctly lit object is left as it is"
+        ),
+        default=True,
+    )
     light_source: EnumProperty(
         name="Light",
         description=(

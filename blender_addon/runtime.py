@@ -110,6 +110,7 @@ class Runner:
                 depth_kind="planar",
                 light_space="world",  # Blender's world: the camera matrices' and the Sun's
                 match_tone=s.match_tone,
+                albedo_tone=s.albedo_tone,
                 denoise=self.denoise,
                 denoise_quality=s.denoise_quality,
                 samples=self.samples,

@@ -320,3 +320,37 @@ def test_match_tone_reaches_the_session(addon, tmp_root):
             assert runner.session.get("match_tone") is want
         finally:
             runner.close()
+
+
+def test_albedo_tone_reaches_the_session_and_asks_for_its_passes(addon, tmp_root):
+    """Issue 19: the panel's Albedo Tone (shown once an insert mask is
+    chosen, on by default) is the session's ``albedo_tone``; it reads the
+    Denoising Data passes' albedo, which "Set Up Passes" / Enable Needed
+    Passes switch on and whose absence the panel warns about."""
+    scene, draw = _panel(addon, tmp_root, "albedo_tone")
+    s = scene.harmonizer
+    vl = addon.passes.render_view_layer(scene, s.view_layer)
+    vl.cycles.denoising_store_passes = False
+    s.mask_source = "NONE"
+    assert "albedo_tone" not in draw().props
+    assert not any("Albedo Tone" in t for _level, t in addon.passes.check(scene, apply=False))
+    s.mask_source = "OBJECT_INDEX"
+    assert s.albedo_tone and "albedo_tone" in draw().props
+    assert "Albedo Tone reads the Denoising Data passes" in draw().labels
+    msgs = addon.passes.check(scene, apply=False)
+    assert any(level == "WARNING" and "Albedo Tone" in t for level, t in msgs), msgs
+    assert not vl.cycles.denoising_store_passes
+    msgs = addon.passes.check(scene, apply=True)
+    assert vl.cycles.denoising_store_passes, msgs
+    assert not any("Albedo Tone" in t for _level, t in addon.passes.check(scene, apply=False))
+    # Off: no albedo asked for.
+    vl.cycles.denoising_store_passes = False
+    s.albedo_tone = False
+    assert not any("Albedo Tone" in t for _level, t in addon.passes.check(scene, apply=False))
+    for want in (False, True):
+        s.albedo_tone = want
+        runner = addon.runtime.Runner(scene)
+        try:
+            assert runner.session.get("albedo_tone") is want
+        finally:
+            runner.close()

@@ -315,6 +315,54 @@ def test_insert_id_errors_and_warnings(device):
         assert any("2 AOV samples" in m for m in warnings), warnings
 
 
+def lit_insert(grade=(1.0, 1.0, 1.0), h: int = 72, w: int = 96):
+    """A ground (normal up) and a wall (normal toward the camera) of textured
+    albedo under a sun and sky, and a ball of orange albedo lit by the same
+    light, its color times ``grade``: color, albedo, normals (camera space)
+    and the ball's mask, float32."""
+    y, x = np.mgrid[0:h, 0:w].astype(np.float32) + 0.5
+    tex = 0.5 + 0.35 * np.sin(x * 0.37) * np.cos(y * 0.23)
+    albedo = np.where(
+        (y < h / 2)[..., None],
+        np.stack([0.5 * tex, 0.45 * tex, 0.4 * tex], -1),
+        np.stack([0.3 + 0.3 * tex, 0.35 + 0.2 * tex, 0.1 + 0.2 * tex], -1),
+    )
+    normal = np.where((y < h / 2)[..., None], np.array([0.0, 0.0, 1.0]), np.array([0.0, 1.0, 0.0]))
+    dx, dy = (x - w / 2) / 20, (y - h / 2) / 20
+    ball = dx**2 + dy**2 < 1
+    nz = np.sqrt(np.clip(1 - dx**2 - dy**2, 0, 1))
+    normal = np.where(ball[..., None], np.stack([dx, -dy, nz], -1), normal)
+    albedo = np.where(ball[..., None], np.array([0.75, 0.32, 0.08]), albedo)
+    sun = np.array([0.3, 0.8, 0.5]) / np.linalg.norm([0.3, 0.8, 0.5])
+    d = np.clip(normal @ sun, 0, None)[..., None]
+    color = albedo * (np.array([0.25, 0.3, 0.4]) + d * np.array([1.6, 1.5, 1.3]))
+    color = np.where(ball[..., None], color * np.asarray(grade), color)
+    f = lambda a: np.ascontiguousarray(a, np.float32)  # noqa: E731
+    return f(color), f(albedo), f(normal), f(ball)
+
+
+def test_albedo_tone_brings_a_graded_insert_back(device):
+    """Issue 19: with the albedo and normals, an insert graded 1.3 stops too
+    bright and warm comes back toward its true color; a correctly lit one is
+    returned exactly; ``albedo_tone=False`` leaves the graded one alone."""
+    truth, albedo, normal, mask = lit_insert()
+    graded, *_ = lit_insert(grade=(3.0, 2.4, 1.6))
+    ball = mask > 0
+    err = lambda out: np.abs(np.log2((out[..., :3][ball] + 1e-3) / (truth[ball] + 1e-3))).mean()  # noqa: E731
+    params = dict(backend="classical", contact_shadows=False, stabilize=False, temporal_blend=0.0)
+    with hz.Session(device, **params) as s:
+        fixed = s.process(graded, albedo=albedo, normal=normal, insert_mask=mask, frame_index=0)
+        assert s.get("albedo_tone") is True
+    with hz.Session(device, **params) as s:
+        kept = s.process(truth, albedo=albedo, normal=normal, insert_mask=mask, frame_index=0)
+    with hz.Session(device, albedo_tone=False, **params) as s:
+        off = s.process(graded, albedo=albedo, normal=normal, insert_mask=mask, frame_index=0)
+    print(f"insert error (stops): graded {err(graded):.3f}, corrected {err(fixed):.3f}")
+    assert err(fixed) < 0.25 * err(graded)
+    np.testing.assert_array_equal(kept[..., :3][ball], truth[ball])
+    np.testing.assert_array_equal(off[..., :3][ball], graded[ball])
+
+
 def _run(session, frames, cancel=None):
     outs = []
     for t, (c, cov, m, d) in enumerate(frames):
