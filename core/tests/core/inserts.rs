@@ -171,7 +171,9 @@ fn session(extra: &[(&str, ParamValue)]) -> Session {
     s
 }
 
-fn process(s: &mut Session, sc: &Scene, index: i64, with_mask: bool) -> Image {
+/// Frame `index` of `sc`: color, depth, camera, and the insert mask when
+/// `with_mask`.
+fn input_of(sc: &Scene, index: i64, with_mask: bool) -> FrameInput<'_> {
     let mut input = FrameInput::new(ImageView::from_f32("color", &sc.rgb, W, H, 3).unwrap());
     input.depth = Some(ImageView::from_f32("depth", &sc.depth, W, H, 1).unwrap());
     if with_mask {
@@ -179,21 +181,21 @@ fn process(s: &mut Session, sc: &Scene, index: i64, with_mask: bool) -> Image {
     }
     input.camera = Some(sc.camera);
     input.frame_index = Some(index);
-    s.process(&input, None).unwrap().0
+    input
+}
+
+fn process(s: &mut Session, sc: &Scene, index: i64, with_mask: bool) -> Image {
+    s.process(&input_of(sc, index, with_mask), None).unwrap().0
 }
 
 /// [`process`] with the insert mask and the scene's albedo, and its normals
 /// when `normals`.
 fn process_with_albedo(s: &mut Session, sc: &Scene, index: i64, normals: bool) -> Image {
-    let mut input = FrameInput::new(ImageView::from_f32("color", &sc.rgb, W, H, 3).unwrap());
-    input.depth = Some(ImageView::from_f32("depth", &sc.depth, W, H, 1).unwrap());
-    input.insert_mask = Some(ImageView::from_f32("insert", &sc.mask, W, H, 1).unwrap());
+    let mut input = input_of(sc, index, true);
     input.albedo = Some(ImageView::from_f32("albedo", &sc.albedo, W, H, 3).unwrap());
     if normals {
         input.normal = Some(ImageView::from_f32("normal", &sc.normal, W, H, 3).unwrap());
     }
-    input.camera = Some(sc.camera);
-    input.frame_index = Some(index);
     s.process(&input, None).unwrap().0
 }
 
