@@ -3,7 +3,7 @@
 
 use crate::denoise::Quality;
 use crate::error::{Error, Result};
-use crate::frame::DepthKind;
+use crate::frame::{DepthKind, FrameShape};
 
 /// A parameter value as a host passes it.
 #[derive(Debug, Clone, PartialEq)]
@@ -371,6 +371,16 @@ fn want_str<'a>(name: &str, v: &'a ParamValue) -> Result<&'a str> {
 }
 
 impl Params {
+    /// Whether frames of `shape` get the insert color matrix
+    /// (`albedo_tone`): the session then prepares their albedo and normals.
+    pub fn insert_albedo(&self, shape: &FrameShape) -> bool {
+        self.harmonize
+            && self.albedo_tone
+            && shape.albedo
+            && shape.normal
+            && (shape.insert_mask || shape.insert_id)
+    }
+
     /// `light_direction` in world space for a frame seen by `camera`
     /// (`None` without a direction, or in camera space without a camera).
     pub fn light_direction_world(

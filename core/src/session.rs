@@ -325,11 +325,7 @@ impl Session {
         let aux = denoise && shape.albedo;
         let denoise_normal = aux && (shape.denoise_normal || shape.normal);
         // The insert color matrix: the albedo and the normals.
-        let insert_albedo = p.harmonize
-            && p.albedo_tone
-            && shape.albedo
-            && shape.normal
-            && (shape.insert_mask || shape.insert_id);
+        let insert_albedo = p.insert_albedo(shape);
         let normals = shape.normal
             && (self.backend.uses_normals() || (aux && !shape.denoise_normal) || insert_albedo);
         let aovs = b(shape.coverage)
@@ -524,11 +520,7 @@ impl Session {
         let in_place = self.backend.works_in_place() && self.params.strength >= 1.0;
         let aux = may_denoise && input.albedo.is_some();
         // The insert color matrix reads the albedo and the normals.
-        let insert_albedo = self.params.harmonize
-            && self.params.albedo_tone
-            && input.albedo.is_some()
-            && input.normal.is_some()
-            && (input.insert_mask.is_some() || input.insert_id.is_some());
+        let insert_albedo = self.params.insert_albedo(&FrameShape::of(input));
         let options = PrepareOptions {
             normals: self.backend.uses_normals()
                 || (aux && input.denoise_normal.is_none())

@@ -579,10 +579,7 @@ def add_albedo(name: str, out_root: Path, cfg: dict) -> Path:
     info = BUILDERS[name](cfg["frames"])
     if not info["inserts"]:
         raise SystemExit(f"ood.render: {name} has no inserts; only insert scenes keep an albedo")
-    if info["kind"] == "outdoor":
-        p = info["light"]
-        set_sky(p["sun_elev"], p["sun_azim"], p["sky"])
-        set_sun(info["sun"], p["sun_elev"], p["sun_azim"], p["sun_energy"], p["sun_color"])
+    # No light to set: the albedo does not depend on it.
     tmp = out_root / f"{name}.albedo.tmp"
     tmp.mkdir(parents=True, exist_ok=True)
     sc.view_layers[0].cycles.denoising_store_passes = True

@@ -492,7 +492,8 @@ fn run_ops_on(
                         .collect()
                 })
                 .unwrap_or_default();
-            // The albedo and normals the matrices are fitted with.
+            // The albedo and normals the matrices are fitted with, and the
+            // scene's light from the background (once for every object).
             let albedo_aovs = match (&frame.albedo, &frame.normal) {
                 (Some(albedo), Some(normal)) if params.albedo_tone => Some(albedo_tone::Aovs {
                     albedo,
@@ -502,6 +503,11 @@ fn run_ops_on(
                 }),
                 _ => None,
             };
+            let albedo_light = albedo_aovs.as_ref().and_then(|aovs| {
+                stages.time("harmonize", || {
+                    albedo_tone::light(img, aovs, mask).map(|light| (aovs, light))
+                })
+            });
             let mut matrices = Vec::with_capacity(albedo_tone::ColorMatrix::LEN * parts.len());
             let current: Vec<(f32, [f32; 2])> = parts.iter().map(|p| (p.id, p.centroid)).collect();
             let seen: Vec<(f32, [f32; 2])> = previous_ids
@@ -584,9 +590,9 @@ fn run_ops_on(
                     // Last, on the shaded and filtered colors: the matrix
                     // from the albedo (the identity without one).
                     let previous_matrix = m.and_then(|j| previous_matrices.get(j)).copied();
-                    let matrix = albedo_aovs.as_ref().and_then(|aovs| {
+                    let matrix = albedo_light.as_ref().and_then(|(aovs, light)| {
                         stages.time("harmonize", || {
-                            albedo_tone::estimate(img, aovs, pmask, mask, part.rect)
+                            albedo_tone::estimate(img, aovs, light, pmask, part.rect)
                         })
                     });
                     let matrix = match (previous_matrix, matrix) {

@@ -34,8 +34,8 @@
 use rayon::prelude::*;
 
 use crate::frame::Image;
-use crate::ops::fast_log2;
 use crate::ops::inpaint::FULL;
+use crate::ops::{fast_log2, median};
 
 /// Above this [`noise_level`] (stops of white noise in log2 luminance),
 /// `denoise auto` turns the denoise stage on.
@@ -117,12 +117,6 @@ pub fn noise_level(
         return None;
     }
     Some(median(&mut lap) / LAPLACIAN_MAD)
-}
-
-/// The median of `v` (the upper one of an even count); reorders `v`.
-fn median(v: &mut [f32]) -> f32 {
-    let k = v.len() / 2;
-    *v.select_nth_unstable_by(k, f32::total_cmp).1
 }
 
 #[cfg(test)]

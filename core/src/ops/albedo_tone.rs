@@ -36,7 +36,7 @@
 
 use rayon::prelude::*;
 
-use super::{par_bands_mut, Rect, EMPTY_DEPTH, LUMA};
+use super::{median, par_bands_mut, solve, Rect, EMPTY_DEPTH, LUMA};
 use crate::frame::Image;
 
 /// Albedo luminance below this is too dark for its shading to be read.
@@ -71,6 +71,8 @@ const HUBER: f32 = 1.345;
 const ROUNDS: usize = 6;
 /// Ridge of both fits, relative to the summed weight.
 const RIDGE: f64 = 1e-3;
+/// A pivot below this share of the summed weight makes a fit singular.
+const SINGULAR: f64 = 1e-9;
 
 /// A 3x3 color matrix, rows are output channels: `c'_i = sum_j m[i][j] c_j`.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -164,52 +166,24 @@ fn smoothstep(x: f32, edge: f32, knee: f32) -> f32 {
     u * u * (3.0 - 2.0 * u)
 }
 
-/// The median of `v` (reordered); 0 for an empty slice.
-fn median(v: &mut [f32]) -> f32 {
-    if v.is_empty() {
-        return 0.0;
+/// Huber weights for residuals `r`: `base / max(1, r / (HUBER * scale))`,
+/// the scale the residuals' median absolute value (`scratch`: a buffer for
+/// the median).
+fn huber_weights(r: &[f32], base: impl Fn(usize) -> f32, w: &mut [f32], scratch: &mut Vec<f32>) {
+    scratch.clear();
+    scratch.extend_from_slice(r);
+    let scale = 1.4826 * median(scratch) + 1e-6;
+    for (i, (wi, &ri)) in w.iter_mut().zip(r).enumerate() {
+        *wi = base(i) / (ri / (HUBER * scale)).max(1.0);
     }
-    let k = v.len() / 2;
-    *v.select_nth_unstable_by(k, f32::total_cmp).1
 }
 
-/// Solves the symmetric positive system `a x = b` (Cholesky, f64; reads
-/// `a`'s lower triangle only); `None` when it is singular.
-fn solve<const N: usize>(a: [[f64; N]; N], b: [f64; N]) -> Option<[f64; N]> {
-    let mut l = [[0.0f64; N]; N];
-    for i in 0..N {
-        for j in 0..=i {
-            let s: f64 = (0..j).map(|k| l[i][k] * l[j][k]).sum();
-            if i == j {
-                let d = a[i][i] - s;
-                if d.partial_cmp(&(1e-12 * a[i][i].abs().max(1e-30)))
-                    != Some(std::cmp::Ordering::Greater)
-                {
-                    return None;
-                }
-                l[i][i] = d.sqrt();
-            } else {
-                l[i][j] = (a[i][j] - s) / l[j][j];
-            }
-        }
-    }
-    let mut y = [0.0f64; N];
-    for i in 0..N {
-        y[i] = (b[i] - (0..i).map(|k| l[i][k] * y[k]).sum::<f64>()) / l[i][i];
-    }
-    let mut x = [0.0f64; N];
-    for i in (0..N).rev() {
-        x[i] = (y[i] - (i + 1..N).map(|k| l[k][i] * x[k]).sum::<f64>()) / l[i][i];
-    }
-    x.iter().all(|v| v.is_finite()).then_some(x)
-}
-
-/// Weighted least squares of `y ~ x . beta` with Huber reweighting;
-/// `base` are the samples' fixed weights.
-fn robust_fit<const N: usize>(x: &[[f32; N]], y: &[f32], base: &[f32]) -> Option<[f64; N]> {
-    let mut w = base.to_vec();
+/// Least squares of `y ~ x . beta` with Huber reweighting ([`ROUNDS`]
+/// rounds) and a light ridge on every coefficient but the first.
+fn robust_fit<const N: usize>(x: &[[f32; N]], y: &[f32]) -> Option<[f64; N]> {
+    let mut w = vec![1.0f32; y.len()];
     let mut beta = None;
-    let mut r = vec![0.0f32; y.len()];
+    let (mut r, mut scratch) = (vec![0.0f32; y.len()], Vec::with_capacity(y.len()));
     for _ in 0..ROUNDS {
         let mut a = [[0.0f64; N]; N];
         let mut b = [0.0f64; N];
@@ -217,7 +191,7 @@ fn robust_fit<const N: usize>(x: &[[f32; N]], y: &[f32], base: &[f32]) -> Option
             for i in 0..N {
                 let wx = (wi * xi[i]) as f64;
                 b[i] += wx * yi as f64;
-                for j in 0..=i {
+                for j in 0..N {
                     a[i][j] += wx * xi[j] as f64;
                 }
             }
@@ -228,16 +202,12 @@ fn robust_fit<const N: usize>(x: &[[f32; N]], y: &[f32], base: &[f32]) -> Option
         for (i, row) in a.iter_mut().enumerate().skip(1) {
             row[i] += ridge;
         }
-        let bt = solve(a, b)?;
+        let bt = solve(a, b, SINGULAR * (1.0 + a[0][0]))?;
         for ((ri, xi), &yi) in r.iter_mut().zip(x).zip(y) {
             let p: f64 = (0..N).map(|i| bt[i] * xi[i] as f64).sum();
             *ri = (yi as f64 - p).abs() as f32;
         }
-        let mut sorted = r.clone();
-        let scale = 1.4826 * median(&mut sorted) + 1e-6;
-        for ((wi, &ri), &bi) in w.iter_mut().zip(&r).zip(base) {
-            *wi = bi / (ri / (HUBER * scale)).max(1.0);
-        }
+        huber_weights(&r, |_| 1.0, &mut w, &mut scratch);
         beta = Some(bt);
     }
     beta
@@ -300,31 +270,43 @@ fn step(w: usize, h: usize, max: usize) -> usize {
     s
 }
 
-/// The insert's color matrix (see the module documentation): `mask` is
-/// this object's mask, `inserts` every insert's (kept out of the
-/// background), `insert` the object's bounding box. `None` when the albedo
-/// or normals do not match the frame's size or too few background or
-/// insert pixels can be read.
-pub fn estimate(
-    img: &Image,
-    aovs: &Aovs<'_>,
-    mask: &[f32],
-    inserts: &[f32],
-    insert: Rect,
-) -> Option<Estimate> {
+/// The scene's light as the background shows it (step 1 of the module
+/// documentation): per channel, log2 shading as an affine function of the
+/// normal, and which normals the background shows.
+#[derive(Debug, Clone)]
+pub struct Light {
+    /// Per channel `[b0, bx, by, bz]`.
+    shading: [[f64; 4]; 3],
+    /// Background samples per normal bin ([`normal_bin`]).
+    seen: [usize; NORMAL_BINS * NORMAL_BINS],
+    /// Samples a bin needs to count as seen.
+    enough: usize,
+}
+
+impl Light {
+    /// Whether the background shows normals like `n`.
+    fn sees(&self, n: [f32; 3]) -> bool {
+        self.seen[normal_bin(n)] >= self.enough
+    }
+
+    /// The log2 shading of channel `k` at normal `n`.
+    fn log_shading(&self, k: usize, n: [f32; 3]) -> f32 {
+        let b = &self.shading[k];
+        let l = b[0] + b[1] * n[0] as f64 + b[2] * n[1] as f64 + b[3] * n[2] as f64;
+        l.clamp(-60.0, 60.0) as f32
+    }
+}
+
+/// The frame's [`Light`], from its background: the pixels outside every
+/// insert (`inserts`, the whole insert mask). Once per frame, shared by its
+/// objects. `None` when the albedo or normals do not match the frame's
+/// size or too few background pixels can be read.
+pub fn light(img: &Image, aovs: &Aovs<'_>, inserts: &[f32]) -> Option<Light> {
     let (w, h) = (img.width, img.height);
-    let n = w * h;
     let sized = |i: &Image| i.width == w && i.height == h && i.channels >= 3;
-    if !sized(aovs.albedo)
-        || !sized(aovs.normal)
-        || mask.len() != n
-        || inserts.len() != n
-        || img.channels < 4
-        || insert.is_empty()
-    {
+    if !sized(aovs.albedo) || !sized(aovs.normal) || inserts.len() != w * h || img.channels < 4 {
         return None;
     }
-    // 1. The background's shading as a function of the normal.
     let s = step(w, h, MAX_BACKGROUND_SAMPLES);
     let mut xs: Vec<[f32; 4]> = Vec::new();
     let mut ys: [Vec<f32>; 3] = Default::default();
@@ -356,11 +338,30 @@ pub fn estimate(
     for x in &xs {
         seen[normal_bin([x[1], x[2], x[3]])] += 1;
     }
-    let enough = MIN_BIN_SAMPLES.max((MIN_BIN_SHARE * xs.len() as f32) as usize);
-    let ones = vec![1.0f32; xs.len()];
-    let mut light = [[0.0f64; 4]; 3];
-    for k in 0..3 {
-        light[k] = robust_fit(&xs, &ys[k], &ones)?;
+    let mut shading = [[0.0f64; 4]; 3];
+    for (k, ys) in ys.iter().enumerate() {
+        shading[k] = robust_fit(&xs, ys)?;
+    }
+    Some(Light {
+        shading,
+        seen,
+        enough: MIN_BIN_SAMPLES.max((MIN_BIN_SHARE * xs.len() as f32) as usize),
+    })
+}
+
+/// The insert's color matrix (see the module documentation) under the
+/// frame's `light`: `mask` is this object's mask, `insert` its bounding
+/// box. `None` when too few of its pixels can be read.
+pub fn estimate(
+    img: &Image,
+    aovs: &Aovs<'_>,
+    light: &Light,
+    mask: &[f32],
+    insert: Rect,
+) -> Option<Estimate> {
+    let w = img.width;
+    if mask.len() != w * img.height || insert.is_empty() {
+        return None;
     }
     // 2. The insert's colors and what the light makes of its albedo.
     let si = step(insert.width(), insert.height(), MAX_INSERT_SAMPLES);
@@ -372,17 +373,9 @@ pub fn estimate(
             if mask[p] < 0.99 {
                 continue;
             }
-            if let Some((c, a, nr)) = sample(img, aovs, p) {
-                if seen[normal_bin(nr)] < enough {
-                    continue;
-                }
-                let pred = [0, 1, 2].map(|k| {
-                    let b = &light[k];
-                    let l = b[0] + b[1] * nr[0] as f64 + b[2] * nr[1] as f64 + b[3] * nr[2] as f64;
-                    a[k] * (l.clamp(-60.0, 60.0) as f32).exp2()
-                });
+            if let Some((c, a, nr)) = sample(img, aovs, p).filter(|s| light.sees(s.2)) {
                 cs.push(c);
-                ps.push(pred);
+                ps.push([0, 1, 2].map(|k| a[k] * light.log_shading(k, nr).exp2()));
             }
         }
     }
@@ -393,7 +386,7 @@ pub fn estimate(
     let base: Vec<f32> = ps.iter().map(|&p| 1.0 / (lum(p) + REL).powi(2)).collect();
     let mut wts = base.clone();
     let mut m = ColorMatrix::IDENTITY;
-    let mut r = vec![0.0f32; cs.len()];
+    let (mut r, mut scratch) = (vec![0.0f32; cs.len()], Vec::with_capacity(cs.len()));
     for _ in 0..ROUNDS {
         let mut a = [[0.0f64; 3]; 3];
         let mut b = [[0.0f64; 3]; 3];
@@ -413,20 +406,17 @@ pub fn estimate(
             row[i] += ridge;
             b[i][i] += ridge;
         }
+        let tiny = SINGULAR * (1.0 + a[0][0]);
         let mut next = [[0.0f32; 3]; 3];
         for (row, bk) in next.iter_mut().zip(b) {
-            *row = solve(a, bk)?.map(|v| v as f32);
+            *row = solve(a, bk, tiny)?.map(|v| v as f32);
         }
         m = ColorMatrix(next);
         for ((ri, c), p) in r.iter_mut().zip(&cs).zip(&ps) {
             let q = m.mul(*c);
             *ri = (0..3).map(|k| (p[k] - q[k]).abs()).sum::<f32>() / (lum(*p) + REL);
         }
-        let mut sorted = r.clone();
-        let scale = 1.4826 * median(&mut sorted) + 1e-6;
-        for ((wi, &ri), &bi) in wts.iter_mut().zip(&r).zip(&base) {
-            *wi = bi / (ri / (HUBER * scale)).max(1.0);
-        }
+        huber_weights(&r, |i| base[i], &mut wts, &mut scratch);
     }
     // 4. How much the matrix changes the insert, and the confidence.
     let mut dl = Vec::with_capacity(cs.len());
@@ -563,7 +553,7 @@ mod tests {
             depth: None,
         };
         let rect = super::super::harmonize::insert_rect(mask, W, H).unwrap();
-        estimate(img, &aovs, mask, mask, rect)
+        estimate(img, &aovs, &light(img, &aovs, mask)?, mask, rect)
     }
 
     fn region_error(a: &Image, b: &Image, mask: &[f32]) -> f32 {
@@ -634,8 +624,7 @@ mod tests {
             coverage: None,
             depth: None,
         };
-        let rect = super::super::harmonize::insert_rect(&mask, W, H).unwrap();
-        assert!(estimate(&img, &aovs, &mask, &mask, rect).is_none());
+        assert!(light(&img, &aovs, &mask).is_none());
     }
 
     #[test]

@@ -301,6 +301,44 @@ pub fn row_max(row: &[f32]) -> f32 {
         .fold(f32::NEG_INFINITY, |m, &v| m.max(v))
 }
 
+/// Solves `a x = b` by Gaussian elimination with partial pivoting; `None`
+/// when a pivot falls below `tiny` (a singular system).
+pub(crate) fn solve<const N: usize>(a: [[f64; N]; N], b: [f64; N], tiny: f64) -> Option<[f64; N]> {
+    let (mut m, mut v) = (a, b);
+    for c in 0..N {
+        let p = (c..N).max_by(|&i, &j| m[i][c].abs().total_cmp(&m[j][c].abs()))?;
+        if m[p][c].abs() < tiny {
+            return None;
+        }
+        m.swap(c, p);
+        v.swap(c, p);
+        let (pivot, vc) = (m[c], v[c]);
+        for (row, vr) in m.iter_mut().zip(v.iter_mut()).skip(c + 1) {
+            let f = row[c] / pivot[c];
+            for (x, p) in row.iter_mut().zip(pivot).skip(c) {
+                *x -= f * p;
+            }
+            *vr -= f * vc;
+        }
+    }
+    let mut x = [0.0f64; N];
+    for c in (0..N).rev() {
+        let s: f64 = (c + 1..N).map(|k| m[c][k] * x[k]).sum();
+        x[c] = (v[c] - s) / m[c][c];
+    }
+    Some(x)
+}
+
+/// The median of `v` (the upper one of an even count; 0 when empty);
+/// reorders `v`.
+pub(crate) fn median(v: &mut [f32]) -> f32 {
+    if v.is_empty() {
+        return 0.0;
+    }
+    let k = v.len() / 2;
+    *v.select_nth_unstable_by(k, f32::total_cmp).1
+}
+
 /// Fast base-2 logarithm of a positive finite value (absolute error below
 /// 1e-4), exactly reproducible: bit manipulation plus a fixed polynomial.
 #[inline]

@@ -229,29 +229,7 @@ fn least_squares<const N: usize>(
             }
         }
     }
-    // Gaussian elimination with partial pivoting.
-    let (mut m, mut v) = (a, b);
-    for c in 0..N {
-        let p = (c..N).max_by(|&i, &j| m[i][c].abs().total_cmp(&m[j][c].abs()))?;
-        if m[p][c].abs() < 1e-9 * (1.0 + a[0][0]) {
-            return None;
-        }
-        m.swap(c, p);
-        v.swap(c, p);
-        let (pivot, vc) = (m[c], v[c]);
-        for (row, vr) in m.iter_mut().zip(v.iter_mut()).skip(c + 1) {
-            let f = row[c] / pivot[c];
-            for (x, p) in row.iter_mut().zip(pivot).skip(c) {
-                *x -= f * p;
-            }
-            *vr -= f * vc;
-        }
-    }
-    let mut x = [0.0f64; N];
-    for c in (0..N).rev() {
-        let s: f64 = (c + 1..N).map(|k| m[c][k] * x[k]).sum();
-        x[c] = (v[c] - s) / m[c][c];
-    }
+    let x = super::solve(a, b, 1e-9 * (1.0 + a[0][0]))?;
     let (mut e, mut wsum) = (0.0, 0.0);
     for (xi, y, w) in rows {
         let p: f64 = (0..N).map(|k| x[k] * xi[k]).sum();
