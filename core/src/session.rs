@@ -324,17 +324,19 @@ impl Session {
         let denoise = self.may_denoise();
         let aux = denoise && shape.albedo;
         let denoise_normal = aux && (shape.denoise_normal || shape.normal);
-        // The insert color matrix: the albedo and the normals.
+        // The insert color matrix: the albedo and the normals in the
+        // inserts' box, at most the whole frame (and a lattice).
         let insert_albedo = p.insert_albedo(shape);
-        let normals = shape.normal
-            && (self.backend.uses_normals() || (aux && !shape.denoise_normal) || insert_albedo);
+        let normals =
+            shape.normal && (self.backend.uses_normals() || (aux && !shape.denoise_normal));
         let aovs = b(shape.coverage)
             + b(shape.insert_mask || shape.insert_id)
             + b(shape.insert_id)
             + b(shape.depth)
             + 2 * b(shape.motion)
             + 3 * b(normals)
-            + 3 * b(aux || insert_albedo)
+            + 3 * b(aux)
+            + 6 * b(insert_albedo)
             + 3 * b(aux && shape.denoise_normal)
             + if denoise {
                 Stage::working_planes(aux, denoise_normal)
@@ -519,12 +521,11 @@ impl Session {
         // after it reads that color (`apply_strength` does).
         let in_place = self.backend.works_in_place() && self.params.strength >= 1.0;
         let aux = may_denoise && input.albedo.is_some();
-        // The insert color matrix reads the albedo and the normals.
+        // The insert color matrix reads the albedo and the normals where
+        // it fits.
         let insert_albedo = self.params.insert_albedo(&FrameShape::of(input));
         let options = PrepareOptions {
-            normals: self.backend.uses_normals()
-                || (aux && input.denoise_normal.is_none())
-                || insert_albedo,
+            normals: self.backend.uses_normals() || (aux && input.denoise_normal.is_none()),
             rgba: in_place,
             denoise_aux: aux,
             albedo: insert_albedo,

@@ -494,10 +494,9 @@ fn run_ops_on(
                 .unwrap_or_default();
             // The albedo and normals the matrices are fitted with, and the
             // scene's light from the background (once for every object).
-            let albedo_aovs = match (&frame.albedo, &frame.normal) {
-                (Some(albedo), Some(normal)) if params.albedo_tone => Some(albedo_tone::Aovs {
-                    albedo,
-                    normal,
+            let albedo_aovs = match &frame.insert_aovs {
+                Some(samples) if params.albedo_tone => Some(albedo_tone::Aovs {
+                    samples,
                     coverage: frame.coverage.as_deref(),
                     depth: frame.depth.as_deref(),
                 }),
@@ -505,7 +504,8 @@ fn run_ops_on(
             };
             let albedo_light = albedo_aovs.as_ref().and_then(|aovs| {
                 stages.time("harmonize", || {
-                    albedo_tone::light(img, aovs, mask).map(|light| (aovs, light))
+                    pool.install(|| albedo_tone::light(img, aovs, mask))
+                        .map(|light| (aovs, light))
                 })
             });
             let mut matrices = Vec::with_capacity(albedo_tone::ColorMatrix::LEN * parts.len());

@@ -381,9 +381,12 @@ pub struct PreparedFrame {
     pub normal: Option<Image>,
     /// Albedo (3 planes): non-finite samples 0, the rest clamped to
     /// `[0, 1]`. Prepared only for the denoise stage
-    /// ([`PrepareOptions::denoise_aux`]) and the insert color matrix
-    /// ([`PrepareOptions::albedo`]).
+    /// ([`PrepareOptions::denoise_aux`]).
     pub albedo: Option<Image>,
+    /// The albedo and normals where the insert color matrix reads them
+    /// ([`PrepareOptions::albedo`], a frame with an insert, its albedo and
+    /// its normals).
+    pub insert_aovs: Option<crate::ops::albedo_tone::Samples>,
     /// The denoise stage's normals (3 planes, non-finite samples 0), from
     /// [`FrameInput::denoise_normal`]; prepared as `albedo` is.
     pub denoise_normal: Option<Image>,
@@ -414,7 +417,8 @@ pub struct PreparedFrame {
     /// `denoise_normal` included.
     pub sanitized_normals: usize,
     /// Albedo samples that were NaN or infinite (replaced by 0 when the
-    /// albedo is prepared, counted either way).
+    /// albedo is prepared, counted either way; for the insert color matrix
+    /// alone, among the samples it reads).
     pub sanitized_albedo: usize,
     /// Motion vectors longer than the image in either axis (a wrong scale
     /// or AOV), counted after scaling.
@@ -460,8 +464,8 @@ pub struct PrepareOptions {
     pub rgba: bool,
     /// Read the albedo and the denoise stage's normals.
     pub denoise_aux: bool,
-    /// Read the albedo (without the denoise stage's normals): the insert
-    /// color matrix fits with it ([`crate::ops::albedo_tone`]).
+    /// Read the albedo and the normals where the insert color matrix fits
+    /// with them ([`crate::ops::albedo_tone::Samples`]).
     pub albedo: bool,
 }
 
@@ -489,6 +493,7 @@ impl PreparedFrame {
             motion: None,
             normal: None,
             albedo: None,
+            insert_aovs: None,
             denoise_normal: None,
             insert_mask: None,
             insert_id: None,
@@ -877,8 +882,14 @@ impl PreparedFrame {
             let Some(v) = v else {
                 return Ok((None, 0));
             };
-            if !(denoise_aux || (albedo && albedo_wanted)) {
-                return Ok((None, count_non_finite(pool, v, 3)));
+            if !denoise_aux {
+                // The insert color matrix reads its own samples (below),
+                // and counts what it reads.
+                let counted = match albedo && albedo_wanted {
+                    true => 0,
+                    false => count_non_finite(pool, v, 3),
+                };
+                return Ok((None, counted));
             }
             let hi = if albedo { 1.0 } else { f32::MAX };
             let lo = if albedo { 0.0 } else { -f32::MAX };
@@ -890,7 +901,20 @@ impl PreparedFrame {
             });
             Ok((Some(img), bad))
         };
-        let (albedo, sanitized_albedo) = aux(input.albedo.as_ref(), true)?;
+        let (albedo, mut sanitized_albedo) = aux(input.albedo.as_ref(), true)?;
+        // The insert color matrix's albedo and normals, where it reads them.
+        let insert_aovs = match (&input.albedo, &input.normal, insert) {
+            (Some(a), Some(n), Some(rect)) if albedo_wanted => {
+                let (samples, bad_albedo, _) =
+                    crate::ops::albedo_tone::Samples::read(a, n, rect, pool);
+                // The normals are counted whole above.
+                if !denoise_aux {
+                    sanitized_albedo += bad_albedo;
+                }
+                Some(samples)
+            }
+            _ => None,
+        };
         let (denoise_normal, bad_denoise_normals) = aux(input.denoise_normal.as_ref(), false)?;
         sanitized_normals += bad_denoise_normals;
         let limit = 4.0 * (w.max(h) as f32);
@@ -954,6 +978,7 @@ impl PreparedFrame {
             motion,
             normal,
             albedo,
+            insert_aovs,
             denoise_normal,
             insert_mask,
             insert_id,

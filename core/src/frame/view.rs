@@ -265,10 +265,20 @@ impl<'a> ImageView<'a> {
 
     /// Copies channel `c` of row `y` into `out` (length = width).
     pub fn read_row(&self, y: usize, c: usize, out: &mut [f32]) {
+        debug_assert_eq!(out.len(), self.layout.width);
+        self.read_span(y, 0, c, out);
+    }
+
+    /// Copies channel `c` of row `y` from column `x0` on into `out` (its
+    /// length columns, at most to the end of the row).
+    pub fn read_span(&self, y: usize, x0: usize, c: usize, out: &mut [f32]) {
         let l = &self.layout;
-        debug_assert_eq!(out.len(), l.width);
-        let base = l.index(0, y, c);
-        let n = l.width;
+        debug_assert!(x0 + out.len() <= l.width);
+        let n = out.len();
+        if n == 0 {
+            return;
+        }
+        let base = l.index(x0, y, c);
         match l.format {
             PixelFormat::F32 => {
                 let (step, start) = (l.pixel_stride / 4, base / 4);

@@ -36,8 +36,8 @@
 
 use rayon::prelude::*;
 
-use super::{median, par_bands_mut, solve, Rect, EMPTY_DEPTH, LUMA};
-use crate::frame::Image;
+use super::{fast_log2, median, par_bands_mut, solve, Rect, EMPTY_DEPTH, LUMA};
+use crate::frame::{Image, ImageView};
 
 /// Albedo luminance below this is too dark for its shading to be read.
 pub const MIN_ALBEDO: f32 = 0.03;
@@ -52,7 +52,7 @@ pub const CHROMA_KNEE: f32 = 0.1;
 /// A fit that changes brightness or chroma by more stops than this is not trusted.
 pub const MAX_CHANGE: f32 = 3.5;
 /// Background samples at most (a lattice over the frame).
-pub const MAX_BACKGROUND_SAMPLES: usize = 16384;
+pub const MAX_BACKGROUND_SAMPLES: usize = 8192;
 /// Insert samples at most (a lattice over its bounding box).
 pub const MAX_INSERT_SAMPLES: usize = 8192;
 /// Fewest samples that make a fit (each of background and insert).
@@ -149,12 +149,154 @@ pub struct Estimate {
     pub confidence: f32,
 }
 
+/// The albedo and normals [`light`] and [`estimate`] read, taken from the
+/// host's images only where they look: the background lattice over the
+/// frame ([`MAX_BACKGROUND_SAMPLES`] at most) and every pixel of the
+/// inserts' bounding box (each object's lattice lies in it). Read while the
+/// frame is prepared: a fraction of the two images at 1080p, where reading
+/// them whole cost 4-7 ms on 2 threads.
+///
+/// Non-finite samples are 0 (counted by [`Samples::read`]), the albedo is
+/// clamped to `[0, 1]`.
+#[derive(Debug, Clone)]
+pub struct Samples {
+    width: usize,
+    height: usize,
+    /// The background lattice: step, and its columns (from `step / 2`).
+    step: usize,
+    cols: usize,
+    /// Per lattice point: albedo RGB, normal XYZ.
+    lattice: Vec<[f32; 6]>,
+    /// The inserts' bounding box, read whole.
+    rect: Rect,
+    /// Per row of `rect`: its albedo R, G, B and normal X, Y, Z rows.
+    dense: Vec<f32>,
+}
+
+impl Samples {
+    /// Reads the samples of a `albedo` and `normal` image pair (at least 3
+    /// channels each, the same size) for inserts inside `insert`. Returns
+    /// the samples and the non-finite albedo and normal samples replaced.
+    pub fn read(
+        albedo: &ImageView<'_>,
+        normal: &ImageView<'_>,
+        insert: Rect,
+        pool: Option<&rayon::ThreadPool>,
+    ) -> (Samples, usize, usize) {
+        let (w, h) = (albedo.width(), albedo.height());
+        debug_assert!(normal.width() == w && normal.height() == h);
+        let s = step(w, h, MAX_BACKGROUND_SAMPLES);
+        let cols = (s / 2..w).step_by(s).len();
+        let fix = |v: &mut [f32]| -> [usize; 2] {
+            let mut bad = [0, 0];
+            for (k, x) in v.iter_mut().enumerate() {
+                let nan = !x.is_finite();
+                bad[k / 3] += usize::from(nan);
+                *x = match (nan, k < 3) {
+                    (true, _) => 0.0,
+                    (false, true) => x.clamp(0.0, 1.0),
+                    (false, false) => *x,
+                };
+            }
+            bad
+        };
+        let mut bad = [0usize; 2];
+        let mut lattice = Vec::with_capacity(cols * (s / 2..h).step_by(s).len());
+        for y in (s / 2..h).step_by(s) {
+            for x in (s / 2..w).step_by(s) {
+                let mut v = [0.0f32; 6];
+                for k in 0..3 {
+                    v[k] = albedo.get(x, y, k);
+                    v[3 + k] = normal.get(x, y, k);
+                }
+                let b = fix(&mut v);
+                bad = [bad[0] + b[0], bad[1] + b[1]];
+                lattice.push(v);
+            }
+        }
+        let rw = insert.width();
+        let mut dense = vec![0.0f32; 6 * rw * insert.height()];
+        let read_row = |(dy, row): (usize, &mut [f32])| -> [usize; 2] {
+            let y = insert.y0 + dy;
+            for (k, out) in row.chunks_mut(rw).enumerate() {
+                match k {
+                    0..3 => albedo.read_span(y, insert.x0, k, out),
+                    _ => normal.read_span(y, insert.x0, k - 3, out),
+                }
+            }
+            let mut bad = [0, 0];
+            for (k, out) in row.chunks_mut(rw).enumerate() {
+                for x in out {
+                    let nan = !x.is_finite();
+                    bad[k / 3] += usize::from(nan);
+                    *x = match (nan, k < 3) {
+                        (true, _) => 0.0,
+                        (false, true) => x.clamp(0.0, 1.0),
+                        (false, false) => *x,
+                    };
+                }
+            }
+            bad
+        };
+        let add = |a: [usize; 2], b: [usize; 2]| [a[0] + b[0], a[1] + b[1]];
+        let rows = match (rw, pool) {
+            (0, _) => [0, 0],
+            (_, Some(pool)) => pool.install(|| {
+                dense
+                    .par_chunks_mut(6 * rw)
+                    .enumerate()
+                    .map(read_row)
+                    .reduce(|| [0, 0], add)
+            }),
+            (_, None) => dense
+                .chunks_mut(6 * rw)
+                .enumerate()
+                .map(read_row)
+                .fold([0, 0], add),
+        };
+        bad = add(bad, rows);
+        let samples = Samples {
+            width: w,
+            height: h,
+            step: s,
+            cols,
+            lattice,
+            rect: insert,
+            dense,
+        };
+        (samples, bad[0], bad[1])
+    }
+
+    /// The albedo and normal at `(x, y)`, when read (inside the inserts'
+    /// box or on the background lattice).
+    fn at(&self, x: usize, y: usize) -> Option<([f32; 3], [f32; 3])> {
+        if self.rect.contains(x, y) {
+            let rw = self.rect.width();
+            let row = &self.dense[6 * rw * (y - self.rect.y0)..];
+            let i = x - self.rect.x0;
+            let v = |k: usize| row[k * rw + i];
+            return Some(([v(0), v(1), v(2)], [v(3), v(4), v(5)]));
+        }
+        let h = self.step / 2;
+        if x < h
+            || y < h
+            || !(x - h).is_multiple_of(self.step)
+            || !(y - h).is_multiple_of(self.step)
+        {
+            return None;
+        }
+        let v = self
+            .lattice
+            .get((y - h) / self.step * self.cols + (x - h) / self.step)?;
+        Some(([v[0], v[1], v[2]], [v[3], v[4], v[5]]))
+    }
+}
+
 /// The AOVs [`estimate`] reads besides the color.
 pub struct Aovs<'a> {
-    /// Albedo, 3 planes, linear.
-    pub albedo: &'a Image,
-    /// Normals, 3 planes (world or camera space: one frame's are consistent).
-    pub normal: &'a Image,
+    /// Albedo and normals (world or camera space: one frame's are
+    /// consistent) where they are read.
+    pub samples: &'a Samples,
     /// Coverage (pixels under 0.95 are holes and not sampled).
     pub coverage: Option<&'a [f32]>,
     /// Planar depth (empty pixels, the sky, are not background).
@@ -180,20 +322,28 @@ fn huber_weights(r: &[f32], base: impl Fn(usize) -> f32, w: &mut [f32], scratch:
 
 /// Least squares of `y ~ x . beta` with Huber reweighting ([`ROUNDS`]
 /// rounds) and a light ridge on every coefficient but the first.
-fn robust_fit<const N: usize>(x: &[[f32; N]], y: &[f32]) -> Option<[f64; N]> {
+fn robust_fit<const N: usize>(x: &[[f64; N]], y: &[f64]) -> Option<[f64; N]> {
     let mut w = vec![1.0f32; y.len()];
     let mut beta = None;
     let (mut r, mut scratch) = (vec![0.0f32; y.len()], Vec::with_capacity(y.len()));
     for _ in 0..ROUNDS {
         let mut a = [[0.0f64; N]; N];
         let mut b = [0.0f64; N];
+        // The upper triangle, mirrored after.
         for ((xi, &yi), &wi) in x.iter().zip(y).zip(&w) {
+            let wi = wi as f64;
             for i in 0..N {
-                let wx = (wi * xi[i]) as f64;
-                b[i] += wx * yi as f64;
-                for j in 0..N {
-                    a[i][j] += wx * xi[j] as f64;
+                let wx = wi * xi[i];
+                b[i] += wx * yi;
+                for j in i..N {
+                    a[i][j] += wx * xi[j];
                 }
+            }
+        }
+        let upper = a;
+        for (i, row) in a.iter_mut().enumerate() {
+            for (j, v) in row.iter_mut().enumerate().take(i) {
+                *v = upper[j][i];
             }
         }
         // A light ridge on the normal's terms: a background of one or two
@@ -204,8 +354,8 @@ fn robust_fit<const N: usize>(x: &[[f32; N]], y: &[f32]) -> Option<[f64; N]> {
         }
         let bt = solve(a, b, SINGULAR * (1.0 + a[0][0]))?;
         for ((ri, xi), &yi) in r.iter_mut().zip(x).zip(y) {
-            let p: f64 = (0..N).map(|i| bt[i] * xi[i] as f64).sum();
-            *ri = (yi as f64 - p).abs() as f32;
+            let p: f64 = (0..N).map(|i| bt[i] * xi[i]).sum();
+            *ri = (yi - p).abs() as f32;
         }
         huber_weights(&r, |_| 1.0, &mut w, &mut scratch);
         beta = Some(bt);
@@ -217,18 +367,20 @@ fn lum(c: [f32; 3]) -> f32 {
     LUMA[0] * c[0] + LUMA[1] * c[1] + LUMA[2] * c[2]
 }
 
+/// A pixel's color, albedo and normal.
+type Pixel = ([f32; 3], [f32; 3], [f32; 3]);
+
 /// One pixel's unpremultiplied color, albedo and normal, when it can be
 /// sampled: finite, covered, albedo luminance at least [`MIN_ALBEDO`], a
 /// normal of length above 0.5.
-fn sample(img: &Image, aovs: &Aovs<'_>, p: usize) -> Option<([f32; 3], [f32; 3], [f32; 3])> {
+fn sample(img: &Image, aovs: &Aovs<'_>, p: usize) -> Option<Pixel> {
     let n = img.width * img.height;
     let alpha = img.data[3 * n + p];
     if aovs.coverage.is_some_and(|c| c[p] < 0.95) || alpha < 0.95 {
         return None;
     }
+    let (a, nr) = aovs.samples.at(p % img.width, p / img.width)?;
     let c = [0, 1, 2].map(|k| img.data[k * n + p] / alpha);
-    let a = [0, 1, 2].map(|k| aovs.albedo.data[k * n + p]);
-    let nr = [0, 1, 2].map(|k| aovs.normal.data[k * n + p]);
     let ok = c.iter().chain(&a).chain(&nr).all(|v| v.is_finite())
         && c.iter().all(|&v| v >= 0.0)
         && lum(a) >= MIN_ALBEDO
@@ -303,29 +455,36 @@ impl Light {
 /// size or too few background pixels can be read.
 pub fn light(img: &Image, aovs: &Aovs<'_>, inserts: &[f32]) -> Option<Light> {
     let (w, h) = (img.width, img.height);
-    let sized = |i: &Image| i.width == w && i.height == h && i.channels >= 3;
-    if !sized(aovs.albedo) || !sized(aovs.normal) || inserts.len() != w * h || img.channels < 4 {
+    let sized = (aovs.samples.width, aovs.samples.height) == (w, h);
+    if !sized || inserts.len() != w * h || img.channels < 4 {
         return None;
     }
-    let s = step(w, h, MAX_BACKGROUND_SAMPLES);
-    let mut xs: Vec<[f32; 4]> = Vec::new();
-    let mut ys: [Vec<f32>; 3] = Default::default();
-    for y in (s / 2..h).step_by(s) {
-        for x in (s / 2..w).step_by(s) {
-            let p = y * w + x;
-            if inserts[p] >= 0.01
-                || aovs
-                    .depth
-                    .is_some_and(|d| d[p].is_nan() || d[p] >= EMPTY_DEPTH)
-            {
-                continue;
-            }
-            if let Some((c, a, nr)) = sample(img, aovs, p) {
-                xs.push([1.0, nr[0], nr[1], nr[2]]);
-                for k in 0..3 {
-                    ys[k].push(((c[k] + EPS) / (a[k] + EPS)).log2());
-                }
-            }
+    // The lattice's rows on the caller's pool, gathered in order.
+    let s = aovs.samples.step;
+    let rows: Vec<Vec<Pixel>> = (s / 2..h)
+        .into_par_iter()
+        .step_by(s)
+        .map(|y| {
+            (s / 2..w)
+                .step_by(s)
+                .map(|x| y * w + x)
+                .filter(|&p| {
+                    inserts[p] < 0.01
+                        && !aovs
+                            .depth
+                            .is_some_and(|d| d[p].is_nan() || d[p] >= EMPTY_DEPTH)
+                })
+                .filter_map(|p| sample(img, aovs, p))
+                .collect()
+        })
+        .collect();
+    let count = rows.iter().map(Vec::len).sum();
+    let mut xs: Vec<[f64; 4]> = Vec::with_capacity(count);
+    let mut ys: [Vec<f64>; 3] = std::array::from_fn(|_| Vec::with_capacity(count));
+    for (c, a, nr) in rows.into_iter().flatten() {
+        xs.push([1.0, nr[0] as f64, nr[1] as f64, nr[2] as f64]);
+        for k in 0..3 {
+            ys[k].push(fast_log2((c[k] + EPS) / (a[k] + EPS)) as f64);
         }
     }
     if xs.len() < MIN_SAMPLES {
@@ -336,12 +495,15 @@ pub fn light(img: &Image, aovs: &Aovs<'_>, inserts: &[f32]) -> Option<Light> {
     // turned away from the sun).
     let mut seen = [0usize; NORMAL_BINS * NORMAL_BINS];
     for x in &xs {
-        seen[normal_bin([x[1], x[2], x[3]])] += 1;
+        seen[normal_bin([x[1] as f32, x[2] as f32, x[3] as f32])] += 1;
     }
-    let mut shading = [[0.0f64; 4]; 3];
-    for (k, ys) in ys.iter().enumerate() {
-        shading[k] = robust_fit(&xs, ys)?;
-    }
+    // The three channels' fits on the caller's pool, side by side.
+    let [y0, y1, y2] = &ys;
+    let (r0, (r1, r2)) = rayon::join(
+        || robust_fit(&xs, y0),
+        || rayon::join(|| robust_fit(&xs, y1), || robust_fit(&xs, y2)),
+    );
+    let shading = [r0?, r1?, r2?];
     Some(Light {
         shading,
         seen,
@@ -360,7 +522,8 @@ pub fn estimate(
     insert: Rect,
 ) -> Option<Estimate> {
     let w = img.width;
-    if mask.len() != w * img.height || insert.is_empty() {
+    let sized = (aovs.samples.width, aovs.samples.height) == (w, img.height);
+    if !sized || mask.len() != w * img.height || insert.is_empty() {
         return None;
     }
     // 2. The insert's colors and what the light makes of its albedo.
@@ -545,14 +708,30 @@ mod tests {
         (img, albedo, normal, mask)
     }
 
+    /// Planar 3-channel `img` interleaved, as a host passes it.
+    fn interleaved(img: &Image) -> Vec<f32> {
+        let n = img.width * img.height;
+        (0..n)
+            .flat_map(|p| [0, 1, 2].map(|k| img.data[k * n + p]))
+            .collect()
+    }
+
+    fn samples_of(albedo: &Image, normal: &Image, rect: Rect) -> (Samples, usize, usize) {
+        let (a, nr) = (interleaved(albedo), interleaved(normal));
+        let (w, h) = (albedo.width, albedo.height);
+        let av = ImageView::from_f32("albedo", &a, w, h, 3).unwrap();
+        let nv = ImageView::from_f32("normal", &nr, w, h, 3).unwrap();
+        Samples::read(&av, &nv, rect, None)
+    }
+
     fn run(img: &Image, albedo: &Image, normal: &Image, mask: &[f32]) -> Option<Estimate> {
+        let rect = super::super::harmonize::insert_rect(mask, W, H).unwrap();
+        let samples = samples_of(albedo, normal, rect).0;
         let aovs = Aovs {
-            albedo,
-            normal,
+            samples: &samples,
             coverage: None,
             depth: None,
         };
-        let rect = super::super::harmonize::insert_rect(mask, W, H).unwrap();
         estimate(img, &aovs, &light(img, &aovs, mask)?, mask, rect)
     }
 
@@ -618,13 +797,53 @@ mod tests {
         assert!(run(&img, &albedo, &normal, &mask).is_none());
         // Wrong size.
         let small = Image::zeros(8, 8, 3);
+        let samples = samples_of(&small, &small, Rect::default()).0;
         let aovs = Aovs {
-            albedo: &small,
-            normal: &normal,
+            samples: &samples,
             coverage: None,
             depth: None,
         };
         assert!(light(&img, &aovs, &mask).is_none());
+        let _ = normal;
+    }
+
+    #[test]
+    fn samples_are_read_where_the_fits_look_and_sanitized() {
+        let (_, mut albedo, mut normal, mask) = scene(|c| c);
+        let rect = super::super::harmonize::insert_rect(&mask, W, H).unwrap();
+        let n = W * H;
+        // Bad samples inside the box, on the lattice and elsewhere.
+        let s = step(W, H, MAX_BACKGROUND_SAMPLES);
+        let (inside, on, off) = (
+            rect.y0 * W + rect.x0,
+            (s / 2) * W + s / 2,
+            (s / 2 + 1) * W + s / 2 + 1,
+        );
+        assert!(!rect.contains(s / 2, s / 2) && !rect.contains(s / 2 + 1, s / 2 + 1));
+        albedo.data[inside] = f32::NAN;
+        albedo.data[n + on] = 7.0;
+        albedo.data[off] = f32::INFINITY;
+        normal.data[2 * n + on] = f32::NAN;
+        let (samples, bad_albedo, bad_normal) = samples_of(&albedo, &normal, rect);
+        // The sample off the lattice and outside the box is not read.
+        assert_eq!((bad_albedo, bad_normal), (1, 1));
+        let at = |p: usize| samples.at(p % W, p / W);
+        assert_eq!(at(inside).unwrap().0[0], 0.0);
+        assert_eq!(at(on).unwrap().0[1], 1.0);
+        assert_eq!(at(on).unwrap().1[2], 0.0);
+        assert!(at(off).is_none());
+        // Every read sample is the image's, everywhere it is read.
+        for y in 0..H {
+            for x in 0..W {
+                let p = y * W + x;
+                if let Some((a, nr)) = samples.at(x, y).filter(|_| ![inside, on].contains(&p)) {
+                    for k in 0..3 {
+                        assert_eq!(a[k], albedo.data[k * n + p]);
+                        assert_eq!(nr[k], normal.data[k * n + p]);
+                    }
+                }
+            }
+        }
     }
 
     #[test]
