@@ -22,6 +22,7 @@ Sequences (``SEQUENCES``; the parameters are fixed, so building is deterministic
 | ``recon_ruins`` | ruins (outdoor) | the same with four views of a colonnade the camera arcs round |
 | ``insert_tone`` | courtyard | insert A with +0.9 stop, warm white balance, more saturation; its shadow present |
 | ``insert_tone_rgb`` | courtyard | the same without the albedo AOV (the frame alone) |
+| ``insert_recon`` | courtyard | ``insert_relight``'s insert in ``recon_courtyard``'s reconstruction (its albedo only) |
 | ``insert_relight`` | courtyard | insert A lit by another sun and sky (low, warm, from the side); shadow present |
 | ``insert_noshadow`` | courtyard | inserts A and B correctly lit, composited over the plate: no contact shadows |
 | ``two_inserts`` | courtyard | A tone-shifted (cool, darker) and B relit, over the plate: no contact shadows |
@@ -57,6 +58,7 @@ SEQUENCES = (
     # reconstruction is drawn from its index here).
     "recon_ruins",
     "insert_tone_rgb",
+    "insert_recon",
 )
 
 TONE_A = {"exposure": 0.9, "wb": [1.22, 0.98, 0.72], "gamma": 1.0, "saturation": 1.25}
@@ -206,13 +208,19 @@ def build(name: str, data: Path = DATA, cache: dict | None = None, frames: int =
         # (Denoising Albedo): every insert sequence but ``insert_tone_rgb``.
         if "albedo" in sc and name != "insert_tone_rgb":
             s["albedo"] = sc["albedo"][:T]
+            if name == "insert_recon":
+                # A reconstruction has no albedo: the host knows it on the
+                # object it renders and inserts, nowhere else.
+                s["albedo"] = s["albedo"] * (sc["mask_a"][:T, ..., None] > 0)
         a, b = sc["mask_a"][:T], sc["mask_b"][:T]
         ab = np.clip(a + b, 0.0, 1.0)
         plate = sc["noinsert_ab"][:T]
         s["mask_shadow"] = degrade.shadow_mask(gt, plate, ab)
-    if name.startswith("recon_"):
+    if name.startswith("recon_") or name == "insert_recon":
+        # ``insert_recon`` reconstructs as ``recon_courtyard`` does.
+        seed = SEQUENCES.index("recon_courtyard" if name == "insert_recon" else name)
         rgba, depth, params = degrade.reconstruction_inputs(
-            np.random.default_rng([2026, 17, SEQUENCES.index(name)]),
+            np.random.default_rng([2026, 17, seed]),
             list(sc["ctx_rgb"]),
             list(sc["ctx_depth"]),
             list(zip(sc["ctx_world_to_camera"], sc["ctx_world_to_ndc"], strict=True)),
@@ -222,6 +230,19 @@ def build(name: str, data: Path = DATA, cache: dict | None = None, frames: int =
         )
         s.update(input=rgba, depth=depth, region="hole", params=params)
         s["about"] = f"sparse-view reconstruction ({len(sc['ctx_rgb'])} views, point splats), {s['kind']}"
+        if name == "insert_recon":
+            # The object is rendered whole (covered) over the reconstruction,
+            # at its own depth.
+            inside = a > 0.5
+            rgb = degrade.composite(rgba, sc["relit"][:T], a)
+            cov = rgba[..., 3] * (1 - a) + a
+            s.update(
+                input=np.concatenate([rgb, cov[..., None]], -1).astype(np.float32),
+                depth=np.where(inside, sc["depth"][:T], depth).astype(np.float32),
+                mask_insert=a,
+                region="insert",
+            )
+            s["about"] = "insert lit by another sun and sky, composited into the courtyard's reconstruction"
     elif name in ("insert_tone", "insert_tone_rgb"):
         s.update(input=np.concatenate([degrade.composite(gt, _tone(gt, TONE_A), a), ones], -1), mask_insert=a)
         s.update(region="insert", about="insert with a tone / white-balance mismatch (shadow present)")

@@ -422,6 +422,39 @@ fn run_ops_on(
         }
     }
     progress.report(0.4)?;
+    let changed = insert_ops(img, input, carry, progress, stages)?;
+
+    // Frames with holes (reconstructions) are stabilized whole: their
+    // covered pixels flicker too. Otherwise only the insert is: the rest is
+    // the renderer's own, already as steady as it rendered it, and blending
+    // it with a resampled history would only soften it.
+    let area = if params.stabilize_all || frame.has_holes() {
+        None
+    } else {
+        Some(changed.unwrap_or_default())
+    };
+    stabilize_with_history(img, input, stages, area);
+    progress.report(1.0)?;
+    Ok(())
+}
+
+/// The insert operations of [`run_ops`] alone: each inserted object's
+/// harmonization (shading toward the host's light, `match_tone`, the color
+/// matrix from the albedo) and the contact shadows, with their carried
+/// state. Returns the area stabilization should blend in a frame without
+/// holes: a recolored insert and a margin around it. The neural backend
+/// runs them on its output for frames with holes and an insert.
+pub fn insert_ops(
+    img: &mut Image,
+    input: &BackendInput<'_>,
+    carry: &mut Carry,
+    progress: &mut Progress<'_>,
+    stages: &mut Stages,
+) -> Result<Option<Rect>> {
+    let frame = input.frame;
+    let params = input.params;
+    let pool = input.pool;
+    let (w, h) = (img.width, img.height);
 
     // The insert's bounding box, shared by harmonization and the shadow.
     let insert = match &frame.insert_mask {
@@ -655,19 +688,7 @@ fn run_ops_on(
         carry.values.remove(SHADOW_KEY);
     }
     progress.report(0.7)?;
-
-    // Frames with holes (reconstructions) are stabilized whole: their
-    // covered pixels flicker too. Otherwise only the insert is: the rest is
-    // the renderer's own, already as steady as it rendered it, and blending
-    // it with a resampled history would only soften it.
-    let area = if params.stabilize_all || frame.has_holes() {
-        None
-    } else {
-        Some(changed.unwrap_or_default())
-    };
-    stabilize_with_history(img, input, stages, area);
-    progress.report(1.0)?;
-    Ok(())
+    Ok(changed)
 }
 
 /// The stabilization step of [`run_ops`] alone (when the session's

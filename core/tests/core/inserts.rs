@@ -611,6 +611,74 @@ fn inserts_with_ids_keep_their_filters_when_they_swap_places() {
     assert!(right < 0.02, "the correct box changed {right:.3} stops");
 }
 
+/// An object inserted into a reconstruction (a frame with holes) under the
+/// neural backend: the network runs (the identity model here), then the
+/// insert operations on its output, so the object graded off its albedo is
+/// brought back as over a render. The `harmonize` stage runs after
+/// `inference` on every frame.
+#[test]
+fn an_insert_in_a_frame_with_holes_is_harmonized_after_the_network() {
+    let k = 4.0 / std::f64::consts::FRAC_1_SQRT_2;
+    let truth = scene_lit(1.5, Some(0.2), Some(k));
+    let mut graded = scene_lit(1.5, Some(0.2), Some(k));
+    let n = W * H;
+    for i in (0..n).filter(|&i| graded.mask[i] > 0.0) {
+        for (c, g) in [2.6f32, 2.2, 1.6].iter().enumerate() {
+            graded.rgb[3 * i + c] *= g;
+        }
+    }
+    // A reconstruction's hole in the ground, away from the object.
+    let coverage: Vec<f32> = (0..n)
+        .map(|i| {
+            let (x, y) = (i % W, i / W);
+            if (8..40).contains(&x) && (H - 30..H - 6).contains(&y) {
+                0.0
+            } else {
+                1.0
+            }
+        })
+        .collect();
+    assert!((0..n).all(|i| coverage[i] == 1.0 || graded.mask[i] == 0.0));
+    let mut params = harmonizer_core::Params::default();
+    for (name, v) in [
+        ("backend", ParamValue::Str("neural".into())),
+        ("denoise", ParamValue::Str("off".into())),
+        ("contact_shadows", ParamValue::Bool(false)),
+    ] {
+        params.set(name, &v).unwrap();
+    }
+    let mut s = Session::new(crate::neural::device_file("identity"), params).unwrap();
+    assert_eq!(s.backend_name(), "neural");
+    let before = {
+        let mut img = Image::zeros(W, H, 3);
+        for i in 0..n {
+            for c in 0..3 {
+                img.data[c * n + i] = graded.rgb[3 * i + c];
+            }
+        }
+        insert_log_error(&img, &truth)
+    };
+    let mut after = f64::MAX;
+    for t in 0..6 {
+        let mut input = input_of(&graded, t, true);
+        input.albedo = Some(ImageView::from_f32("albedo", &graded.albedo, W, H, 3).unwrap());
+        input.normal = Some(ImageView::from_f32("normal", &graded.normal, W, H, 3).unwrap());
+        input.coverage = Some(ImageView::from_f32("coverage", &coverage, W, H, 1).unwrap());
+        let (out, report) = s.process(&input, None).unwrap();
+        let stages: Vec<&str> = report.stages.0.iter().map(|(s, _)| s.as_str()).collect();
+        let at = |name: &str| stages.iter().position(|s| *s == name);
+        assert!(
+            at("inference").is_some() && at("inference") < at("harmonize"),
+            "{stages:?}"
+        );
+        after = insert_log_error(&out, &truth);
+    }
+    assert!(
+        after < 0.2 * before,
+        "insert error {before:.3} -> {after:.3} stops"
+    );
+}
+
 /// Issue 19: with the renderer's albedo and normals, an insert graded a
 /// stop and a half too bright and warm is brought back (its albedo shaded
 /// as the ground's light shades the ground's albedo: on the faces whose

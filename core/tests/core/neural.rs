@@ -48,7 +48,7 @@ fn options(model: ModelSource, memory_limit: usize) -> DeviceOptions {
     }
 }
 
-fn device_file(name: &str) -> Arc<Device> {
+pub(crate) fn device_file(name: &str) -> Arc<Device> {
     Device::new(options(ModelSource::File(fixture(name)), 0)).unwrap()
 }
 
@@ -86,6 +86,11 @@ fn session(device: Arc<Device>, set: &[(&str, ParamValue)]) -> Session {
     params
         .set("neural_clean_frames", &ParamValue::Bool(true))
         .unwrap();
+    // Nor do the insert operations change what the network made of an
+    // insert mask (`inserts` tests them after the network).
+    for k in ["harmonize", "contact_shadows"] {
+        params.set(k, &ParamValue::Bool(false)).unwrap();
+    }
     for (k, v) in set {
         params.set(k, v).unwrap();
     }
@@ -293,8 +298,11 @@ fn run_backend(
     params: &Params,
 ) -> Image {
     // These frames have no holes: the network runs on them only when asked.
+    // The insert operations after it stay off (see `session`).
     let params = &Params {
         neural_clean_frames: true,
+        harmonize: false,
+        contact_shadows: false,
         ..params.clone()
     };
     let mut history = History::default();

@@ -1413,7 +1413,18 @@ impl Backend for Neural {
             return crate::backend::classical::Classical.process(input, carry, progress, stages);
         }
         if !input.params.classical_post {
+            // A frame with holes: the network, then the insert operations
+            // on its output (an object inserted into a reconstruction is
+            // harmonized and casts its shadow as over a render).
+            let (lo, hi) = progress.span();
+            let mid = lo + 0.9 * (hi - lo);
+            progress.set_span(lo, mid);
             let mut img = self.run_frame(input, progress, stages)?;
+            progress.set_span(mid, hi);
+            let done =
+                crate::backend::classical::insert_ops(&mut img, input, carry, progress, stages);
+            progress.set_span(lo, hi);
+            done?;
             if self.model.manifest.stabilize {
                 // The model asks for temporal stabilization of its output.
                 crate::backend::classical::stabilize_with_history(&mut img, input, stages, None);
