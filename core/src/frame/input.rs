@@ -878,6 +878,8 @@ impl PreparedFrame {
         // The denoise stage's albedo and normals, validated as the normals
         // are: non-finite samples are 0 (counted); the albedo is clamped
         // to [0, 1] (Open Image Denoise's range for it).
+        // The insert color matrix's samples are read (below).
+        let sampled = albedo_wanted && input.normal.is_some() && insert.is_some();
         let aux = |v: Option<&ImageView<'_>>, albedo: bool| -> Result<(Option<Image>, usize)> {
             let Some(v) = v else {
                 return Ok((None, 0));
@@ -885,7 +887,7 @@ impl PreparedFrame {
             if !denoise_aux {
                 // The insert color matrix reads its own samples (below),
                 // and counts what it reads.
-                let counted = match albedo && albedo_wanted {
+                let counted = match albedo && sampled {
                     true => 0,
                     false => count_non_finite(pool, v, 3),
                 };
@@ -904,7 +906,7 @@ impl PreparedFrame {
         let (albedo, mut sanitized_albedo) = aux(input.albedo.as_ref(), true)?;
         // The insert color matrix's albedo and normals, where it reads them.
         let insert_aovs = match (&input.albedo, &input.normal, insert) {
-            (Some(a), Some(n), Some(rect)) if albedo_wanted => {
+            (Some(a), Some(n), Some(rect)) if sampled => {
                 let (samples, bad_albedo, _) =
                     crate::ops::albedo_tone::Samples::read(a, n, rect, pool);
                 // The normals are counted whole above.

@@ -187,19 +187,6 @@ impl Samples {
         debug_assert!(normal.width() == w && normal.height() == h);
         let s = step(w, h, MAX_BACKGROUND_SAMPLES);
         let cols = (s / 2..w).step_by(s).len();
-        let fix = |v: &mut [f32]| -> [usize; 2] {
-            let mut bad = [0, 0];
-            for (k, x) in v.iter_mut().enumerate() {
-                let nan = !x.is_finite();
-                bad[k / 3] += usize::from(nan);
-                *x = match (nan, k < 3) {
-                    (true, _) => 0.0,
-                    (false, true) => x.clamp(0.0, 1.0),
-                    (false, false) => *x,
-                };
-            }
-            bad
-        };
         let mut bad = [0usize; 2];
         let mut lattice = Vec::with_capacity(cols * (s / 2..h).step_by(s).len());
         for y in (s / 2..h).step_by(s) {
@@ -209,8 +196,11 @@ impl Samples {
                     v[k] = albedo.get(x, y, k);
                     v[3 + k] = normal.get(x, y, k);
                 }
-                let b = fix(&mut v);
-                bad = [bad[0] + b[0], bad[1] + b[1]];
+                // Counted once: a point in the box is counted there.
+                let counted = usize::from(!insert.contains(x, y));
+                for (k, x) in v.iter_mut().enumerate() {
+                    bad[k / 3] += counted * usize::from(sanitize(x, k < 3));
+                }
                 lattice.push(v);
             }
         }
@@ -227,13 +217,7 @@ impl Samples {
             let mut bad = [0, 0];
             for (k, out) in row.chunks_mut(rw).enumerate() {
                 for x in out {
-                    let nan = !x.is_finite();
-                    bad[k / 3] += usize::from(nan);
-                    *x = match (nan, k < 3) {
-                        (true, _) => 0.0,
-                        (false, true) => x.clamp(0.0, 1.0),
-                        (false, false) => *x,
-                    };
+                    bad[k / 3] += usize::from(sanitize(x, k < 3));
                 }
             }
             bad
@@ -290,6 +274,18 @@ impl Samples {
             .get((y - h) / self.step * self.cols + (x - h) / self.step)?;
         Some(([v[0], v[1], v[2]], [v[3], v[4], v[5]]))
     }
+}
+
+/// A sample of [`Samples`] made readable: non-finite is 0 (returns whether
+/// it was), an albedo sample is clamped to `[0, 1]`.
+fn sanitize(x: &mut f32, albedo: bool) -> bool {
+    let bad = !x.is_finite();
+    *x = match (bad, albedo) {
+        (true, _) => 0.0,
+        (false, true) => x.clamp(0.0, 1.0),
+        (false, false) => *x,
+    };
+    bad
 }
 
 /// The AOVs [`estimate`] reads besides the color.

@@ -611,6 +611,20 @@ fn inserts_with_ids_keep_their_filters_when_they_swap_places() {
     assert!(right < 0.02, "the correct box changed {right:.3} stops");
 }
 
+/// The lit scene of the albedo tests, and the same with its insert graded
+/// off its albedo (brighter, warmer).
+fn graded_insert() -> (Scene, Scene) {
+    let k = 4.0 / std::f64::consts::FRAC_1_SQRT_2;
+    let truth = scene_lit(1.5, Some(0.2), Some(k));
+    let mut graded = scene_lit(1.5, Some(0.2), Some(k));
+    for i in (0..W * H).filter(|&i| graded.mask[i] > 0.0) {
+        for (c, g) in [2.6f32, 2.2, 1.6].iter().enumerate() {
+            graded.rgb[3 * i + c] *= g;
+        }
+    }
+    (truth, graded)
+}
+
 /// An object inserted into a reconstruction (a frame with holes) under the
 /// neural backend: the network runs (the identity model here), then the
 /// insert operations on its output, so the object graded off its albedo is
@@ -618,15 +632,8 @@ fn inserts_with_ids_keep_their_filters_when_they_swap_places() {
 /// `inference` on every frame.
 #[test]
 fn an_insert_in_a_frame_with_holes_is_harmonized_after_the_network() {
-    let k = 4.0 / std::f64::consts::FRAC_1_SQRT_2;
-    let truth = scene_lit(1.5, Some(0.2), Some(k));
-    let mut graded = scene_lit(1.5, Some(0.2), Some(k));
+    let (truth, graded) = graded_insert();
     let n = W * H;
-    for i in (0..n).filter(|&i| graded.mask[i] > 0.0) {
-        for (c, g) in [2.6f32, 2.2, 1.6].iter().enumerate() {
-            graded.rgb[3 * i + c] *= g;
-        }
-    }
     // A reconstruction's hole in the ground, away from the object.
     let coverage: Vec<f32> = (0..n)
         .map(|i| {
@@ -687,15 +694,8 @@ fn an_insert_in_a_frame_with_holes_is_harmonized_after_the_network() {
 /// came; without normals, or with `albedo_tone` off, nothing changes.
 #[test]
 fn an_insert_graded_off_its_albedo_is_brought_back() {
-    let k = 4.0 / std::f64::consts::FRAC_1_SQRT_2;
-    let truth = scene_lit(1.5, Some(0.2), Some(k));
-    let mut graded = scene_lit(1.5, Some(0.2), Some(k));
+    let (truth, graded) = graded_insert();
     let n = W * H;
-    for i in (0..n).filter(|&i| graded.mask[i] > 0.0) {
-        for (c, g) in [2.6f32, 2.2, 1.6].iter().enumerate() {
-            graded.rgb[3 * i + c] *= g;
-        }
-    }
     let no_shadows = ("contact_shadows", ParamValue::Bool(false));
     let input_image = |sc: &Scene| {
         let mut img = Image::zeros(W, H, 3);
@@ -716,6 +716,35 @@ fn an_insert_graded_off_its_albedo_is_brought_back() {
         after < 0.2 * before,
         "insert error {before:.3} -> {after:.3} stops"
     );
+    // A NaN albedo sample the matrix reads (on the object) is replaced and
+    // warned about; so is one anywhere when no object is in the frame (an
+    // empty mask: nothing is sampled, the albedo is checked whole).
+    let on_object = (0..n).find(|&i| graded.mask[i] == 1.0).unwrap();
+    let empty = vec![0.0f32; n];
+    // The denoise stage off: it would read the albedo whole itself.
+    let mut s = session(&[
+        no_shadows.clone(),
+        ("denoise", ParamValue::Str("off".into())),
+    ]);
+    for (mask, bad) in [(&graded.mask, on_object), (&empty, n - W - 2)] {
+        let mut albedo = graded.albedo.clone();
+        albedo[3 * bad] = f32::NAN;
+        let mut input = input_of(&graded, 6, true);
+        input.insert_mask = Some(ImageView::from_f32("insert", mask, W, H, 1).unwrap());
+        input.albedo = Some(ImageView::from_f32("albedo", &albedo, W, H, 3).unwrap());
+        input.normal = Some(ImageView::from_f32("normal", &graded.normal, W, H, 3).unwrap());
+        input.reset = true;
+        let (out, report) = s.process(&input, None).unwrap();
+        assert!(
+            report
+                .warnings
+                .iter()
+                .any(|w| w.contains("1 albedo samples were NaN")),
+            "{:?}",
+            report.warnings
+        );
+        assert!(out.data.iter().all(|v| v.is_finite()));
+    }
     // Left alone: the correctly lit insert; the graded one without normals
     // or with `albedo_tone` off.
     let off = ("albedo_tone", ParamValue::Bool(false));
