@@ -570,6 +570,42 @@ mod tests {
     }
 
     #[test]
+    fn spans_equal_sample_by_sample_reads() {
+        // f32 and f16, packed and strided, aligned and one byte in; every
+        // span of every row.
+        let (w, h) = (7, 3);
+        let vals: Vec<f32> = (0..w * h * 4).map(|i| i as f32 * 0.25 - 3.0).collect();
+        let f32b: Vec<u8> = vals.iter().flat_map(|v| v.to_ne_bytes()).collect();
+        let f16b: Vec<u8> = vals
+            .iter()
+            .flat_map(|v| half::f16::from_f32(*v).to_bits().to_ne_bytes())
+            .collect();
+        let mut shifted = vec![0u8];
+        shifted.extend_from_slice(&f32b);
+        for (bytes, format, ch, stride) in [
+            (&f32b[..], PixelFormat::F32, 3, 16),
+            (&f32b[..], PixelFormat::F32, 4, 0),
+            (&shifted[1..], PixelFormat::F32, 3, 16),
+            (&f16b[..], PixelFormat::F16, 3, 8),
+            (&f16b[..], PixelFormat::F16, 1, 0),
+        ] {
+            let v = ImageView::new("x", bytes, format, w, h, ch, 0, stride, 0).unwrap();
+            for y in 0..h {
+                for c in 0..ch {
+                    for x0 in 0..w {
+                        for n in 0..=w - x0 {
+                            let mut got = vec![f32::NAN; n];
+                            v.read_span(y, x0, c, &mut got);
+                            let want: Vec<f32> = (x0..x0 + n).map(|x| v.get(x, y, c)).collect();
+                            assert_eq!(got, want, "{format:?} {ch} ch, stride {stride}");
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
     fn short_buffers_and_overflow_are_refused() {
         let data = vec![0.0f32; 11];
         let e = ImageView::from_f32("depth", &data, 4, 3, 1)
