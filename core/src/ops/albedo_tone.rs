@@ -187,11 +187,12 @@ impl Samples {
         debug_assert!(normal.width() == w && normal.height() == h);
         let s = step(w, h, MAX_BACKGROUND_SAMPLES);
         let cols = (s / 2..w).step_by(s).len();
-        let mut bad = [0usize; 2];
-        let mut lattice = Vec::with_capacity(cols * (s / 2..h).step_by(s).len());
-        for y in (s / 2..h).step_by(s) {
-            for x in (s / 2..w).step_by(s) {
-                let mut v = [0.0f32; 6];
+        // The lattice's rows, side by side on the pool.
+        let lattice_row = |(i, row): (usize, &mut [[f32; 6]])| -> [usize; 2] {
+            let y = s / 2 + i * s;
+            let mut bad = [0, 0];
+            for (j, v) in row.iter_mut().enumerate() {
+                let x = s / 2 + j * s;
                 for k in 0..3 {
                     v[k] = albedo.get(x, y, k);
                     v[3 + k] = normal.get(x, y, k);
@@ -201,9 +202,26 @@ impl Samples {
                 for (k, x) in v.iter_mut().enumerate() {
                     bad[k / 3] += counted * usize::from(sanitize(x, k < 3));
                 }
-                lattice.push(v);
             }
-        }
+            bad
+        };
+        let add = |a: [usize; 2], b: [usize; 2]| [a[0] + b[0], a[1] + b[1]];
+        let mut lattice = vec![[0.0f32; 6]; cols * (s / 2..h).step_by(s).len()];
+        let mut bad = match (cols, pool) {
+            (0, _) => [0, 0],
+            (_, Some(pool)) => pool.install(|| {
+                lattice
+                    .par_chunks_mut(cols)
+                    .enumerate()
+                    .map(lattice_row)
+                    .reduce(|| [0, 0], add)
+            }),
+            (_, None) => lattice
+                .chunks_mut(cols)
+                .enumerate()
+                .map(lattice_row)
+                .fold([0, 0], add),
+        };
         let rw = insert.width();
         let mut dense = vec![0.0f32; 6 * rw * insert.height()];
         let read_row = |(dy, row): (usize, &mut [f32])| -> [usize; 2] {
@@ -222,7 +240,6 @@ impl Samples {
             }
             bad
         };
-        let add = |a: [usize; 2], b: [usize; 2]| [a[0] + b[0], a[1] + b[1]];
         let rows = match (rw, pool) {
             (0, _) => [0, 0],
             (_, Some(pool)) => pool.install(|| {
