@@ -875,20 +875,27 @@ impl PreparedFrame {
             }
             None => None,
         };
+        // The insert color matrix's albedo and normals, where it reads them
+        // (the normals are counted whole above).
+        let (insert_aovs, bad_sampled) = match (&input.albedo, &input.normal, insert) {
+            (Some(a), Some(n), Some(rect)) if albedo_wanted => {
+                let (samples, bad_albedo, _) =
+                    crate::ops::albedo_tone::Samples::read(a, n, rect, pool);
+                (Some(samples), bad_albedo)
+            }
+            _ => (None, 0),
+        };
         // The denoise stage's albedo and normals, validated as the normals
         // are: non-finite samples are 0 (counted); the albedo is clamped
         // to [0, 1] (Open Image Denoise's range for it).
-        // The insert color matrix's samples are read (below).
-        let sampled = albedo_wanted && input.normal.is_some() && insert.is_some();
         let aux = |v: Option<&ImageView<'_>>, albedo: bool| -> Result<(Option<Image>, usize)> {
             let Some(v) = v else {
                 return Ok((None, 0));
             };
             if !denoise_aux {
-                // The insert color matrix reads its own samples (below),
-                // and counts what it reads.
-                let counted = match albedo && sampled {
-                    true => 0,
+                // The insert color matrix counted what it read.
+                let counted = match albedo && insert_aovs.is_some() {
+                    true => bad_sampled,
                     false => count_non_finite(pool, v, 3),
                 };
                 return Ok((None, counted));
@@ -903,20 +910,7 @@ impl PreparedFrame {
             });
             Ok((Some(img), bad))
         };
-        let (albedo, mut sanitized_albedo) = aux(input.albedo.as_ref(), true)?;
-        // The insert color matrix's albedo and normals, where it reads them.
-        let insert_aovs = match (&input.albedo, &input.normal, insert) {
-            (Some(a), Some(n), Some(rect)) if sampled => {
-                let (samples, bad_albedo, _) =
-                    crate::ops::albedo_tone::Samples::read(a, n, rect, pool);
-                // The normals are counted whole above.
-                if !denoise_aux {
-                    sanitized_albedo += bad_albedo;
-                }
-                Some(samples)
-            }
-            _ => None,
-        };
+        let (albedo, sanitized_albedo) = aux(input.albedo.as_ref(), true)?;
         let (denoise_normal, bad_denoise_normals) = aux(input.denoise_normal.as_ref(), false)?;
         sanitized_normals += bad_denoise_normals;
         let limit = 4.0 * (w.max(h) as f32);

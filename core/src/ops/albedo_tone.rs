@@ -205,23 +205,8 @@ impl Samples {
             }
             bad
         };
-        let add = |a: [usize; 2], b: [usize; 2]| [a[0] + b[0], a[1] + b[1]];
         let mut lattice = vec![[0.0f32; 6]; cols * (s / 2..h).step_by(s).len()];
-        let mut bad = match (cols, pool) {
-            (0, _) => [0, 0],
-            (_, Some(pool)) => pool.install(|| {
-                lattice
-                    .par_chunks_mut(cols)
-                    .enumerate()
-                    .map(lattice_row)
-                    .reduce(|| [0, 0], add)
-            }),
-            (_, None) => lattice
-                .chunks_mut(cols)
-                .enumerate()
-                .map(lattice_row)
-                .fold([0, 0], add),
-        };
+        let lattice_bad = by_rows(&mut lattice, cols, pool, lattice_row);
         let rw = insert.width();
         let mut dense = vec![0.0f32; 6 * rw * insert.height()];
         let read_row = |(dy, row): (usize, &mut [f32])| -> [usize; 2] {
@@ -240,22 +225,8 @@ impl Samples {
             }
             bad
         };
-        let rows = match (rw, pool) {
-            (0, _) => [0, 0],
-            (_, Some(pool)) => pool.install(|| {
-                dense
-                    .par_chunks_mut(6 * rw)
-                    .enumerate()
-                    .map(read_row)
-                    .reduce(|| [0, 0], add)
-            }),
-            (_, None) => dense
-                .chunks_mut(6 * rw)
-                .enumerate()
-                .map(read_row)
-                .fold([0, 0], add),
-        };
-        bad = add(bad, rows);
+        let dense_bad = by_rows(&mut dense, 6 * rw, pool, read_row);
+        let bad = [0, 1].map(|k| lattice_bad[k] + dense_bad[k]);
         let samples = Samples {
             width: w,
             height: h,
@@ -290,6 +261,27 @@ impl Samples {
             .lattice
             .get((y - h) / self.step * self.cols + (x - h) / self.step)?;
         Some(([v[0], v[1], v[2]], [v[3], v[4], v[5]]))
+    }
+}
+
+/// `f` on each row (`len` items) of `buf`, on `pool` when given; the
+/// counts it returns, summed (empty rows: none).
+fn by_rows<T: Send>(
+    buf: &mut [T],
+    len: usize,
+    pool: Option<&rayon::ThreadPool>,
+    f: impl Fn((usize, &mut [T])) -> [usize; 2] + Sync + Send,
+) -> [usize; 2] {
+    let add = |a: [usize; 2], b: [usize; 2]| [a[0] + b[0], a[1] + b[1]];
+    match (len, pool) {
+        (0, _) => [0, 0],
+        (_, Some(pool)) => pool.install(|| {
+            buf.par_chunks_mut(len)
+                .enumerate()
+                .map(&f)
+                .reduce(|| [0, 0], add)
+        }),
+        (_, None) => buf.chunks_mut(len).enumerate().map(&f).fold([0, 0], add),
     }
 }
 
