@@ -85,6 +85,14 @@ class RENDER_PT_harmonizer(bpy.types.Panel):
                 col.label(text="No Sun light: no cast shadows", icon="INFO")
             else:
                 col.label(text=f"{best[0].name} (strength {best[1]:g})", icon="LIGHT_SUN")
+        if s.light_source != "OFF":
+            col.prop(s, "light_ratio")
+            if s.light_ratio <= 0:
+                auto = light.scene_ratio(vl, scene.world) if s.light_source == "AUTO" and vl is not None else None
+                if auto is None:
+                    col.label(text="Sun to Sky: measured from each frame", icon="INFO")
+                else:
+                    col.label(text=f"Sun to Sky {auto:.2f} (Sun and World)", icon="WORLD")
 
         col.separator()
         col.prop_search(s, "view_layer", scene, "view_layers")

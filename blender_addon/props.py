@@ -144,6 +144,17 @@ class HarmonizerSceneSettings(bpy.types.PropertyGroup):
         items=LIGHT_SOURCES,
         default="AUTO",
     )
+    light_ratio: FloatProperty(
+        name="Sun to Sky",
+        description=(
+            "The Sun's light against the sky's: irradiance on a surface facing the Sun over that on a "
+            "surface in its shadow. 0: from the Sun's strength and the World where it says its light "
+            "(a color or an environment image), else measured from each frame's own shadows"
+        ),
+        default=0.0,
+        min=0.0,
+        max=12.0,
+    )
     light_direction: FloatVectorProperty(
         name="Direction",
         description="Direction toward the light, in world space (Z up); normalized when used",

@@ -98,6 +98,12 @@ class Runner:
         self.manual_light = light.manual_direction(s.light_direction)
         if self.light_source == "MANUAL" and self.manual_light is None:
             self.notes.append(("WARNING", "Harmonizer: the manual light direction is (0, 0, 0): no cast shadows"))
+        #: The session's ``light_ratio`` (see ``light.scene_ratio``), None
+        #: to let the library measure it.
+        self.light_ratio = light_ratio_of(s, scene.view_layers.get(view_layer), scene.world)
+        extra = {} if self.light_ratio is None else {"light_ratio": self.light_ratio}
+        if self.light_ratio is not None:
+            self.notes.append(("INFO", f"Harmonizer: Sun to Sky {self.light_ratio:.2f}"))
         self._messages: list[tuple[str, str]] = []
         self.device = hz.Device(threads=s.threads, ort_library=deps.onnxruntime_library())
         try:
@@ -115,6 +121,7 @@ class Runner:
                 denoise_quality=s.denoise_quality,
                 samples=self.samples,
                 on_message=self._on_message,
+                **extra,
             )
         except BaseException:
             self.device.close()
@@ -230,3 +237,14 @@ def camera_matrices(scene: bpy.types.Scene, depsgraph=None):
     """OpenEXR worldToCamera/worldToNDC of the scene camera (see ``camera_params``), or None."""
     params = camera_params(scene, depsgraph)
     return None if params is None else processor.blender_camera_matrices(params)
+
+
+def light_ratio_of(s, view_layer: bpy.types.ViewLayer | None, world) -> float | None:
+    """The panel's *Sun to Sky* when set; else, with the Light on *Scene
+    Sun*, the ratio of the Sun's light to the World's where the World says
+    it (``light.scene_ratio``); else None (the library measures it)."""
+    if s.light_ratio > 0:
+        return float(s.light_ratio)
+    if s.light_source != "AUTO" or view_layer is None:
+        return None
+    return light.scene_ratio(view_layer, world)

@@ -194,6 +194,17 @@ pub struct Params {
     /// `light_space`). With it (and a camera) inserts cast shadows away
     /// from it; hosts fill it from the scene's sun or brightest light.
     pub light_direction: Option<[f32; 3]>,
+    /// The scene's direct-to-ambient light ratio (`light_ratio`, at least
+    /// 0; 0, the default: unknown): the dominant light's irradiance on a
+    /// surface facing it over the ambient irradiance (sky, dome) on a
+    /// surface in its shadow, `k` in `ambient * (1 + k * n.l)`. Hosts fill
+    /// it from their lights (a sun's strength against the world's). The
+    /// shading correction (`relight`) takes the scene's own ratio from its
+    /// shadows on a render, since those include the bounce light the
+    /// host's lights do not tell; it takes this one on frames with holes
+    /// (a reconstruction's depth is too rough to trace shadows through) and
+    /// where the frame shows no shadow of its own.
+    pub light_ratio: f32,
     /// Space of `light_direction` (`light_space`: "world", the default, or
     /// "camera": OpenEXR camera space, +x right, +y up, +z forward).
     pub light_space: LightSpace,
@@ -261,6 +272,7 @@ impl Default for Params {
             contact_shadows: true,
             shadow_strength: 0.6,
             light_direction: None,
+            light_ratio: 0.0,
             light_space: LightSpace::World,
             stabilize: true,
             temporal_blend: 0.6,
@@ -296,6 +308,7 @@ pub const PARAM_NAMES: &[&str] = &[
     "contact_shadows",
     "shadow_strength",
     "light_direction",
+    "light_ratio",
     "light_space",
     "stabilize",
     "temporal_blend",
@@ -415,6 +428,9 @@ impl Params {
                 self.light_direction = crate::ops::cast_shadow::parse_direction(want_str(name, v)?)
                     .map_err(|e| Error::invalid(format!("parameter light_direction: {e}")))?
             }
+            "light_ratio" => {
+                self.light_ratio = want_float(name, v, 0.0, crate::ops::relight::MAX_RATIO as f64)?
+            }
             "light_space" => {
                 self.light_space = match want_str(name, v)? {
                     "world" => LightSpace::World,
@@ -491,6 +507,7 @@ impl Params {
                     .map(|[x, y, z]| format!("{x}, {y}, {z}"))
                     .unwrap_or_default(),
             ),
+            "light_ratio" => ParamValue::Float(self.light_ratio as f64),
             "light_space" => ParamValue::Str(
                 match self.light_space {
                     LightSpace::World => "world",

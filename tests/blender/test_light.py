@@ -415,3 +415,109 @@ def test_a_glowing_insert_is_brought_back_by_its_albedo(addon, tmp_root):
         assert raw > 0.5 and enh < 0.6 * raw, errors
     for raw, enh in errors["off"]:
         assert abs(enh - raw) < 0.05 * raw, errors
+
+
+def _session_ratio(addon, scene) -> float:
+    runner = addon.runtime.Runner(scene)
+    try:
+        return float(runner.session.get("light_ratio"))
+    finally:
+        runner.close()
+
+
+def test_sun_to_sky_reaches_the_session(addon, tmp_root):
+    """Issue 19: the session's ``light_ratio`` is the Sun's irradiance over
+    half the World's where the World says its light (a color, an environment
+    image), the panel's Sun to Sky when set, and unset (0: the library
+    measures it) for a Sky Texture or with the Light off."""
+    scene, draw = _panel(addon, tmp_root, "sun_to_sky")
+    s = scene.harmonizer
+    # The fixture: a Sun of strength 3 (white) under a World of color
+    # (0.25, 0.35, 0.55) at strength 0.6.
+    world_lum = 0.2126 * 0.25 + 0.7152 * 0.35 + 0.0722 * 0.55
+    want = 3.0 / (0.5 * math.pi * 0.6 * world_lum)
+    assert _session_ratio(addon, scene) == pytest.approx(want, rel=1e-5)
+    assert f"Sun to Sky {want:.2f} (Sun and World)" in draw().labels
+    assert "light_ratio" in draw().props
+
+    # An environment image: its upper half gives the light (cosine-weighted),
+    # the lower half (below the horizon) none.
+    img = bpy.data.images.new("sky_probe", 64, 32, float_buffer=True)
+    px = np.zeros((32, 64, 4), np.float32)
+    px[..., 3] = 1.0
+    px[16:, :, :3] = 0.5  # rows from the bottom: the upper half
+    img.pixels.foreach_set(px.ravel())
+    nt = scene.world.node_tree
+    env = nt.nodes.new("ShaderNodeTexEnvironment")
+    env.image = img
+    nt.links.new(env.outputs["Color"], nt.nodes["Background"].inputs["Color"])
+    got = _session_ratio(addon, scene)
+    assert got == pytest.approx(3.0 / (0.5 * math.pi * 0.6 * 0.5), rel=0.01)
+
+    # A Sky Texture does not say its light: the library measures it.
+    sky = nt.nodes.new("ShaderNodeTexSky")
+    nt.links.new(sky.outputs["Color"], nt.nodes["Background"].inputs["Color"])
+    assert _session_ratio(addon, scene) == 0.0
+    assert "Sun to Sky: measured from each frame" in draw().labels
+    # The user's value wins; with the Light off, nothing is passed.
+    s.light_ratio = 2.5
+    assert _session_ratio(addon, scene) == pytest.approx(2.5)
+    s.light_ratio = 0.0
+    nt.links.new(env.outputs["Color"], nt.nodes["Background"].inputs["Color"])
+    s.light_source = "OFF"
+    assert _session_ratio(addon, scene) == 0.0
+    assert "light_ratio" not in draw().props
+
+
+def test_sun_to_sky_is_what_cycles_renders(addon, tmp_root):
+    """The ratio's units are Cycles': a white diffuse floor under the Sun
+    alone (overhead) against under the World alone renders half the ratio
+    the extension passes (its ambient is half the sky's)."""
+    scene = fixture.build(os.path.join(tmp_root, "sun_to_sky_probe", "frame_####.exr"))
+    want = _session_ratio(addon, scene)
+    probe = bpy.data.scenes.new("sun_to_sky_probe")
+    probe.render.engine = "CYCLES"
+    probe.cycles.device = "CPU"
+    probe.cycles.samples = 64
+    probe.render.resolution_x = probe.render.resolution_y = 16
+    probe.view_settings.view_transform = "Standard"
+    probe.render.image_settings.file_format = "OPEN_EXR"
+    mesh = bpy.data.meshes.new("floor")
+    mesh.from_pydata([(-4, -4, 0), (4, -4, 0), (4, 4, 0), (-4, 4, 0)], [], [(0, 1, 2, 3)])
+    mat = bpy.data.materials.new("white")
+    mat.use_nodes = True
+    nt = mat.node_tree
+    nt.nodes.clear()
+    diffuse = nt.nodes.new("ShaderNodeBsdfDiffuse")
+    diffuse.inputs["Color"].default_value = (1.0, 1.0, 1.0, 1.0)
+    out = nt.nodes.new("ShaderNodeOutputMaterial")
+    nt.links.new(diffuse.outputs["BSDF"], out.inputs["Surface"])
+    mesh.materials.append(mat)
+    probe.collection.objects.link(bpy.data.objects.new("floor", mesh))
+    cam = bpy.data.cameras.new("top")
+    cam.type = "ORTHO"
+    cam.ortho_scale = 2.0
+    cam_obj = bpy.data.objects.new("top", cam)
+    cam_obj.location = (0.0, 0.0, 5.0)
+    probe.collection.objects.link(cam_obj)
+    probe.camera = cam_obj
+    sun = bpy.data.objects.new("probe_sun", bpy.data.objects["Sun"].data.copy())
+    probe.collection.objects.link(sun)  # rotation 0: straight down
+
+    def mean_luminance(world, with_sun: bool, name: str) -> float:
+        probe.world = world
+        sun.hide_render = not with_sun
+        probe.render.filepath = os.path.join(tmp_root, "sun_to_sky_probe", f"{name}.exr")
+        assert bpy.ops.render.render(write_still=True, scene=probe.name) == {"FINISHED"}
+        chans, _ = read_exr(probe.render.filepath)
+        rgb = [next(v for k, v in chans.items() if k.split(".")[-1] == c) for c in "RGB"]
+        return float(np.mean(0.2126 * rgb[0] + 0.7152 * rgb[1] + 0.0722 * rgb[2]))
+
+    # Blender 5.0 renders a World's nodes (a new World's Background is a
+    # grey of 0.05): black through its Background.
+    black = bpy.data.worlds.new("black")
+    black.use_nodes = True
+    black.node_tree.nodes["Background"].inputs["Strength"].default_value = 0.0
+    sun_alone = mean_luminance(black, True, "sun")
+    sky_alone = mean_luminance(scene.world, False, "sky")
+    assert 2.0 * sun_alone / sky_alone == pytest.approx(want, rel=0.03), (sun_alone, sky_alone, want)

@@ -292,3 +292,74 @@ def test_cast_shadow_lands_away_from_the_stage_sun(shot: Path) -> None:
     print(f"\nshot, frame 1003, output with the Sun / without: {ratios}")
     assert ratios["shadow"] < 0.8 and ratios["shadow_far"] < 0.8, ratios
     assert abs(ratios["lit_side"] - 1.0) < 0.02, ratios
+
+
+def _ratio_values(stage_path: Path, options: Options) -> list[tuple[float, object]]:
+    """(session light_ratio, FrameResult) for frames 1-3 of the product."""
+    stage = Usd.Stage.Open(str(stage_path))
+    info = resolve(stage)
+    device = make_device(options)
+    out = []
+    try:
+        runner = ProductRunner(info.products[0], info, device, options)
+        try:
+            for f in FRAMES:
+                r = runner.process_frame(f)
+                out.append((runner.session.get("light_ratio"), r))
+        finally:
+            runner.close()
+    finally:
+        device.close()
+    return out
+
+
+def test_light_ratio_is_the_sun_over_the_dome(tmp_path: Path) -> None:
+    """Issue 19: the session's ``light_ratio`` is the brightest
+    DistantLight's irradiance over half the DomeLights' (pi times their
+    radiance), read at each frame; ``harmonizer:lightRatio`` overrides it;
+    a textured dome, no dome or no light leave it to the library (0)."""
+    stage = _stage(tmp_path)
+    _distant(stage, "/World/Sun", 2.0, exposure=1.0)  # 4, white
+    _distant(stage, "/World/Fill", 1.5)
+    dome = UsdLux.DomeLight.Define(stage, "/World/Sky")
+    dome.CreateIntensityAttr(0.5)
+    dome.CreateColorAttr(Gf.Vec3f(0.4, 0.6, 1.0))
+    dome.GetIntensityAttr().Set(1.0, Usd.TimeCode(3))
+    dome.GetIntensityAttr().Set(0.5, Usd.TimeCode(1))
+    stage.GetRootLayer().Save()
+    path = tmp_path / "stage.usda"
+    luma = 0.2126 * 0.4 + 0.7152 * 0.6 + 0.0722 * 1.0
+    # The ambient: half a whole sky's irradiance (pi times the radiance).
+    want = {f: 4.0 / (0.5 * math.pi * i * luma) for f, i in ((1, 0.5), (2, 0.75), (3, 1.0))}
+    got = _ratio_values(path, Options(backend="bypass", out_dir=tmp_path / "a"))
+    for f, (param, r) in zip(FRAMES, got, strict=True):
+        assert param == pytest.approx(want[f], rel=1e-5), f
+        assert r.light_ratio == pytest.approx(want[f], rel=1e-6)
+        assert r.light_ratio_source == "DistantLight /World/Sun over DomeLight /World/Sky"
+        attrs = read_exr(r.output, "out").attributes()
+        assert float(attrs["harmonizer:lightRatio"]) == pytest.approx(want[f], rel=1e-6)
+    # The override on the product wins; 0 there hands it to the library.
+    stage = Usd.Stage.Open(str(path))
+    attr = stage.GetPrimAtPath("/Render/Products/beauty").CreateAttribute(
+        "harmonizer:lightRatio", Sdf.ValueTypeNames.Float
+    )
+    attr.Set(2.5)
+    stage.GetRootLayer().Save()
+    got = _ratio_values(path, Options(backend="bypass", out_dir=tmp_path / "b"))
+    assert all(p == pytest.approx(2.5) for p, _ in got)
+    attr.Set(0.0)
+    stage.GetRootLayer().Save()
+    got = _ratio_values(path, Options(backend="bypass", out_dir=tmp_path / "c"))
+    assert all(p == 0.0 and r.light_ratio is None for p, r in got)
+    attr.Set(-1.0)
+    stage.GetRootLayer().Save()
+    with pytest.raises(Exception, match="lightRatio"):
+        _ratio_values(path, Options(backend="bypass", out_dir=tmp_path / "d"))
+    attr.Clear()
+    # A textured dome does not say its light plainly; no light, no ratio.
+    UsdLux.DomeLight(stage.GetPrimAtPath("/World/Sky")).CreateTextureFileAttr(Sdf.AssetPath("sky.exr"))
+    stage.GetRootLayer().Save()
+    got = _ratio_values(path, Options(backend="bypass", out_dir=tmp_path / "e"))
+    assert all(p == 0.0 and "has a texture" in r.light_ratio_source for p, r in got)
+    got = _ratio_values(path, Options(backend="bypass", light="none", out_dir=tmp_path / "f"))
+    assert all(p == 0.0 for p, _ in got)

@@ -104,7 +104,7 @@ fn shadows(
         .and_then(|(l, camera)| cast_shadow::cast_shadow_map(mask, depth, rect, camera, l, w, h));
     // How dark a shadow is here, from the scene's own shadows.
     let measured_strength = match (&cast, light) {
-        (Some(_), Some((l, camera))) => scene.get(img, mask, depth, camera, l).map(|s| {
+        (Some(_), Some((l, camera))) => scene.get(img, mask, depth, input, camera, l).map(|s| {
             (1.0 - (-s.stops).exp2()).clamp(MIN_STRENGTH, params.shadow_strength.max(MIN_STRENGTH))
         }),
         _ => None,
@@ -154,10 +154,17 @@ fn shadows(
     area
 }
 
-/// The scene's own light ([`cast_shadow::scene_light`]), measured at most
-/// once per frame: by the first of the shading correction and the cast
-/// shadow that needs it (the insert, mask above 0.5, is left out of it, so
-/// harmonizing the insert in between does not change it).
+/// The scene's light, found at most once per frame: by the first of the
+/// shading correction and the cast shadow that needs it (the insert, mask
+/// above 0.5, is left out of the measure, so harmonizing the insert in
+/// between does not change it).
+///
+/// Measured from the frame's own shadows ([`cast_shadow::scene_light`]),
+/// except where the host gives the ratio (`light_ratio`) and the frame has
+/// holes (a reconstruction's depth is too rough to trace its shadows:
+/// out of domain the measure read a third of a render's ratio there) or
+/// shows no shadow of its own: then the host's ratio, at the facing the
+/// measure found (else [`relight::GAP_FACING`]).
 #[derive(Debug, Default)]
 struct SceneLightOnce(Option<Option<cast_shadow::SceneLight>>);
 
@@ -167,18 +174,28 @@ impl SceneLightOnce {
         img: &Image,
         mask: &[f32],
         depth: &[f32],
+        input: &BackendInput<'_>,
         camera: &crate::frame::Camera,
         light: glam::DVec3,
     ) -> Option<cast_shadow::SceneLight> {
-        *self
-            .0
-            .get_or_insert_with(|| cast_shadow::scene_light(img, Some(mask), depth, camera, light))
+        *self.0.get_or_insert_with(|| {
+            let measured = cast_shadow::scene_light(img, Some(mask), depth, camera, light);
+            let host = input.params.light_ratio;
+            if host <= 0.0 || (measured.is_some() && !input.frame.has_holes()) {
+                return measured;
+            }
+            let facing = measured.map_or(relight::GAP_FACING, |s| s.facing);
+            Some(cast_shadow::SceneLight {
+                stops: (1.0 + host * facing).log2(),
+                facing,
+            })
+        })
     }
 }
 
 /// The scene's direct-to-ambient ratio for the shading correction: from its
-/// own shadows when some are in view, else from `shadow_strength` (a shadow
-/// taking that share of the light, on ground facing the light).
+/// light ([`SceneLightOnce`]) when known, else from `shadow_strength` (a
+/// shadow taking that share of the light, on ground facing the light).
 fn scene_ratio(measured: Option<cast_shadow::SceneLight>, shadow_strength: f32) -> f32 {
     match measured {
         Some(s) => s.direct_to_ambient(),
@@ -571,7 +588,7 @@ pub fn insert_ops(
                         })?;
                         let fit = pool.install(|| relight::fit(img, pmask, &lattice))?;
                         let ratio = scene_ratio(
-                            scene.get(img, mask, depth, camera, l),
+                            scene.get(img, mask, depth, input, camera, l),
                             params.shadow_strength,
                         );
                         let measured = relight::shade(&fit, ratio);

@@ -446,6 +446,58 @@ fn an_insert_lit_only_by_the_sky_gets_the_scene_s_sun() {
     assert!(insert_log_error(&lit, &truth) < 0.02);
 }
 
+/// The host's `light_ratio` sets how much of the scene's sun the shading
+/// correction gives an insert lit only by the sky, where the frame shows
+/// no shadow of its own to measure: with the true ratio the insert comes
+/// out as `shadow_strength` 0.8 brought it (the previous test), with the
+/// default strength alone (0.6, a ratio of 1.5) it stays darker on its
+/// lit faces. The same holds on a frame with holes, where the ratio comes
+/// from the host whatever the frame's shadows say. Out of range it is
+/// refused.
+#[test]
+fn the_host_s_light_ratio_sets_the_insert_s_shading() {
+    let k = 4.0 / std::f64::consts::FRAC_1_SQRT_2;
+    let (eye, shadow) = (1.5, Some(0.2));
+    let truth = scene_lit(eye, shadow, Some(k));
+    let sky_only = scene_lit(eye, shadow, Some(0.0));
+    let error_with = |extra: &[(&str, ParamValue)], coverage: Option<&[f32]>| {
+        let mut s = session(extra);
+        let mut input = input_of(&sky_only, 0, true);
+        if let Some(c) = coverage {
+            input.coverage = Some(ImageView::from_f32("coverage", c, W, H, 1).unwrap());
+        }
+        insert_log_error(&s.process(&input, None).unwrap().0, &truth)
+    };
+    let ratio = ("light_ratio", ParamValue::Float(k));
+    let guessed = error_with(&[light()], None);
+    let told = error_with(&[light(), ratio.clone()], None);
+    assert!(
+        told < 0.6 * guessed,
+        "error {guessed:.3} -> {told:.3} stops"
+    );
+    // A hole in the ground, away from the object.
+    let n = W * H;
+    let coverage: Vec<f32> = (0..n)
+        .map(|i| {
+            let (x, y) = (i % W, i / W);
+            let hole = (8..40).contains(&x) && (H - 30..H - 6).contains(&y);
+            if hole && sky_only.mask[i] == 0.0 {
+                0.0
+            } else {
+                1.0
+            }
+        })
+        .collect();
+    let holes = error_with(&[light(), ratio], Some(&coverage));
+    assert!(
+        (holes - told).abs() < 0.05,
+        "with holes {holes:.3}, without {told:.3}"
+    );
+    let mut s = session(&[]);
+    assert!(s.set("light_ratio", ParamValue::Float(-1.0)).is_err());
+    assert!(s.set("light_ratio", ParamValue::Float(f64::NAN)).is_err());
+}
+
 /// Two touching boxes over a textured ground (no camera): `wrong` is
 /// rendered 16 times too bright (4 stops) and with 3 times the blue of the
 /// ground's grade, `right` has the ground's grade. `wrong_left`: the wrong
@@ -683,6 +735,70 @@ fn an_insert_in_a_frame_with_holes_is_harmonized_after_the_network() {
     assert!(
         after < 0.2 * before,
         "insert error {before:.3} -> {after:.3} stops"
+    );
+}
+
+/// An object composited into a reconstruction is the host's render: the
+/// network (a 3x3 box filter here) does not repaint its covered pixels,
+/// which keep their rendered color while the rest of the frame is the
+/// network's; with `keep_covered` off the network's output is kept there
+/// too.
+#[test]
+fn an_insert_s_covered_pixels_keep_their_rendered_color_under_the_network() {
+    let sc = scene(0.0, None);
+    let n = W * H;
+    let coverage: Vec<f32> = (0..n)
+        .map(|i| {
+            let (x, y) = (i % W, i / W);
+            if (8..40).contains(&x) && (H - 30..H - 6).contains(&y) && sc.mask[i] == 0.0 {
+                0.0
+            } else {
+                1.0
+            }
+        })
+        .collect();
+    let run = |keep: bool| {
+        let mut params = harmonizer_core::Params::default();
+        for (name, v) in [
+            ("backend", ParamValue::Str("neural".into())),
+            ("denoise", ParamValue::Str("off".into())),
+            ("harmonize", ParamValue::Bool(false)),
+            ("contact_shadows", ParamValue::Bool(false)),
+            ("keep_covered", ParamValue::Bool(keep)),
+        ] {
+            params.set(name, &v).unwrap();
+        }
+        let mut s = Session::new(crate::neural::device_file("box3"), params).unwrap();
+        let mut input = input_of(&sc, 0, true);
+        input.coverage = Some(ImageView::from_f32("coverage", &coverage, W, H, 1).unwrap());
+        s.process(&input, None).unwrap().0
+    };
+    let (kept, repainted) = (run(true), run(false));
+    let inside = |i: usize| sc.mask[i] >= 1.0;
+    let (mut changed_inside, mut changed_outside) = (0, 0);
+    for i in 0..n {
+        for c in 0..3 {
+            let (k, r, v) = (
+                kept.data[c * n + i],
+                repainted.data[c * n + i],
+                sc.rgb[3 * i + c],
+            );
+            if inside(i) {
+                assert!(
+                    (k - v).abs() <= 1e-5 * v.max(1.0),
+                    "pixel {i}: {k} against {v}"
+                );
+                changed_inside += usize::from((r - v).abs() > 1e-3);
+            } else if sc.mask[i] == 0.0 {
+                assert_eq!(k, r, "pixel {i} off the insert");
+                changed_outside += usize::from((r - v).abs() > 1e-3);
+            }
+        }
+    }
+    // The filter does change the object's edges and the frame.
+    assert!(
+        changed_inside > 30 && changed_outside > 30,
+        "{changed_inside} {changed_outside}"
     );
 }
 

@@ -20,6 +20,20 @@ camera matrices the hook passes (:mod:`usd_harmonizer.camera`) are in that
 same space, and the library only needs the two to agree. Point, sphere,
 rect, disk and dome lights are not used: a point light's direction depends
 on where the insert stands, and a dome's dominant direction on its texture.
+
+The scene's direct-to-ambient ratio (the library's ``light_ratio``,
+:func:`light_ratio_at`), first found wins:
+
+1. ``harmonizer:lightRatio`` (float, at least 0; 0: let the library measure
+   it) on the render product, else on the RenderSettings prim.
+2. The brightest DistantLight's irradiance (``intensity * 2^exposure``
+   times its color's luminance) over the ambient: half the DomeLights'
+   irradiance on a surface facing up (``pi`` times each one's
+   ``intensity * 2^exposure`` times its color's luminance: a whole sky of
+   that radiance), since a wall, an object's side or ground in a wall's
+   shadow sees about half the sky. A dome with a texture file does not say
+   its light this plainly: then none.
+3. None: the library measures it from each frame's own shadows.
 """
 
 from __future__ import annotations
@@ -33,6 +47,12 @@ from .errors import SettingsError
 
 #: Override attribute on a RenderProduct or the RenderSettings prim.
 ATTR_LIGHT_DIRECTION = "harmonizer:lightDirection"
+#: The direct-to-ambient ratio's override attribute (same prims).
+ATTR_LIGHT_RATIO = "harmonizer:lightRatio"
+#: The largest ratio the library takes (``light_ratio``).
+MAX_RATIO = 12.0
+#: Rec.709 luminance weights (the library's working space).
+LUMA = (0.2126, 0.7152, 0.0722)
 
 
 @dataclass(frozen=True)
@@ -157,3 +177,72 @@ def light_at(
     the settings prim), else the stage's brightest DistantLight (among
     ``lights`` when given), else none."""
     return override(prims, frame) or dominant_distant_light(stage, frame, lights)
+
+
+def _power(light, time: Usd.TimeCode) -> float:
+    """``intensity * 2^exposure`` times the color's luminance."""
+    color = light.GetColorAttr().Get(time) if light.GetColorAttr() else None
+    luma = 1.0 if color is None else sum(w * float(c) for w, c in zip(LUMA, color, strict=True))
+    return (
+        _value(light.GetIntensityAttr(), time, 1.0)
+        * 2.0 ** _value(light.GetExposureAttr(), time, 0.0)
+        * luma
+    )
+
+
+def _visible(prim: Usd.Prim, time: Usd.TimeCode) -> bool:
+    return (
+        prim.IsValid()
+        and prim.IsActive()
+        and UsdGeom.Imageable(prim).ComputeVisibility(time) != UsdGeom.Tokens.invisible
+    )
+
+
+def ratio_lights(stage: Usd.Stage) -> list[Usd.Prim]:
+    """The stage's DistantLight and DomeLight prims, in namespace order (one
+    traversal, which a run keeps)."""
+    return [p for p in stage.Traverse() if p.IsA(UsdLux.DistantLight) or p.IsA(UsdLux.DomeLight)]
+
+
+def light_ratio_at(
+    stage: Usd.Stage,
+    prims: list[Usd.Prim],
+    frame: float,
+    lights: list[Usd.Prim] | None = None,
+) -> tuple[float | None, str]:
+    """The scene's direct-to-ambient ratio at ``frame`` (see the module's
+    notes) and where it came from; None: the library measures it.
+    ``prims``: where the override is looked for (the product, then the
+    settings prim); ``lights``: the candidates (default:
+    :func:`ratio_lights` of the stage)."""
+    time = Usd.TimeCode(frame)
+    for prim in prims:
+        attr = prim.GetAttribute(ATTR_LIGHT_RATIO)
+        if not attr or not attr.HasAuthoredValue():
+            continue
+        where = f"{prim.GetPath()}.{ATTR_LIGHT_RATIO}"
+        v = attr.Get(time)
+        try:
+            r = float(v)
+        except (TypeError, ValueError):
+            raise SettingsError(f"{where}: {v!r} is not a ratio (a number, at least 0)") from None
+        if not math.isfinite(r) or r < 0:
+            raise SettingsError(f"{where}: {r!r} is not a ratio (a number, at least 0)")
+        return (min(r, MAX_RATIO) if r > 0 else None), where
+    sun: tuple[float, Usd.Prim] | None = None
+    ambient, domes = 0.0, []
+    for prim in ratio_lights(stage) if lights is None else lights:
+        if prim.IsA(UsdLux.DistantLight) and _visible(prim, time):
+            p = _power(UsdLux.DistantLight(prim), time)
+            if math.isfinite(p) and p > 0 and (sun is None or p > sun[0]):
+                sun = (p, prim)
+        elif prim.IsA(UsdLux.DomeLight) and _visible(prim, time):
+            dome = UsdLux.DomeLight(prim)
+            tex = dome.GetTextureFileAttr().Get(time) if dome.GetTextureFileAttr() else None
+            if tex is not None and str(tex.path if hasattr(tex, "path") else tex):
+                return None, f"DomeLight {prim.GetPath()} has a texture"
+            ambient += 0.5 * math.pi * _power(dome, time)
+            domes.append(str(prim.GetPath()))
+    if sun is None or not domes or not math.isfinite(ambient) or ambient <= 0:
+        return None, "none"
+    return min(sun[0] / ambient, MAX_RATIO), f"DistantLight {sun[1].GetPath()} over DomeLight {', '.join(domes)}"

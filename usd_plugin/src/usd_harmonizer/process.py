@@ -30,7 +30,15 @@ from .camera import exr_matrices
 from .color import ColorConverter, converter_for
 from .errors import FrameError, ProductFileError, SettingsError, UsdHarmonizerError
 from .exrio import read_exr, write_exr_atomic
-from .light import NO_LIGHT, Light, distant_lights, light_at, normalized
+from .light import (
+    NO_LIGHT,
+    Light,
+    distant_lights,
+    light_at,
+    light_ratio_at,
+    normalized,
+    ratio_lights,
+)
 from .settings import ProductInfo, SettingsInfo
 from .varmap import Binding, find_channels, map_vars
 
@@ -107,6 +115,10 @@ class FrameResult:
     #: space), or None; :attr:`light_source` says where it came from.
     light_direction: tuple[float, float, float] | None = None
     light_source: str = "none"
+    #: The ``light_ratio`` passed for this frame (None: the library measured
+    #: it) and where it came from (:func:`usd_harmonizer.light.light_ratio_at`).
+    light_ratio: float | None = None
+    light_ratio_source: str = "none"
 
 
 def make_device(options: Options) -> Any:
@@ -247,6 +259,10 @@ class ProductRunner:
         #: session holds the user's own (``params``) or nothing set yet.
         self._light_param: str | None = None
         self._distant: list[Any] | None = None
+        #: The ``light_ratio`` the session holds (0.0: unset), and the
+        #: stage's DistantLight and DomeLight prims, found once per run.
+        self._ratio_param = 0.0
+        self._ratio_lights: list[Any] | None = None
         if "light_direction" not in params:
             # The stage's and the CLI's directions are in the stage's world.
             params["light_space"] = "world"
@@ -305,6 +321,18 @@ class ProductRunner:
         if self._distant is None:  # the stage's lights, found once per run
             self._distant = distant_lights(self.product.stage)
         return light_at(self.product.stage, self._light_prims, frame, self._distant)
+
+    def light_ratio_for(self, frame: int, light: Light) -> tuple[float | None, str]:
+        """The ``light_ratio`` of ``frame`` and where it came from: the
+        params' own (then never changed here), none without a light, else
+        the stage's (:func:`usd_harmonizer.light.light_ratio_at`)."""
+        if "light_ratio" in self.options.params:
+            return None, "parameter light_ratio"
+        if light.direction is None:
+            return None, "none"
+        if self._ratio_lights is None:
+            self._ratio_lights = ratio_lights(self.product.stage)
+        return light_ratio_at(self.product.stage, self._light_prims, frame, self._ratio_lights)
 
     # -- paths ---------------------------------------------------------------
     def output_for(self, frame: int) -> Path:
@@ -458,6 +486,14 @@ class ProductRunner:
                     f"{where}: light direction from {light.source}: {e}"
                 ) from e
             self._light_param = light.param
+        ratio, ratio_source = self.light_ratio_for(frame, light)
+        if (ratio or 0.0) != self._ratio_param:
+            try:
+                self.session.set("light_ratio", float(ratio or 0.0))
+                self.session.commit()
+            except hz.HarmonizerError as e:
+                raise FrameError(f"{where}: light ratio from {ratio_source}: {e}") from e
+            self._ratio_param = ratio or 0.0
         try:
             t_l0 = time.perf_counter()
             out = self.session.process(
@@ -488,6 +524,8 @@ class ProductRunner:
             noise_level=report.get("noise_level"),
             light_direction=light.direction,
             light_source=light.source,
+            light_ratio=ratio,
+            light_ratio_source=ratio_source,
         )
         if not write:
             self.last_frame = frame
@@ -516,6 +554,8 @@ class ProductRunner:
         }
         if light.direction is not None:
             extra["harmonizer:lightDirection"] = light.param
+        if ratio is not None:
+            extra["harmonizer:lightRatio"] = float(ratio)
         t_w0 = time.perf_counter()
         write_exr_atomic(img, out_path, extra, where)
         t_w1 = time.perf_counter()
