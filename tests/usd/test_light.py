@@ -155,8 +155,10 @@ def test_parse_direction() -> None:
             parse_direction(bad, "--light-direction")
 
 
-def _session_values(stage_path: Path, options: Options) -> list[tuple[str, object]]:
-    """(session light_direction, FrameResult) for frames 1-3 of the product."""
+def _session_values(
+    stage_path: Path, options: Options, param: str = "light_direction"
+) -> list[tuple[object, object]]:
+    """(the session's ``param``, FrameResult) for frames 1-3 of the product."""
     stage = Usd.Stage.Open(str(stage_path))
     info = resolve(stage)
     device = make_device(options)
@@ -167,7 +169,7 @@ def _session_values(stage_path: Path, options: Options) -> list[tuple[str, objec
             assert runner.session.get("light_space") == "world"
             for f in FRAMES:
                 r = runner.process_frame(f)
-                out.append((runner.session.get("light_direction"), r))
+                out.append((runner.session.get(param), r))
         finally:
             runner.close()
     finally:
@@ -294,23 +296,9 @@ def test_cast_shadow_lands_away_from_the_stage_sun(shot: Path) -> None:
     assert abs(ratios["lit_side"] - 1.0) < 0.02, ratios
 
 
-def _ratio_values(stage_path: Path, options: Options) -> list[tuple[float, object]]:
+def _ratio_values(stage_path: Path, options: Options) -> list[tuple[object, object]]:
     """(session light_ratio, FrameResult) for frames 1-3 of the product."""
-    stage = Usd.Stage.Open(str(stage_path))
-    info = resolve(stage)
-    device = make_device(options)
-    out = []
-    try:
-        runner = ProductRunner(info.products[0], info, device, options)
-        try:
-            for f in FRAMES:
-                r = runner.process_frame(f)
-                out.append((runner.session.get("light_ratio"), r))
-        finally:
-            runner.close()
-    finally:
-        device.close()
-    return out
+    return _session_values(stage_path, options, "light_ratio")
 
 
 def test_light_ratio_is_the_sun_over_the_dome(tmp_path: Path) -> None:
