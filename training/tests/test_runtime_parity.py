@@ -90,11 +90,15 @@ def test_harmonize_neural_matches_the_python_contract(tmp_path, depth_tol, prior
         "--threads",
         "1",
         # The network's contract alone: the insert operations that follow it
-        # on a frame with holes (the contact shadow under the mask) stay off.
+        # on a frame with holes (the contact shadow under the mask) stay off,
+        # and so does giving the insert's covered pixels their rendered color
+        # back (`keep_covered`; these models have no repair margin).
         "--set",
         "harmonize=false",
         "--set",
         "contact_shadows=false",
+        "--set",
+        "keep_covered=false",
     ]
     p = subprocess.run(cmd, capture_output=True, text=True, env=env)
     assert p.returncode == 0, p.stderr
