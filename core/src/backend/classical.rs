@@ -163,8 +163,8 @@ fn shadows(
 /// except where the host gives the ratio (`light_ratio`) and the frame has
 /// holes (a reconstruction's depth is too rough to trace its shadows:
 /// out of domain the measure read a third of a render's ratio there) or
-/// shows no shadow of its own: then the host's ratio, at the facing the
-/// measure found (else [`relight::GAP_FACING`]).
+/// shows no shadow of its own: then the host's ratio, at
+/// [`relight::GAP_FACING`] (on frames with holes the measure is not made).
 #[derive(Debug, Default)]
 struct SceneLightOnce(Option<Option<cast_shadow::SceneLight>>);
 
@@ -179,16 +179,18 @@ impl SceneLightOnce {
         light: glam::DVec3,
     ) -> Option<cast_shadow::SceneLight> {
         *self.0.get_or_insert_with(|| {
-            let measured = cast_shadow::scene_light(img, Some(mask), depth, camera, light);
             let host = input.params.light_ratio;
-            if host <= 0.0 || (measured.is_some() && !input.frame.has_holes()) {
-                return measured;
+            // The host's ratio, at the facing the shading correction
+            // compares at.
+            let given = (host > 0.0).then(|| cast_shadow::SceneLight {
+                stops: (1.0 + host * relight::GAP_FACING).log2(),
+                facing: relight::GAP_FACING,
+            });
+            if given.is_some() && input.frame.has_holes() {
+                // Not measured: the reconstruction's depth would mislead it.
+                return given;
             }
-            let facing = measured.map_or(relight::GAP_FACING, |s| s.facing);
-            Some(cast_shadow::SceneLight {
-                stops: (1.0 + host * facing).log2(),
-                facing,
-            })
+            cast_shadow::scene_light(img, Some(mask), depth, camera, light).or(given)
         })
     }
 }

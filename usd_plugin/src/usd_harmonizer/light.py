@@ -239,7 +239,7 @@ def light_ratio_at(
         elif prim.IsA(UsdLux.DomeLight) and _visible(prim, time):
             dome = UsdLux.DomeLight(prim)
             tex = dome.GetTextureFileAttr().Get(time) if dome.GetTextureFileAttr() else None
-            if tex is not None and str(tex.path if hasattr(tex, "path") else tex):
+            if tex is not None and tex.path:
                 return None, f"DomeLight {prim.GetPath()} has a texture"
             ambient += 0.5 * math.pi * _power(dome, time)
             domes.append(str(prim.GetPath()))

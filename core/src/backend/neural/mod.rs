@@ -1262,9 +1262,9 @@ fn keep_inserts(img: &mut Image, input: &BackendInput<'_>) {
         rgb.par_chunks_mut(w)
             .with_min_len(4)
             .enumerate()
-            .filter(|(r, _)| (rect.y0..rect.y1).contains(&(r % h.max(1))))
+            .filter(|(r, _)| (rect.y0..rect.y1).contains(&(r % h)))
             .for_each(|(r, row)| {
-                let (c, y) = (r / h.max(1), r % h.max(1));
+                let (c, y) = (r / h, r % h);
                 let s = y * w..(y + 1) * w;
                 let src = &color.data[c * n + s.start..c * n + s.end];
                 for x in rect.x0..rect.x1 {
