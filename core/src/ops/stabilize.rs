@@ -87,11 +87,22 @@ fn shifted(v: &[f32], c: usize, w: usize) -> (&[f32], &[f32], &[f32]) {
     (&v[p..p + w], &v[p + 1..p + w + 1], &v[p + 2..p + w + 2])
 }
 
+/// Columns `o..o + m` of the three shifted views [`shifted`] gives.
+fn columns<'v>(
+    v: (&'v [f32], &'v [f32], &'v [f32]),
+    o: usize,
+    m: usize,
+) -> (&'v [f32], &'v [f32], &'v [f32]) {
+    (&v.0[o..o + m], &v.1[o..o + m], &v.2[o..o + m])
+}
+
 /// Where [`stabilize_rows`] takes the history from, row by row.
 pub trait HistoryRows: Sync {
-    /// Writes row `y` of the reprojected history's RGBA (interleaved) and
-    /// validity into the row-long slices `rgba` and `valid`.
-    fn row(&self, y: usize, rgba: &mut [[f32; 4]], valid: &mut [f32]);
+    /// Writes columns `x0..x0 + rgba.len()` of row `y` of the reprojected
+    /// history's RGBA (interleaved) and validity into `rgba` and `valid`
+    /// (at least as long). A row [`HistoryRows::needed`] names is read
+    /// whole (`x0` 0, the frame's width).
+    fn row(&self, y: usize, x0: usize, rgba: &mut [[f32; 4]], valid: &mut [f32]);
 
     /// Whether row `y` must still be read when nothing on it is blended
     /// (outside the area of [`stabilize_rows_in`]): true when reading it
@@ -105,13 +116,13 @@ pub trait HistoryRows: Sync {
 /// A whole reprojected frame, row by row.
 impl HistoryRows for ReprojectedFrame {
     #[inline(always)]
-    fn row(&self, y: usize, rgba: &mut [[f32; 4]], valid: &mut [f32]) {
+    fn row(&self, y: usize, x0: usize, rgba: &mut [[f32; 4]], valid: &mut [f32]) {
         let (w, n) = (self.color.width, self.color.len());
-        let s = y * w;
+        let (s, m) = (y * w + x0, rgba.len());
         for (x, px) in rgba.iter_mut().enumerate() {
             *px = std::array::from_fn(|c| self.color.data[c * n + s + x]);
         }
-        valid.copy_from_slice(&self.valid[s..s + w]);
+        valid[..m].copy_from_slice(&self.valid[s..s + m]);
     }
 }
 
@@ -136,9 +147,14 @@ impl HistoryRows for ViewRows<'_, '_> {
     }
 
     #[inline(always)]
-    fn row(&self, y: usize, rgba: &mut [[f32; 4]], valid: &mut [f32]) {
-        self.view.reproject_row_rgba(self.k, y, rgba, valid);
-        if let Some(p) = self.probe {
+    fn row(&self, y: usize, x0: usize, rgba: &mut [[f32; 4]], valid: &mut [f32]) {
+        self.view.reproject_span_rgba(self.k, y, x0, rgba, valid);
+        // The probe's rows are read whole (`needed`); a part of a row
+        // records nothing.
+        if let Some(p) = self
+            .probe
+            .filter(|_| x0 == 0 && rgba.len() == self.view.current().width())
+        {
             p.set(y, |x| {
                 let c = rgba[x];
                 [c[0], c[1], c[2], valid[x]]
@@ -185,9 +201,10 @@ pub fn stabilize_rows<H: HistoryRows>(
 }
 
 /// [`stabilize_rows`] blending only the pixels inside `area`; the others
-/// keep their color (and are still written to `kept`). History rows outside
-/// it are read only when [`HistoryRows::needed`] says so. An empty `area`
-/// blends nothing.
+/// keep their color (and are still written to `kept`). The history is read
+/// for the area's columns of its rows alone, and whole for the rows
+/// [`HistoryRows::needed`] names; the color range, for the area's columns
+/// and one on either side. An empty `area` blends nothing.
 pub fn stabilize_rows_in<H: HistoryRows>(
     img: &mut Image,
     blend: f32,
@@ -230,16 +247,24 @@ fn stabilize_rows_on<H: HistoryRows>(
     }
     let bands = h.div_ceil(BAND_ROWS);
     let band_rows = |bi: usize| bi * BAND_ROWS..((bi + 1) * BAND_ROWS).min(h);
+    // The columns the blend reads: the area's and one on either side (the
+    // 3x3 range); the YCoCg rows and their minima and maxima are made for
+    // these only.
+    let cols = match area.x1 > area.x0 {
+        true => area.x0.saturating_sub(1)..(area.x1 + 1).min(w),
+        false => 0..0,
+    };
     // YCoCg of the first and last row of every band, taken before any change.
     let edges: Vec<(Vec<f32>, Vec<f32>)> = {
         let src = &*img;
+        let cols = &cols;
         (0..bands)
             .into_par_iter()
             .map(|bi| {
                 let rows = band_rows(bi);
                 let row = |y: usize| {
-                    let mut out = vec![0.0; 3 * w];
-                    let s = y * w..(y + 1) * w;
+                    let mut out = vec![0.0; 3 * cols.len()];
+                    let s = y * w + cols.start..y * w + cols.end;
                     row_ycocg(
                         &src.plane(0)[s.clone()],
                         &src.plane(1)[s.clone()],
@@ -275,6 +300,7 @@ fn stabilize_rows_on<H: HistoryRows>(
                 kept,
                 history,
                 area,
+                cols: cols.clone(),
             };
             if vectorized {
                 simd(job)
@@ -298,6 +324,8 @@ struct BandJob<'e, 'p, H> {
     kept: Option<&'p mut [[f32; 4]]>,
     history: &'e H,
     area: Rect,
+    /// The columns of the YCoCg rows (the area's, one more on either side).
+    cols: std::ops::Range<usize>,
 }
 
 impl<H: HistoryRows> pulp::WithSimd for BandJob<'_, '_, H> {
@@ -315,8 +343,11 @@ impl<H: HistoryRows> pulp::WithSimd for BandJob<'_, '_, H> {
             mut kept,
             history,
             area,
+            cols,
         } = self;
         let (ax0, ax1) = (area.x0, area.x1.max(area.x0));
+        // The window's width and where the area starts in it.
+        let (cw, c0) = (cols.len(), cols.start);
         let bi = y0 / BAND_ROWS;
         let rows = a.len() / w;
         // Sliding window of YCoCg rows of the unmodified image.
@@ -326,10 +357,11 @@ impl<H: HistoryRows> pulp::WithSimd for BandJob<'_, '_, H> {
             edges[bi].0.clone()
         };
         let mut centre = edges[bi].0.clone();
-        let mut below = vec![0.0; 3 * w];
-        let mut lo = vec![0.0; 3 * (w + 2)];
-        let mut hi = vec![0.0; 3 * (w + 2)];
-        // One row of the history: RGBA and validity.
+        let mut below = vec![0.0; 3 * cw];
+        let mut lo = vec![0.0; 3 * (cw + 2)];
+        let mut hi = vec![0.0; 3 * (cw + 2)];
+        // One row of the history: RGBA and validity (the window's columns
+        // from `c0`, or the whole row from 0 where it is needed whole).
         let mut hrgba = vec![[0.0; 4]; w];
         let mut vv = vec![0.0; w];
         for dy in 0..rows {
@@ -339,7 +371,7 @@ impl<H: HistoryRows> pulp::WithSimd for BandJob<'_, '_, H> {
             let windowed = y + 2 >= area.y0 && y < area.y1;
             if dy + 1 < rows {
                 if windowed {
-                    let s = (dy + 1) * w..(dy + 2) * w;
+                    let s = (dy + 1) * w + c0..(dy + 1) * w + cols.end;
                     row_ycocg(&r[s.clone()], &g[s.clone()], &b[s], &mut below);
                 }
             } else if y + 1 < h {
@@ -348,22 +380,40 @@ impl<H: HistoryRows> pulp::WithSimd for BandJob<'_, '_, H> {
                 below.copy_from_slice(&centre);
             }
             let inside = y >= area.y0 && y < area.y1 && ax1 > ax0;
-            if inside || history.needed(y) {
-                history.row(y, &mut hrgba, &mut vv);
-            }
-            if inside && row_max(&vv[ax0..ax1]) > 0.0 {
-                vertical_min_max([&above, &centre, &below], w, &mut lo, &mut hi);
-                let row = dy * w..(dy + 1) * w;
+            // Column x of the frame is at `x - off` in the history's row.
+            let off = if history.needed(y) {
+                history.row(y, 0, &mut hrgba, &mut vv);
+                0
+            } else {
+                if inside {
+                    history.row(y, c0, &mut hrgba[..cw], &mut vv[..cw]);
+                }
+                c0
+            };
+            if inside && row_max(&vv[ax0 - off..ax1 - off]) > 0.0 {
+                vertical_min_max([&above, &centre, &below], cw, &mut lo, &mut hi);
+                // The area's columns in the window, the frame's and the history's.
+                let row = dy * w + ax0..dy * w + ax1;
                 let (rr, gr, br, ar) = (
                     &mut r[row.clone()],
                     &mut g[row.clone()],
                     &mut b[row.clone()],
                     &a[row],
                 );
-                let (ly, lco, lcg) = (shifted(&lo, 0, w), shifted(&lo, 1, w), shifted(&lo, 2, w));
-                let (hy, hco, hcg) = (shifted(&hi, 0, w), shifted(&hi, 1, w), shifted(&hi, 2, w));
-                let (hrgba, vv) = (&hrgba[..w], &vv[..w]);
-                for x in ax0..ax1 {
+                let (m, o) = (ax1 - ax0, ax0 - c0);
+                let part = |v| columns(v, o, m);
+                let (ly, lco, lcg) = (
+                    part(shifted(&lo, 0, cw)),
+                    part(shifted(&lo, 1, cw)),
+                    part(shifted(&lo, 2, cw)),
+                );
+                let (hy, hco, hcg) = (
+                    part(shifted(&hi, 0, cw)),
+                    part(shifted(&hi, 1, cw)),
+                    part(shifted(&hi, 2, cw)),
+                );
+                let (hrgba, vv) = (&hrgba[ax0 - off..ax1 - off], &vv[ax0 - off..ax1 - off]);
+                for x in 0..m {
                     let [hr, hg, hb, hav] = hrgba[x];
                     let (cov, v) = (ar[x], vv[x]);
                     let ok = (cov > 0.0) & (v > 0.0) & (hav > MIN_HISTORY_ALPHA);
@@ -501,34 +551,44 @@ mod tests {
         };
         let mut whole = cur.clone();
         stabilize_rows(&mut whole, 0.8, None, &rows);
-        // Across a band edge, away from the image's edges.
-        let area = Rect {
-            x0: 5,
+        // Across a band edge: away from the image's edges, at the left and
+        // right edges (the columns read stop there), one column, the whole.
+        let rect = |x0, x1| Rect {
+            x0,
             y0: BAND_ROWS - 3,
-            x1: w - 7,
+            x1,
             y1: BAND_ROWS + 9,
         };
-        let mut part = cur.clone();
-        let mut kept = vec![f32::NAN; 4 * n];
-        stabilize_rows_in(&mut part, 0.8, Some(&mut kept), &rows, area);
-        let mut changed = 0;
-        for c in 0..4 {
-            for y in 0..h {
-                for x in 0..w {
-                    let i = c * n + y * w + x;
-                    let inside = (area.x0..area.x1).contains(&x) && (area.y0..area.y1).contains(&y);
-                    let want = if inside { whole.data[i] } else { cur.data[i] };
-                    assert_eq!(
-                        part.data[i].to_bits(),
-                        want.to_bits(),
-                        "plane {c} at ({x}, {y})"
-                    );
-                    assert_eq!(kept[4 * (y * w + x) + c].to_bits(), want.to_bits());
-                    changed += usize::from(inside && want != cur.data[i]);
+        let areas = [
+            (rect(5, w - 7), 100),
+            (rect(0, 9), 20),
+            (rect(w - 9, w), 20),
+            (rect(11, 12), 3),
+            (Rect::full(w, h), 1000),
+        ];
+        for (area, least) in areas {
+            let mut part = cur.clone();
+            let mut kept = vec![f32::NAN; 4 * n];
+            stabilize_rows_in(&mut part, 0.8, Some(&mut kept), &rows, area);
+            let mut changed = 0;
+            for c in 0..4 {
+                for y in 0..h {
+                    for x in 0..w {
+                        let i = c * n + y * w + x;
+                        let inside = area.contains(x, y);
+                        let want = if inside { whole.data[i] } else { cur.data[i] };
+                        assert_eq!(
+                            part.data[i].to_bits(),
+                            want.to_bits(),
+                            "{area:?}: plane {c} at ({x}, {y})"
+                        );
+                        assert_eq!(kept[4 * (y * w + x) + c].to_bits(), want.to_bits());
+                        changed += usize::from(inside && want != cur.data[i]);
+                    }
                 }
             }
+            assert!(changed >= least, "{area:?} was blended ({changed} samples)");
         }
-        assert!(changed > 100, "the area was blended ({changed} samples)");
         // An empty area blends nothing.
         let mut none = cur.clone();
         stabilize_rows_in(&mut none, 0.8, None, &rows, Rect::default());

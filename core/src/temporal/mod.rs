@@ -525,13 +525,31 @@ impl<'a> HistoryView<'a> {
     #[inline(always)]
     pub fn reproject_row_rgba(&self, k: usize, i: usize, rgba: &mut [[f32; 4]], valid: &mut [f32]) {
         let w = self.current.width();
+        self.reproject_span_rgba(k, i, 0, &mut rgba[..w], &mut valid[..w]);
+    }
+
+    /// [`HistoryView::reproject_row_rgba`] for columns `j0..j0 + rgba.len()`
+    /// of row `i` only (the same values as those of the whole row).
+    ///
+    /// # Panics
+    /// When the columns leave the frame, or `valid` is shorter than `rgba`.
+    #[inline(always)]
+    pub fn reproject_span_rgba(
+        &self,
+        k: usize,
+        i: usize,
+        j0: usize,
+        rgba: &mut [[f32; 4]],
+        valid: &mut [f32],
+    ) {
+        let n = rgba.len();
         self.row_into(
             k,
             i,
-            0,
+            j0,
             &mut reproject::Interleaved {
-                rgba: &mut rgba[..w],
-                valid: &mut valid[..w],
+                rgba,
+                valid: &mut valid[..n],
             },
         );
     }
@@ -728,7 +746,7 @@ mod tests {
         #[inline(always)]
         fn with_simd<S: pulp::Simd>(self, _: S) {
             use crate::ops::stabilize::HistoryRows;
-            self.rows.row(self.i, self.rgba, self.valid)
+            self.rows.row(self.i, 0, self.rgba, self.valid)
         }
     }
 
@@ -827,6 +845,17 @@ mod tests {
                             bits(&vrgba, &vrv),
                             bits(&rgba, &rv),
                             "{name}: k {k}: row {i} vectorized"
+                        );
+                        // A part of the row alone (what the stabilization
+                        // of an area reads).
+                        let (s0, s1) = (i % 7, w - i % 4);
+                        let mut srgba = vec![[0.0f32; 4]; s1 - s0];
+                        let mut sv = vec![0.0f32; s1 - s0];
+                        view.reproject_span_rgba(k, i, s0, &mut srgba, &mut sv);
+                        assert_eq!(
+                            bits(&srgba, &sv),
+                            bits(&rgba[s0..s1], &rv[s0..s1]),
+                            "{name}: k {k}: row {i}, columns {s0}..{s1}"
                         );
                         // A run of the row through the sampler, at an offset.
                         let (j0, n) = (i % 5, w - i % 5 - i % 3);

@@ -1236,7 +1236,8 @@ impl<'a> Repair<'a> {
 /// insert operations leave as they are are not stabilized against the
 /// history (as on the classical backend's frames without holes): over the
 /// insert's whole box that gained 0.06 dB in insert_recon's object and cost
-/// 3.3-4.9 ms at 1920x1080 (`harmonize bench --albedo`).
+/// 3.3-4.9 ms at 1920x1080 (`harmonize bench --albedo`, before the
+/// stabilization of an area read only its columns).
 fn keep_inserts(img: &mut Image, input: &BackendInput<'_>) {
     let frame = input.frame;
     let (Some(mask), Some(coverage)) = (frame.insert_mask.as_deref(), frame.coverage.as_deref())
@@ -1248,11 +1249,15 @@ fn keep_inserts(img: &mut Image, input: &BackendInput<'_>) {
     }
     let (w, h, floor) = (img.width, img.height, input.params.coverage_floor);
     let n = w * h;
-    // Only the rows and columns of the insert's bounding box.
-    let Some(rect) = input
-        .pool
-        .install(|| crate::ops::harmonize::insert_rect(mask, w, h))
-    else {
+    // Only the rows and columns of the insert's bounding box (found while
+    // the mask was prepared, when it was).
+    let rect = match frame.scan {
+        Some(scan) => scan.insert,
+        None => input
+            .pool
+            .install(|| crate::ops::harmonize::insert_rect(mask, w, h)),
+    };
+    let Some(rect) = rect else {
         return;
     };
     let color = &frame.color;
