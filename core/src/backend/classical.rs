@@ -75,6 +75,17 @@ pub const MATRIX_KEY: &str = "classical.harmonize.albedo_matrix";
 /// shadow's strength.
 pub const SHADOW_KEY: &str = "classical.shadow.missing";
 
+/// Carry key of the scene's light as last measured ([`SceneLightOnce`]):
+/// its stops and facing (NaN for a frame that showed no shadow of its
+/// own), the light direction it was measured toward (world, 3 values) and
+/// the frames since it was.
+pub const SCENE_LIGHT_KEY: &str = "classical.scene_light";
+
+/// The scene's light is measured again on every this many frames; the
+/// frames between take the last measure (the same light over a few frames
+/// of one shot), unless the light's direction moved.
+pub const SCENE_LIGHT_FRAMES: f32 = 4.0;
+
 /// The insert's shadows: the contact shadow under it and, with a light
 /// direction and a camera, the shadow it casts away from the light
 /// ([`cast_shadow::cast_shadow_map`]). Each is darkened by the share of it
@@ -165,10 +176,50 @@ fn shadows(
 /// out of domain the measure read a third of a render's ratio there) or
 /// shows no shadow of its own: then the host's ratio, at
 /// [`relight::GAP_FACING`] (on frames with holes the measure is not made).
+///
+/// A measure is carried ([`SCENE_LIGHT_KEY`]) and taken again by the
+/// [`SCENE_LIGHT_FRAMES`]th frame after it, or when the light's direction
+/// moved by more than half a degree.
 #[derive(Debug, Default)]
-struct SceneLightOnce(Option<Option<cast_shadow::SceneLight>>);
+struct SceneLightOnce {
+    /// This frame's light, once found.
+    now: Option<Option<cast_shadow::SceneLight>>,
+    /// The carried measure: the light, the direction, the frames since.
+    carried: Option<(Option<cast_shadow::SceneLight>, glam::DVec3, f32)>,
+    /// What to carry on ([`SceneLightOnce::store`]).
+    record: Option<Vec<f32>>,
+}
 
 impl SceneLightOnce {
+    /// With the last measure from `carry`.
+    fn carried(carry: &Carry) -> SceneLightOnce {
+        let carried = carry
+            .values
+            .get(SCENE_LIGHT_KEY)
+            .filter(|v| v.len() == 6 && v[2..].iter().all(|x| x.is_finite()))
+            .map(|v| {
+                let light =
+                    (v[0].is_finite() && v[1].is_finite()).then_some(cast_shadow::SceneLight {
+                        stops: v[0],
+                        facing: v[1],
+                    });
+                let dir = glam::DVec3::new(v[2] as f64, v[3] as f64, v[4] as f64);
+                (light, dir, v[5])
+            });
+        SceneLightOnce {
+            carried,
+            ..SceneLightOnce::default()
+        }
+    }
+
+    /// Carries this frame's measure on (or none, when it made none).
+    fn store(self, carry: &mut Carry) {
+        match self.record {
+            Some(v) => carry.values.insert(SCENE_LIGHT_KEY.to_string(), v),
+            None => carry.values.remove(SCENE_LIGHT_KEY),
+        };
+    }
+
     fn get(
         &mut self,
         img: &Image,
@@ -178,7 +229,8 @@ impl SceneLightOnce {
         camera: &crate::frame::Camera,
         light: glam::DVec3,
     ) -> Option<cast_shadow::SceneLight> {
-        *self.0.get_or_insert_with(|| {
+        let (carried, record) = (&self.carried, &mut self.record);
+        *self.now.get_or_insert_with(|| {
             let host = input.params.light_ratio;
             // The host's ratio, at the facing the shading correction
             // compares at.
@@ -190,10 +242,35 @@ impl SceneLightOnce {
                 // Not measured: the reconstruction's depth would mislead it.
                 return given;
             }
-            cast_shadow::scene_light(img, Some(mask), depth, camera, light).or(given)
+            let dir = light.normalize_or_zero();
+            let (measured, age) = match carried {
+                Some((m, d, age))
+                    if age + 1.0 < SCENE_LIGHT_FRAMES && d.dot(dir) > SAME_LIGHT_COS =>
+                {
+                    (*m, age + 1.0)
+                }
+                _ => (
+                    cast_shadow::scene_light(img, Some(mask), depth, camera, light),
+                    0.0,
+                ),
+            };
+            let (stops, facing) = measured.map_or((f32::NAN, f32::NAN), |m| (m.stops, m.facing));
+            *record = Some(vec![
+                stops,
+                facing,
+                dir.x as f32,
+                dir.y as f32,
+                dir.z as f32,
+                age,
+            ]);
+            measured.or(given)
         })
     }
 }
+
+/// Cosine of the half degree the light may move by before the scene's light
+/// is measured again ([`SceneLightOnce`]).
+const SAME_LIGHT_COS: f64 = 0.999_962;
 
 /// The scene's direct-to-ambient ratio for the shading correction: from its
 /// light ([`SceneLightOnce`]) when known, else from `shadow_strength` (a
@@ -489,7 +566,7 @@ pub fn insert_ops(
     };
     // Whether harmonization changed the insert's colors noticeably.
     let mut recolored = false;
-    let mut scene = SceneLightOnce::default();
+    let mut scene = SceneLightOnce::carried(carry);
     let light = params
         .light_direction_world(frame.camera.as_ref())
         .filter(|_| params.relight)
@@ -706,6 +783,7 @@ pub fn insert_ops(
     } else {
         carry.values.remove(SHADOW_KEY);
     }
+    scene.store(carry);
     progress.report(0.7)?;
     Ok(changed)
 }

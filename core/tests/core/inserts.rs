@@ -374,6 +374,91 @@ fn the_scene_s_own_shadows_say_how_dark_a_shadow_is() {
     );
 }
 
+/// The scene's light is measured on the first frame and on every
+/// `SCENE_LIGHT_FRAMES`th after it; the frames between take the carried
+/// measure (their output is the one that measure gives), unless the light
+/// moved.
+#[test]
+fn the_scene_s_light_is_measured_every_few_frames_and_when_the_light_moves() {
+    use harmonizer_core::backend::classical::{Classical, SCENE_LIGHT_FRAMES, SCENE_LIGHT_KEY};
+    use harmonizer_core::backend::{Backend, BackendInput, Carry, Progress, Stages};
+    use harmonizer_core::frame::PreparedFrame;
+    use harmonizer_core::temporal::{History, HistoryView};
+    use harmonizer_core::{DepthKind, Params};
+    let dev = Device::new(DeviceOptions {
+        threads: 2,
+        ..DeviceOptions::default()
+    })
+    .unwrap();
+    // The box, the insert, is all that stands: the frame shows no shadow of
+    // the scene's own, and the measure finds none.
+    let sc = scene(0.0, None);
+    // Runs the classical backend toward `light` with `carry`.
+    let run = |carry: &mut Carry, light: [f32; 3]| -> Image {
+        let mut input = input_of(&sc, 0, true);
+        input.frame_index = None;
+        let prepared = PreparedFrame::from_input(&input, DepthKind::Planar).unwrap();
+        let history = History::default();
+        let view = HistoryView::empty(&history, &prepared);
+        let params = Params {
+            light_direction: Some(light),
+            ..Params::default()
+        };
+        let input = BackendInput {
+            frame: &prepared,
+            history: &view,
+            params: &params,
+            pool: dev.pool(),
+            kept: None,
+            scene_probe: None,
+            memory_budget: usize::MAX,
+        };
+        let mut stages = Stages::default();
+        Classical
+            .process(&input, carry, &mut Progress::new(None), &mut stages)
+            .unwrap()
+    };
+    let l = LIGHT.map(|v| v as f32);
+    let mut carry = Carry::default();
+    let alone = run(&mut carry, l);
+    let first = carry.values[SCENE_LIGHT_KEY].clone();
+    assert!(first[0].is_nan() && first[1].is_nan(), "{first:?}");
+    assert_eq!(first[5], 0.0);
+    let unit = |v: [f32; 3]| glam::Vec3::from(v).normalize();
+    let stored = |v: &[f32]| glam::Vec3::new(v[2], v[3], v[4]);
+    assert!((stored(&first) - unit(l)).length() < 1e-6);
+    // A measure of deep shadows (two stops, at a facing of 0.7) carried in:
+    // taken as it is until the measure is due, and the output is not the
+    // one without it.
+    let deep = [2.0, 0.7, first[2], first[3], first[4], 0.0];
+    carry
+        .values
+        .insert(SCENE_LIGHT_KEY.to_string(), deep.to_vec());
+    for age in 1..SCENE_LIGHT_FRAMES as usize {
+        let out = run(&mut carry, l);
+        let v = &carry.values[SCENE_LIGHT_KEY];
+        assert_eq!(v[..5], deep[..5], "frame {age}");
+        assert_eq!(v[5], age as f32);
+        assert!(
+            out != alone,
+            "frame {age}: the carried measure was not used"
+        );
+    }
+    // Measured again: none.
+    run(&mut carry, l);
+    let v = carry.values[SCENE_LIGHT_KEY].clone();
+    assert!(v[0].is_nan() && v[5] == 0.0, "{v:?}");
+    // A carried measure is not taken for a light that moved by a degree.
+    carry
+        .values
+        .insert(SCENE_LIGHT_KEY.to_string(), deep.to_vec());
+    let turned = [1.0, 1.0, 0.025f32];
+    run(&mut carry, turned);
+    let v = carry.values[SCENE_LIGHT_KEY].clone();
+    assert!(v[0].is_nan() && v[5] == 0.0, "{v:?}");
+    assert!((stored(&v) - unit(turned)).length() < 1e-6);
+}
+
 /// The box's (the insert's) mean absolute log2 error against `want`.
 fn insert_log_error(out: &Image, want: &Scene) -> f64 {
     let n = W * H;
