@@ -887,6 +887,65 @@ fn an_insert_s_covered_pixels_keep_their_rendered_color_under_the_network() {
     );
 }
 
+/// On the next frame the kept object is stabilized against the history: a
+/// flicker of its rendered color, pixel by pixel, is damped (with
+/// `stabilize` off it comes back as rendered).
+#[test]
+fn a_kept_insert_is_stabilized_against_the_history() {
+    let sc = scene(0.0, None);
+    let n = W * H;
+    let coverage: Vec<f32> = (0..n)
+        .map(|i| {
+            let (x, y) = (i % W, i / W);
+            if (8..40).contains(&x) && (H - 30..H - 6).contains(&y) {
+                0.0
+            } else {
+                1.0
+            }
+        })
+        .collect();
+    // The next frame: the same view, each of the object's pixels up to 15 %
+    // brighter or darker.
+    let mut next = scene(0.0, None);
+    for i in (0..n).filter(|&i| sc.mask[i] >= 1.0) {
+        let k = 1.0 + 0.3 * (hash(i as u64 + 77) - 0.5);
+        for c in 0..3 {
+            next.rgb[3 * i + c] *= k;
+        }
+    }
+    let run = |stabilize: bool| {
+        let mut params = harmonizer_core::Params::default();
+        for (name, v) in [
+            ("backend", ParamValue::Str("neural".into())),
+            ("denoise", ParamValue::Str("off".into())),
+            ("harmonize", ParamValue::Bool(false)),
+            ("contact_shadows", ParamValue::Bool(false)),
+            ("stabilize", ParamValue::Bool(stabilize)),
+        ] {
+            params.set(name, &v).unwrap();
+        }
+        let mut s = Session::new(crate::neural::device_file("box3"), params).unwrap();
+        let mut out = None;
+        for (t, frame) in [&sc, &next].into_iter().enumerate() {
+            let mut input = input_of(frame, t as i64, true);
+            input.coverage = Some(ImageView::from_f32("coverage", &coverage, W, H, 1).unwrap());
+            out = Some(s.process(&input, None).unwrap().0);
+        }
+        out.unwrap()
+    };
+    let (on, off) = (run(true), run(false));
+    // The change from the first frame, summed over the object (green).
+    let (mut flicker, mut left) = (0.0f64, 0.0f64);
+    for i in (0..n).filter(|&i| sc.mask[i] >= 1.0) {
+        let g = |img: &Image| img.data[n + i];
+        let (before, now) = (sc.rgb[3 * i + 1], next.rgb[3 * i + 1]);
+        assert!((g(&off) - now).abs() <= 1e-5 * now.max(1.0), "pixel {i}");
+        flicker += f64::from((now - before).abs());
+        left += f64::from((g(&on) - before).abs());
+    }
+    assert!(left < 0.8 * flicker, "{left} of {flicker} left");
+}
+
 /// Issue 19: with the renderer's albedo and normals, an insert graded a
 /// stop and a half too bright and warm is brought back (its albedo shaded
 /// as the ground's light shades the ground's albedo: on the faces whose
