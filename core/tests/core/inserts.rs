@@ -823,6 +823,37 @@ fn an_insert_in_a_frame_with_holes_is_harmonized_after_the_network() {
     );
 }
 
+/// Coverage with a hole in the front left corner, off the insert.
+fn corner_hole(sc: &Scene) -> Vec<f32> {
+    (0..W * H)
+        .map(|i| {
+            let (x, y) = (i % W, i / W);
+            let hole = (8..40).contains(&x) && (H - 30..H - 6).contains(&y);
+            if hole && sc.mask[i] == 0.0 {
+                0.0
+            } else {
+                1.0
+            }
+        })
+        .collect()
+}
+
+/// A session on the 3x3 box-filter model, without the insert operations
+/// and the denoise stage, with boolean parameter `name` set to `value`.
+fn box3_session(name: &str, value: bool) -> Session {
+    let mut params = harmonizer_core::Params::default();
+    for (name, v) in [
+        ("backend", ParamValue::Str("neural".into())),
+        ("denoise", ParamValue::Str("off".into())),
+        ("harmonize", ParamValue::Bool(false)),
+        ("contact_shadows", ParamValue::Bool(false)),
+        (name, ParamValue::Bool(value)),
+    ] {
+        params.set(name, &v).unwrap();
+    }
+    Session::new(crate::neural::device_file("box3"), params).unwrap()
+}
+
 /// An object composited into a reconstruction is the host's render: the
 /// network (a 3x3 box filter here) does not repaint its covered pixels,
 /// which keep their rendered color while the rest of the frame is the
@@ -832,28 +863,9 @@ fn an_insert_in_a_frame_with_holes_is_harmonized_after_the_network() {
 fn an_insert_s_covered_pixels_keep_their_rendered_color_under_the_network() {
     let sc = scene(0.0, None);
     let n = W * H;
-    let coverage: Vec<f32> = (0..n)
-        .map(|i| {
-            let (x, y) = (i % W, i / W);
-            if (8..40).contains(&x) && (H - 30..H - 6).contains(&y) && sc.mask[i] == 0.0 {
-                0.0
-            } else {
-                1.0
-            }
-        })
-        .collect();
+    let coverage = corner_hole(&sc);
     let run = |keep: bool| {
-        let mut params = harmonizer_core::Params::default();
-        for (name, v) in [
-            ("backend", ParamValue::Str("neural".into())),
-            ("denoise", ParamValue::Str("off".into())),
-            ("harmonize", ParamValue::Bool(false)),
-            ("contact_shadows", ParamValue::Bool(false)),
-            ("keep_covered", ParamValue::Bool(keep)),
-        ] {
-            params.set(name, &v).unwrap();
-        }
-        let mut s = Session::new(crate::neural::device_file("box3"), params).unwrap();
+        let mut s = box3_session("keep_covered", keep);
         let mut input = input_of(&sc, 0, true);
         input.coverage = Some(ImageView::from_f32("coverage", &coverage, W, H, 1).unwrap());
         s.process(&input, None).unwrap().0
@@ -894,16 +906,7 @@ fn an_insert_s_covered_pixels_keep_their_rendered_color_under_the_network() {
 fn a_kept_insert_is_stabilized_against_the_history() {
     let sc = scene(0.0, None);
     let n = W * H;
-    let coverage: Vec<f32> = (0..n)
-        .map(|i| {
-            let (x, y) = (i % W, i / W);
-            if (8..40).contains(&x) && (H - 30..H - 6).contains(&y) {
-                0.0
-            } else {
-                1.0
-            }
-        })
-        .collect();
+    let coverage = corner_hole(&sc);
     // The next frame: the same view, each of the object's pixels up to 15 %
     // brighter or darker.
     let mut next = scene(0.0, None);
@@ -914,17 +917,7 @@ fn a_kept_insert_is_stabilized_against_the_history() {
         }
     }
     let run = |stabilize: bool| {
-        let mut params = harmonizer_core::Params::default();
-        for (name, v) in [
-            ("backend", ParamValue::Str("neural".into())),
-            ("denoise", ParamValue::Str("off".into())),
-            ("harmonize", ParamValue::Bool(false)),
-            ("contact_shadows", ParamValue::Bool(false)),
-            ("stabilize", ParamValue::Bool(stabilize)),
-        ] {
-            params.set(name, &v).unwrap();
-        }
-        let mut s = Session::new(crate::neural::device_file("box3"), params).unwrap();
+        let mut s = box3_session("stabilize", stabilize);
         let mut out = None;
         for (t, frame) in [&sc, &next].into_iter().enumerate() {
             let mut input = input_of(frame, t as i64, true);
