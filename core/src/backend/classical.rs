@@ -77,8 +77,8 @@ pub const SHADOW_KEY: &str = "classical.shadow.missing";
 
 /// Carry key of the scene's light as last measured
 /// ([`cast_shadow::scene_light`]): its stops and facing (NaN for a frame
-/// that showed no shadow of its own), the light direction it was measured toward (world, 3 values) and
-/// the frames since it was.
+/// that showed no shadow of its own), the light direction it was measured
+/// toward (world, 3 values) and the frames since it was.
 pub const SCENE_LIGHT_KEY: &str = "classical.scene_light";
 
 /// The scene's light is measured again on every this many frames; the
