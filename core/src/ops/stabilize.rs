@@ -127,7 +127,7 @@ impl HistoryRows for ReprojectedFrame {
 }
 
 /// History frame `k` of a view, reprojected row by row
-/// ([`HistoryView::reproject_row_rgba`]), as [`HistoryRows`]; inlined into
+/// ([`HistoryView::reproject_span_rgba`]), as [`HistoryRows`]; inlined into
 /// the blend pass (and vectorized with it).
 pub struct ViewRows<'v, 'a> {
     /// The view.
@@ -178,10 +178,10 @@ pub fn stabilize(img: &mut Image, history: &ReprojectedFrame, blend: f32) {
     stabilize_rows(img, blend, None, history);
 }
 
-/// [`stabilize`] with the history given row by row: `history.row(y, rgba,
-/// valid)` writes row `y` of the reprojected history's RGBA (interleaved)
-/// and validity into the row-long slices `rgba` and `valid` (as
-/// [`HistoryView::reproject_row_rgba`] does, [`ViewRows`]), once per row,
+/// [`stabilize`] with the history given row by row: `history.row(y, 0,
+/// rgba, valid)` writes row `y` of the reprojected history's RGBA
+/// (interleaved) and validity into the row-long slices `rgba` and `valid`
+/// (as [`HistoryView::reproject_span_rgba`] does, [`ViewRows`]), once per row,
 /// from the pool's threads. The history is never held as a whole frame.
 ///
 /// One pass over the image: each band keeps a sliding window of three YCoCg

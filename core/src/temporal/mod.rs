@@ -389,7 +389,7 @@ impl<'a> HistoryView<'a> {
     }
 
     /// Keeps `frame` as history frame `k` reprojected, so the passes after
-    /// the caller's copy it ([`HistoryView::reproject_row_rgba`] and the
+    /// the caller's copy it ([`HistoryView::reproject_span_rgba`] and the
     /// others read the cache first) instead of computing it again. The
     /// caller assembled `frame` from [`HistoryView::reproject_rows`] runs
     /// that cover every pixel once, so it holds the bits
@@ -517,19 +517,9 @@ impl<'a> HistoryView<'a> {
         }
     }
 
-    /// [`HistoryView::reproject_row`] with the row's RGBA interleaved: pixel
-    /// `j` into `rgba[j]`, its validity into `valid[j]` (the same values).
-    ///
-    /// # Panics
-    /// As [`HistoryView::reproject_row`].
-    #[inline(always)]
-    pub fn reproject_row_rgba(&self, k: usize, i: usize, rgba: &mut [[f32; 4]], valid: &mut [f32]) {
-        let w = self.current.width();
-        self.reproject_span_rgba(k, i, 0, &mut rgba[..w], &mut valid[..w]);
-    }
-
-    /// [`HistoryView::reproject_row_rgba`] for columns `j0..j0 + rgba.len()`
-    /// of row `i` only (the same values as those of the whole row).
+    /// [`HistoryView::reproject_row`] for columns `j0..j0 + rgba.len()` of
+    /// row `i`, the RGBA interleaved: pixel `j0 + j` into `rgba[j]`, its
+    /// validity into `valid[j]` (the same values as the whole row's).
     ///
     /// # Panics
     /// When the columns leave the frame, or `valid` is shorter than `rgba`.
@@ -822,7 +812,7 @@ mod tests {
                         // The same row interleaved.
                         let mut rgba = vec![[0.0f32; 4]; w];
                         let mut rv = vec![0.0f32; w];
-                        view.reproject_row_rgba(k, i, &mut rgba, &mut rv);
+                        view.reproject_span_rgba(k, i, 0, &mut rgba, &mut rv);
                         // And as the stabilization pass takes it: inlined
                         // into code vectorized for the CPU's widest vectors.
                         let mut vrgba = vec![[0.0f32; 4]; w];
