@@ -46,7 +46,9 @@ class _Job:
         # pass (its denoiser ran: denoise temporal), else its sample count;
         # neither, samples 0 and the first frame's measured noise decides.
         mode, samples, why = denoise.sequence_settings(scene.harmonizer.denoise, first, view_layer)
-        self.runner = runtime.Runner(scene, view_layer=view_layer, samples=samples, denoise_mode=mode)
+        self.runner = runtime.Runner(
+            scene, view_layer=view_layer, samples=samples, denoise_mode=mode, measure_light=True
+        )
         if why:
             reports.post("INFO", f"Harmonizer: {why}")
         for level, text in self.runner.notes:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import bpy
 
 from . import denoise, handlers, light, passes, reports
@@ -20,6 +22,34 @@ class HARMONIZER_OT_setup_passes(bpy.types.Operator):
             self.report({level}, text)
         if not msgs:
             self.report({"INFO"}, "Harmonizer: passes and output are already set up")
+        return {"FINISHED"}
+
+
+class HARMONIZER_OT_measure_light_ratio(bpy.types.Operator):
+    """Render the Sun's light against the World's with Cycles (a white square under each) and set Sun to Sky"""
+
+    bl_idname = "harmonizer.measure_light_ratio"
+    bl_label = "Measure Sun to Sky"
+    bl_options = {"REGISTER", "UNDO"}
+
+    def execute(self, context):
+        scene = context.scene
+        vl = passes.render_view_layer(scene, scene.harmonizer.view_layer)
+        got = None if vl is None else light.measure_ratio(vl, scene.world)
+        if got is None:
+            self.report(
+                {"WARNING"},
+                "Harmonizer: no Sun to Sky to measure: it needs a World and a Sun light "
+                "or a Sky Texture with its sun disc on",
+            )
+            return {"CANCELLED"}
+        scene.harmonizer.light_ratio = got.ratio
+        clipped = " (the largest taken)" if got.ratio < got.direct / (0.5 * got.ambient) else ""
+        self.report(
+            {"INFO"},
+            f"Harmonizer: Sun to Sky {got.ratio:.2f}{clipped}: {got.source} {got.direct:.3g} "
+            f"over half the World's {got.ambient:.3g} (irradiance, rendered by Cycles)",
+        )
         return {"FINISHED"}
 
 
@@ -81,16 +111,21 @@ class RENDER_PT_harmonizer(bpy.types.Panel):
             col.prop(s, "light_direction")
         elif s.light_source == "AUTO" and vl is not None:
             best = light.dominant_sun(vl)
-            if best is None:
-                col.label(text="No Sun light: no cast shadows", icon="INFO")
-            else:
+            sky = None if best is not None else light.sky_sun(scene.world)
+            if best is not None:
                 col.label(text=f"{best[0].name} (strength {best[1]:g})", icon="LIGHT_SUN")
+            elif sky is not None:
+                elev = math.degrees(float(sky.sun_elevation))
+                col.label(text=f"Sky Texture sun (elevation {elev:.1f}\u00b0)", icon="LIGHT_SUN")
+            else:
+                col.label(text="No Sun light: no cast shadows", icon="INFO")
         if s.light_source != "OFF":
             col.prop(s, "light_ratio")
             if s.light_ratio <= 0:
                 auto = light.scene_ratio(vl, scene.world) if s.light_source == "AUTO" and vl is not None else None
                 if auto is None:
                     col.label(text="Sun to Sky: measured from each frame", icon="INFO")
+                    col.operator(HARMONIZER_OT_measure_light_ratio.bl_idname, icon="WORLD")
                 else:
                     col.label(text=f"Sun to Sky {auto:.2f} (Sun and World)", icon="WORLD")
 
@@ -129,7 +164,7 @@ class RENDER_PT_harmonizer(bpy.types.Panel):
                 layout.label(text=text.removeprefix("Harmonizer: "), icon="CANCEL")
 
 
-CLASSES = (HARMONIZER_OT_setup_passes, RENDER_PT_harmonizer)
+CLASSES = (HARMONIZER_OT_setup_passes, HARMONIZER_OT_measure_light_ratio, RENDER_PT_harmonizer)
 
 
 def register() -> None:

@@ -31,6 +31,7 @@ class Runner:
         view_layer: str | None = None,
         samples: int | None = None,
         denoise_mode: str | None = None,
+        measure_light: bool = False,
     ):
         """A session for ``scene``'s settings.
 
@@ -40,6 +41,9 @@ class Runner:
         ``denoise.session_samples``; the sequence operator passes what the
         files say, ``denoise.sequence_settings``). ``denoise_mode``: the
         ``denoise`` parameter (default: the panel's, see below).
+        ``measure_light``: where the World does not say its light, render
+        the Sun to Sky (``light.measure_ratio``, a second or two; not from a
+        render handler, where Blender cannot render).
         """
         s = scene.harmonizer
         hz = deps.harmonizer()
@@ -100,10 +104,12 @@ class Runner:
             self.notes.append(("WARNING", "Harmonizer: the manual light direction is (0, 0, 0): no cast shadows"))
         #: The session's ``light_ratio`` (see ``light.scene_ratio``), None
         #: to let the library measure it.
-        self.light_ratio = light_ratio_of(s, scene.view_layers.get(view_layer), scene.world)
+        self.light_ratio, ratio_from = light_ratio_of(
+            s, scene.view_layers.get(view_layer), scene.world, measure=measure_light
+        )
         extra = {} if self.light_ratio is None else {"light_ratio": self.light_ratio}
         if self.light_ratio is not None:
-            self.notes.append(("INFO", f"Harmonizer: Sun to Sky {self.light_ratio:.2f}"))
+            self.notes.append(("INFO", f"Harmonizer: Sun to Sky {self.light_ratio:.2f} ({ratio_from})"))
         self._messages: list[tuple[str, str]] = []
         self.device = hz.Device(threads=s.threads, ort_library=deps.onnxruntime_library())
         try:
@@ -138,21 +144,21 @@ class Runner:
     def light_at(self, scene: bpy.types.Scene, depsgraph=None) -> tuple[float, float, float] | None:
         """The direction toward the light for the frame ``scene`` (or
         ``depsgraph``) is evaluated at: the panel's manual one, none, or the
-        strongest Sun's (``light.scene_direction``)."""
+        strongest Sun's or the Sky Texture's sun (``light.scene_direction``)."""
         if self.light_source == "OFF":
             return None
         if self.light_source == "MANUAL":
             return self.manual_light
         vl = scene.view_layers.get(self.options.view_layer) or passes.render_view_layer(scene, "")
-        return None if vl is None else light.scene_direction(vl, depsgraph)
+        return None if vl is None else light.scene_direction(vl, depsgraph, scene.world)
 
     def light_at_frame(self, scene: bpy.types.Scene, frame: int) -> tuple[float, float, float] | None:
         """``light_at`` for ``frame`` of the open scene, moving the scene to
-        that frame (``frame_set``) when a Sun may be animated; the caller
+        that frame (``frame_set``) when a Sun or a sky may be animated; the caller
         puts the frame back when done."""
         if self.light_source == "AUTO" and scene.frame_current != frame:
             vl = scene.view_layers.get(self.options.view_layer) or passes.render_view_layer(scene, "")
-            if vl is not None and light.suns(vl):
+            if vl is not None and (light.suns(vl) or light.sky_sun(scene.world) is not None):
                 scene.frame_set(frame)
         return self.light_at(scene)
 
@@ -239,12 +245,21 @@ def camera_matrices(scene: bpy.types.Scene, depsgraph=None):
     return None if params is None else processor.blender_camera_matrices(params)
 
 
-def light_ratio_of(s, view_layer: bpy.types.ViewLayer | None, world) -> float | None:
-    """The panel's *Sun to Sky* when set; else, with the Light on *Scene
-    Sun*, the ratio of the Sun's light to the World's where the World says
-    it (``light.scene_ratio``); else None (the library measures it)."""
+def light_ratio_of(s, view_layer: bpy.types.ViewLayer | None, world, measure: bool = False) -> tuple[float | None, str]:
+    """The session's ``light_ratio`` and where it came from: the panel's
+    *Sun to Sky* when set; else, with the Light on *Scene Sun*, the ratio of
+    the Sun's light to the World's where the World says it
+    (``light.scene_ratio``), or with ``measure`` as Cycles renders it
+    (``light.measure_ratio``); else None (the library measures it)."""
     if s.light_ratio > 0:
-        return float(s.light_ratio)
+        return float(s.light_ratio), "the panel's"
     if s.light_source != "AUTO" or view_layer is None:
-        return None
-    return light.scene_ratio(view_layer, world)
+        return None, "none"
+    ratio = light.scene_ratio(view_layer, world)
+    if ratio is not None:
+        return ratio, "Sun and World"
+    if measure:
+        got = light.measure_ratio(view_layer, world)
+        if got is not None:
+            return got.ratio, f"rendered: {got.source} over the World"
+    return None, "none"

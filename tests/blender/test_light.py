@@ -51,7 +51,11 @@ def _animated_sun_scene(out: str):
     sun.keyframe_insert("rotation_euler", frame=3)
     # A weaker Sun, a stronger Sun disabled for renders, a stronger one in an
     # excluded collection, and a much stronger point light: none of them is the light.
-    for name, energy, rot in (("WeakSun", 1.0, (0, 0, 0)), ("OffSun", 50.0, (1.0, 0, 0)), ("HiddenSun", 50.0, (0, 1.0, 0))):
+    for name, energy, rot in (
+        ("WeakSun", 1.0, (0, 0, 0)),
+        ("OffSun", 50.0, (1.0, 0, 0)),
+        ("HiddenSun", 50.0, (0, 1.0, 0)),
+    ):
         data = bpy.data.lights.new(name, type="SUN")
         data.energy = energy
         obj = bpy.data.objects.new(name, data)
@@ -521,3 +525,174 @@ def test_sun_to_sky_is_what_cycles_renders(addon, tmp_root):
     sun_alone = mean_luminance(black, True, "sun")
     sky_alone = mean_luminance(scene.world, False, "sky")
     assert 2.0 * sun_alone / sky_alone == pytest.approx(want, rel=0.03), (sun_alone, sky_alone, want)
+
+
+def _sky(scene, disc: bool, elevation: float = 38.0, rotation: float = 150.0):
+    """The fixture's World lit by a Sky Texture (Blender 5.0's default
+    Multiple Scattering) at strength 0.35, its sun at ``elevation`` and
+    ``rotation`` (degrees)."""
+    nt = scene.world.node_tree
+    sky = nt.nodes.new("ShaderNodeTexSky")
+    sky.sun_disc = disc
+    sky.sun_elevation = math.radians(elevation)
+    sky.sun_rotation = math.radians(rotation)
+    bg = nt.nodes["Background"]
+    bg.inputs["Strength"].default_value = 0.35
+    nt.links.new(sky.outputs["Color"], bg.inputs["Color"])
+    return sky
+
+
+def _blocks() -> dict[str, int]:
+    """Data-blocks by kind (Blender's own Render Result image aside)."""
+    got = {k: len(getattr(bpy.data, k)) for k in ("scenes", "objects", "meshes", "materials", "cameras", "worlds")}
+    got["images"] = sum(1 for i in bpy.data.images if i.type != "RENDER_RESULT")
+    return got
+
+
+def test_a_sky_texture_s_sun_gives_the_direction(addon, tmp_root):
+    """Issue 19: without a Sun light, the World's Sky Texture's sun disc is
+    the light: the direction passed is the one Cycles lights from (a white
+    square facing it gets more light than one turned 10 degrees in any of
+    four ways); none with the disc off or the sun below the horizon; a Sun
+    light wins over the sky."""
+    scene, draw = _panel(addon, tmp_root, "sky_sun")
+    sun = bpy.data.objects["Sun"]
+    sun.hide_render = True
+    sky = _sky(scene, disc=True)
+    runner = addon.runtime.Runner(scene)
+    try:
+        got = runner.light_at(scene)
+        assert got is not None
+        assert any(t.startswith("Sky Texture sun (elevation 38.0") for t in draw().labels), draw().labels
+        probe = addon.light._Probe()
+        try:
+            facing = probe.irradiance(scene.world, got)
+            d = Vector(got)
+            side = d.cross(Vector((0.0, 0.0, 1.0))).normalized()
+            up = side.cross(d).normalized()
+            turned = []
+            for axis in (side, -side, up, -up):
+                v = (d * math.cos(math.radians(10)) + axis * math.sin(math.radians(10))).normalized()
+                turned.append(probe.irradiance(scene.world, tuple(v)))
+        finally:
+            probe.close()
+        print(f"\nsky sun: facing {facing:.3f}, turned 10 degrees {[round(t, 3) for t in turned]}")
+        assert all(t < facing for t in turned), (facing, turned)
+        # The disc's light is most of it: a cosine of 10 degrees takes 1.5 % off.
+        assert all(t < 0.995 * facing for t in turned), (facing, turned)
+
+        sky.sun_disc = False
+        assert runner.light_at(scene) is None
+        sky.sun_disc = True
+        sky.sun_elevation = math.radians(-2.0)
+        assert runner.light_at(scene) is None
+        sky.sun_elevation = math.radians(38.0)
+        sun.hide_render = False
+        assert _angle(runner.light_at(scene), _sun_z()) < 1e-4
+    finally:
+        runner.close()
+
+
+def test_sun_to_sky_measured_by_cycles(addon, tmp_root):
+    """Issue 19: *Measure Sun to Sky* renders the ratio for any World. Where
+    the World says its light (a color, an environment image) it agrees with
+    the ratio read from it; a Sky Texture under a Sun light, which cannot be
+    read, gets its own; a Sky Texture's sun disc alone gives its light
+    (nothing on a surface facing away); nothing is left behind."""
+    scene, draw = _panel(addon, tmp_root, "sun_to_sky_measured")
+    vl = scene.view_layers["ViewLayer"]
+    before = _blocks()
+    got = addon.light.measure_ratio(vl, scene.world)
+    want = addon.light.scene_ratio(vl, scene.world)
+    assert got.source == "Sun light 'Sun'"
+    assert got.ratio == pytest.approx(want, rel=0.03), (got, want)
+
+    img = bpy.data.images.new("sky_probe", 64, 32, float_buffer=True)
+    px = np.zeros((32, 64, 4), np.float32)
+    px[..., 3] = 1.0
+    px[16:, :, :3] = 0.5
+    px[16:, :8, :3] = 3.0  # a bright patch: not uniform in azimuth
+    img.pixels.foreach_set(px.ravel())
+    nt = scene.world.node_tree
+    env = nt.nodes.new("ShaderNodeTexEnvironment")
+    env.image = img
+    nt.links.new(env.outputs["Color"], nt.nodes["Background"].inputs["Color"])
+    got = addon.light.measure_ratio(vl, scene.world)
+    want = addon.light.scene_ratio(vl, scene.world)
+    assert got.ratio == pytest.approx(want, rel=0.03), (got, want)
+    before["images"] += 1
+
+    sky = _sky(scene, disc=False)
+    assert addon.light.scene_ratio(vl, scene.world) is None
+    assert "Sun to Sky: measured from each frame" in draw().labels
+    assert bpy.ops.harmonizer.measure_light_ratio() == {"FINISHED"}
+    measured = scene.harmonizer.light_ratio
+    again = addon.light.measure_ratio(vl, scene.world)
+    print(f"\nSky Texture under the Sun: {again}")
+    assert measured == pytest.approx(again.ratio, rel=0.03)
+    assert _session_ratio(addon, scene) == pytest.approx(measured)
+    scene.harmonizer.light_ratio = 0.0
+    runner = addon.runtime.Runner(scene, measure_light=True)
+    try:
+        assert runner.light_ratio == pytest.approx(measured, rel=0.03)
+        assert (
+            "INFO",
+            f"Harmonizer: Sun to Sky {runner.light_ratio:.2f} (rendered: Sun light 'Sun' over the World)",
+        ) in runner.notes
+    finally:
+        runner.close()
+
+    # The sky's own sun: the disc's light on a surface facing it, none facing away.
+    bpy.data.objects["Sun"].hide_render = True
+    sky.sun_disc = True
+    disc = addon.light.measure_ratio(vl, scene.world)
+    assert disc.source == f"Sky Texture '{sky.name}'" and disc.ratio > 1.0, disc
+    toward = addon.light.sky_sun_direction(sky)
+    probe = addon.light._Probe()
+    try:
+        away = tuple(-c for c in toward)
+        bare = probe.without_discs(scene.world)
+        on, off = probe.irradiance(scene.world, away), probe.irradiance(bare, away)
+    finally:
+        probe.close()
+    assert abs(on - off) < 0.02 * disc.direct, (on, off, disc)
+    assert _blocks() == before
+
+    # Without any direct light there is nothing to measure.
+    sky.sun_disc = False
+    assert addon.light.measure_ratio(vl, scene.world) is None
+    assert bpy.ops.harmonizer.measure_light_ratio() == {"CANCELLED"}
+
+
+def test_sequence_operator_renders_the_sky_s_light(addon, tmp_root, monkeypatch):
+    """The sequence operator (not a render handler: it may render) passes a
+    Sky Texture's sun as the light and its Sun to Sky as Cycles renders it;
+    a render's own session, which cannot, leaves the ratio to the library."""
+    out = os.path.join(tmp_root, "sky_seq")
+    scene = fixture.build(os.path.join(out, "raw", "frame_####.exr"), frames=(1, 2))
+    _small(scene)
+    bpy.data.objects["Sun"].hide_render = True
+    sky = _sky(scene, disc=True, elevation=30.0, rotation=200.0)
+    configure(scene, backend="bypass", output_path=os.path.join(out, "enhanced", "frame_####.exr"))
+    scene.harmonizer.enabled = False  # only render the raw frames
+    render(scene)
+    seen = {}
+    process = addon.processor.FrameProcessor.process
+
+    def recording(self, raw_path, output_path, *, frame, **kw):
+        result = process(self, raw_path, output_path, frame=frame, **kw)
+        seen[frame] = (self.session.get("light_direction"), float(self.session.get("light_ratio")))
+        return result
+
+    monkeypatch.setattr(addon.processor.FrameProcessor, "process", recording)
+    result = bpy.ops.harmonizer.enhance_sequence(
+        directory=os.path.join(out, "raw"), output_directory=os.path.join(out, "seq")
+    )
+    assert result == {"FINISHED"}
+    want = addon.light.measure_ratio(scene.view_layers["ViewLayer"], scene.world)
+    assert want is not None and want.source == f"Sky Texture '{sky.name}'"
+    assert sorted(seen) == [1, 2]
+    for direction, ratio in seen.values():
+        assert _angle([float(c) for c in direction.split(",")], addon.light.sky_sun_direction(sky)) < 1e-3
+        assert ratio == pytest.approx(want.ratio, rel=0.03), (ratio, want)
+    assert _session_ratio(addon, scene) == 0.0
