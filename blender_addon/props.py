@@ -56,7 +56,7 @@ LIGHT_SOURCES = [
         "AUTO",
         "Scene Sun",
         "The strongest Sun light that renders, evaluated at each frame (animated suns follow); "
-        "without a Sun, inserts cast no directional shadow",
+        "without one, the World's Sky Texture sun; with neither, inserts cast no directional shadow",
     ),
     ("MANUAL", "Manual", "A fixed direction toward the light, in world space"),
     (
@@ -149,7 +149,8 @@ class HarmonizerSceneSettings(bpy.types.PropertyGroup):
         description=(
             "The Sun's light against the sky's: irradiance on a surface facing the Sun over that on a "
             "surface in its shadow. 0: from the Sun's strength and the World where it says its light "
-            "(a color or an environment image), else measured from each frame's own shadows"
+            "(a color or an environment image), else measured from each frame's own shadows. "
+            "Measure Sun to Sky renders it for any World"
         ),
         default=0.0,
         min=0.0,
