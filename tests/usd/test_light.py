@@ -305,7 +305,7 @@ def test_light_ratio_is_the_sun_over_the_dome(tmp_path: Path) -> None:
     """Issue 19: the session's ``light_ratio`` is the brightest
     DistantLight's irradiance over half the DomeLights' (pi times their
     radiance), read at each frame; ``harmonizer:lightRatio`` overrides it;
-    a textured dome, no dome or no light leave it to the library (0)."""
+    a dome texture not found, no dome or no light leave it to the library (0)."""
     stage = _stage(tmp_path)
     _distant(stage, "/World/Sun", 2.0, exposure=1.0)  # 4, white
     _distant(stage, "/World/Fill", 1.5)
@@ -344,10 +344,144 @@ def test_light_ratio_is_the_sun_over_the_dome(tmp_path: Path) -> None:
     with pytest.raises(Exception, match="lightRatio"):
         _ratio_values(path, Options(backend="bypass", out_dir=tmp_path / "d"))
     attr.Clear()
-    # A textured dome does not say its light plainly; no light, no ratio.
-    UsdLux.DomeLight(stage.GetPrimAtPath("/World/Sky")).CreateTextureFileAttr(Sdf.AssetPath("sky.exr"))
+    # A dome's texture that cannot be read leaves the ratio to the library, saying why; no light, no ratio.
+    UsdLux.DomeLight(stage.GetPrimAtPath("/World/Sky")).CreateTextureFileAttr(
+        Sdf.AssetPath("sky.exr")
+    )
     stage.GetRootLayer().Save()
     got = _ratio_values(path, Options(backend="bypass", out_dir=tmp_path / "e"))
-    assert all(p == 0.0 and "has a texture" in r.light_ratio_source for p, r in got)
+    assert all(
+        p == 0.0 and r.light_ratio_source == "DomeLight /World/Sky: texture 'sky.exr' not found"
+        for p, r in got
+    )
     got = _ratio_values(path, Options(backend="bypass", light="none", out_dir=tmp_path / "f"))
     assert all(p == 0.0 for p, _ in got)
+
+
+def _latlong(path: Path, rgb: np.ndarray) -> None:
+    """Writes a float lat-long image (rows from the top) with OpenImageIO."""
+    import OpenImageIO as oiio
+
+    h, w, c = rgb.shape
+    out = oiio.ImageOutput.create(str(path))
+    assert out is not None and out.open(
+        str(path), oiio.ImageSpec(w, h, c, oiio.HALF if path.suffix == ".exr" else oiio.FLOAT)
+    )
+    assert out.write_image(np.ascontiguousarray(rgb, np.float32))
+    out.close()
+
+
+def test_light_ratio_reads_a_textured_dome(tmp_path: Path) -> None:
+    """Issue 19: an HDRI dome gives the irradiance its texture sends onto a
+    surface facing the stage's up axis. OpenEXR's lat-long, as UsdLux says:
+    a texture bright in its upper half gives ``pi`` times its mean radiance
+    on a Y-up stage (whatever varies along the longitude); on a Z-up stage
+    half as much (that half then faces sideways) unless the dome is turned
+    up or a ``DomeLight_1`` has its pole on the scene's axis; a patch at
+    longitude +pi/2 lies toward the dome's +X; the dome's color, intensity
+    and exposure scale it; an 8-bit image or another layout is not read,
+    and says so."""
+    h, w = 64, 128
+    sky = np.zeros((h, w, 3), np.float32)
+    sky[: h // 2] = (0.3, 0.5, 0.9)
+    sky[: h // 2, 10:20] *= 4.0  # brighter over some longitudes
+    _latlong(tmp_path / "sky.exr", sky)
+    lum = float(np.dot([0.2126, 0.7152, 0.0722], sky[: h // 2].mean(axis=(0, 1))))
+
+    stage = _stage(tmp_path, up_axis="Y")
+    _distant(stage, "/World/Sun", 3.0)
+    dome = UsdLux.DomeLight.Define(stage, "/World/Sky")
+    dome.CreateTextureFileAttr(Sdf.AssetPath("sky.exr"))
+    dome.CreateIntensityAttr(0.5)
+    stage.GetRootLayer().Save()
+    path = tmp_path / "stage.usda"
+    want = 3.0 / (0.5 * math.pi * 0.5 * lum)
+    got = _ratio_values(path, Options(backend="bypass", out_dir=tmp_path / "y"))
+    for f, (param, r) in zip(FRAMES, got, strict=True):
+        assert param == pytest.approx(want, rel=0.01), (f, param, want)
+        assert r.light_ratio == pytest.approx(param, rel=1e-6)
+        assert r.light_ratio_source == "DistantLight /World/Sun over DomeLight /World/Sky"
+    # Color and exposure: (0.5, 1, 1) halves the red, 2^1 doubles it all.
+    dome.CreateColorAttr(Gf.Vec3f(0.5, 1.0, 1.0))
+    dome.CreateExposureAttr(1.0)
+    stage.GetRootLayer().Save()
+    tinted = float(np.dot([0.2126 * 0.5, 0.7152, 0.0722], sky[: h // 2].mean(axis=(0, 1))))
+    got = _ratio_values(path, Options(backend="bypass", out_dir=tmp_path / "tint"))
+    assert got[0][0] == pytest.approx(3.0 / (0.5 * math.pi * 0.5 * 2.0 * tinted), rel=0.01)
+    dome.GetColorAttr().Clear()
+    dome.GetExposureAttr().Clear()
+
+    # Z up, an upper half of one radiance: its top faces the dome's +Y
+    # (sideways), and a surface facing up gets half of pi times it.
+    half = np.zeros((h, w, 3), np.float32)
+    half[: h // 2] = 0.5
+    _latlong(tmp_path / "half.exr", half)
+    dome.GetTextureFileAttr().Set(Sdf.AssetPath("half.exr"))
+    UsdLux.DistantLight(stage.GetPrimAtPath("/World/Sun")).GetIntensityAttr().Set(
+        1.5
+    )  # under the largest ratio
+    stage.GetRootLayer().Save()
+    want_half = 1.5 / (0.5 * math.pi * 0.5 * 0.5)
+    assert _ratio_values(path, Options(backend="bypass", out_dir=tmp_path / "half_y"))[0][
+        0
+    ] == pytest.approx(want_half, rel=0.01)
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    stage.GetRootLayer().Save()
+    got = _ratio_values(path, Options(backend="bypass", out_dir=tmp_path / "half_z"))
+    assert got[0][0] == pytest.approx(2.0 * want_half, rel=0.02)
+    # Turned up by 90 degrees about X (+Y onto +Z), it lights the ground again.
+    UsdGeom.XformCommonAPI(dome).SetRotate(Gf.Vec3f(90.0, 0.0, 0.0))
+    stage.GetRootLayer().Save()
+    got = _ratio_values(path, Options(backend="bypass", out_dir=tmp_path / "half_z_turned"))
+    assert got[0][0] == pytest.approx(want_half, rel=0.01)
+
+    # Longitude: a patch at latitude 0, longitude +pi/2 lies toward the
+    # dome's +X. Turned -90 degrees about Y, +X faces up (+Z): the patch
+    # lights the ground; turned +90, it faces down: nothing.
+    patch = np.zeros((h, w, 3), np.float32)
+    col = round((math.pi - math.pi / 2) / (2 * math.pi) * w)  # column of longitude +pi/2
+    patch[h // 2 - 2 : h // 2 + 2, col - 2 : col + 2] = 50.0
+    _latlong(tmp_path / "patch.exr", patch)
+    dome.GetTextureFileAttr().Set(Sdf.AssetPath("patch.exr"))
+    solid = 16 * (math.pi / h) * (2 * math.pi / w)  # 4x4 texels at the equator
+    for turn, lit in ((-90.0, True), (90.0, False)):
+        UsdGeom.XformCommonAPI(dome).SetRotate(Gf.Vec3f(0.0, turn, 0.0))
+        stage.GetRootLayer().Save()
+        got = _ratio_values(path, Options(backend="bypass", out_dir=tmp_path / f"patch_{turn}"))
+        if lit:
+            assert got[0][0] == pytest.approx(1.5 / (0.5 * 0.5 * 50.0 * solid), rel=0.03), got[0][0]
+        else:
+            assert got[0][0] == 0.0 and got[0][1].light_ratio_source == "none", got[0]
+
+    # DomeLight_1 with its pole on the scene's up axis: no turn needed.
+    stage.RemovePrim("/World/Sky")
+    dome1 = UsdLux.DomeLight_1.Define(stage, "/World/Sky")
+    dome1.CreateTextureFileAttr(Sdf.AssetPath("half.exr"))
+    dome1.CreateIntensityAttr(0.5)
+    dome1.CreatePoleAxisAttr("scene")
+    stage.GetRootLayer().Save()
+    got = _ratio_values(path, Options(backend="bypass", out_dir=tmp_path / "pole"))
+    assert got[0][0] == pytest.approx(want_half, rel=0.01)
+    assert got[0][1].light_ratio_source == "DistantLight /World/Sun over DomeLight /World/Sky"
+
+    # Not read: an 8-bit image, another layout, a texture not twice as wide as high.
+    import OpenImageIO as oiio
+
+    out = oiio.ImageOutput.create(str(tmp_path / "sky.png"))
+    assert out.open(str(tmp_path / "sky.png"), oiio.ImageSpec(w, h, 3, oiio.UINT8))
+    assert out.write_image(np.zeros((h, w, 3), np.uint8))
+    out.close()
+    _latlong(tmp_path / "square.exr", np.ones((h, h, 3), np.float32))
+    for tex, fmt, why in (
+        ("sky.png", "automatic", "is not a float (linear) image"),
+        ("sky.exr", "mirroredBall", "texture format 'mirroredBall': only lat-long images are read"),
+        ("square.exr", "automatic", "is 64x64: a lat-long image is twice as wide as high"),
+    ):
+        dome1.GetTextureFileAttr().Set(Sdf.AssetPath(tex))
+        dome1.CreateTextureFormatAttr(fmt)
+        stage.GetRootLayer().Save()
+        got = _ratio_values(path, Options(backend="bypass", out_dir=tmp_path / f"bad_{fmt}_{tex}"))
+        assert all(p == 0.0 and why in r.light_ratio_source for p, r in got), (
+            tex,
+            [r.light_ratio_source for _, r in got],
+        )

@@ -31,16 +31,26 @@ The scene's direct-to-ambient ratio (the library's ``light_ratio``,
    irradiance on a surface facing up (``pi`` times each one's
    ``intensity * 2^exposure`` times its color's luminance: a whole sky of
    that radiance), since a wall, an object's side or ground in a wall's
-   shadow sees about half the sky. A dome with a texture file does not say
-   its light this plainly: then none.
+   shadow sees about half the sky. A dome with a texture file (an HDRI)
+   gives the irradiance its texture sends onto a surface facing the
+   stage's up axis (:func:`dome_irradiance`): a latitude-longitude image
+   in OpenEXR's convention, as UsdLux specifies (the top row toward the
+   dome's +Y, or its ``poleAxis`` for ``DomeLight_1``; longitude 0 toward
+   +Z, +pi/2 toward +X), its linear RGB times the dome's color, under the
+   dome's world transform at the frame, times ``intensity * 2^exposure``.
+   A texture that cannot be read that way (not found, not a float image,
+   another layout than lat-long) gives none, and says why.
 3. None: the library measures it from each frame's own shadows.
 """
 
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass
+from functools import lru_cache
 
+import numpy as np
 from pxr import Gf, Usd, UsdGeom, UsdLux
 
 from .errors import SettingsError
@@ -199,9 +209,93 @@ def _visible(prim: Usd.Prim, time: Usd.TimeCode) -> bool:
 
 
 def ratio_lights(stage: Usd.Stage) -> list[Usd.Prim]:
-    """The stage's DistantLight and DomeLight prims, in namespace order (one
-    traversal, which a run keeps)."""
-    return [p for p in stage.Traverse() if p.IsA(UsdLux.DistantLight) or p.IsA(UsdLux.DomeLight)]
+    """The stage's DistantLight and DomeLight (or DomeLight_1) prims, in
+    namespace order (one traversal, which a run keeps)."""
+    return [p for p in stage.Traverse() if p.IsA(UsdLux.DistantLight) or _is_dome(p)]
+
+
+def _is_dome(prim: Usd.Prim) -> bool:
+    return prim.IsA(UsdLux.DomeLight) or prim.IsA(UsdLux.DomeLight_1)
+
+
+#: A dome texture is read at most this many texels wide (block means; half
+#: as many rows): the irradiance is a smooth integral.
+DOME_TEXELS = 256
+
+
+class DomeTextureError(ValueError):
+    """A dome's texture that cannot be read as a lat-long image."""
+
+
+@lru_cache(maxsize=8)
+def _latlong(path: str, mtime: float) -> np.ndarray:
+    """A lat-long image's linear RGB, block-averaged to at most
+    :data:`DOME_TEXELS` x half as many texels (float64, rows from the top).
+    ``mtime`` keys the cache to the file's version."""
+    import OpenImageIO as oiio
+
+    inp = oiio.ImageInput.open(path)
+    if inp is None:
+        raise DomeTextureError(f"cannot open {path}: {oiio.geterror()}")
+    try:
+        spec = inp.spec()
+        if spec.format.basetype not in (oiio.FLOAT, oiio.HALF):
+            raise DomeTextureError(f"{path} is not a float (linear) image ({spec.format})")
+        names = list(spec.channelnames)
+        idx = [names.index(c) for c in "RGB"] if all(c in names for c in "RGB") else [0, 1, 2]
+        if spec.nchannels < 3:
+            raise DomeTextureError(f"{path} has {spec.nchannels} channels, not RGB")
+        px = inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT)
+    finally:
+        inp.close()
+    if px is None:
+        raise DomeTextureError(f"cannot read {path}: {oiio.geterror()}")
+    h, w = spec.height, spec.width
+    if w != 2 * h:
+        raise DomeTextureError(f"{path} is {w}x{h}: a lat-long image is twice as wide as high")
+    rgb = np.asarray(px, np.float64).reshape(h, w, spec.nchannels)[..., idx]
+    rgb = np.where(np.isfinite(rgb), np.maximum(rgb, 0.0), 0.0)
+    f = max(1, math.ceil(w / DOME_TEXELS))
+    hh, ww = h // f, w // f
+    return rgb[: hh * f, : ww * f].reshape(hh, f, ww, f, 3).mean(axis=(1, 3))
+
+
+def dome_irradiance(stage: Usd.Stage, prim: Usd.Prim, time: Usd.TimeCode) -> float:
+    """The irradiance a textured dome sends onto a surface facing the
+    stage's up axis (luminance; see the module's notes). Raises
+    :class:`DomeTextureError` where the texture cannot be read as lat-long."""
+    dome = UsdLux.DomeLight_1(prim) if prim.IsA(UsdLux.DomeLight_1) else UsdLux.DomeLight(prim)
+    asset = dome.GetTextureFileAttr().Get(time)
+    fmt = dome.GetTextureFormatAttr().Get(time) if dome.GetTextureFormatAttr() else None
+    if fmt not in (None, "automatic", "latlong"):
+        raise DomeTextureError(f"texture format {fmt!r}: only lat-long images are read")
+    path = asset.resolvedPath
+    if not path or not os.path.isfile(path):
+        raise DomeTextureError(f"texture {asset.path!r} not found")
+    rgb = _latlong(path, os.path.getmtime(path))
+    h, w = rgb.shape[:2]
+    lat = math.pi / 2 - math.pi * (np.arange(h) + 0.5) / h
+    lon = math.pi - 2 * math.pi * (np.arange(w) + 0.5) / w
+    clat, slat = np.cos(lat)[:, None], np.sin(lat)[:, None]
+    # OpenEXR's lat-long: +Y up, longitude 0 toward +Z, +pi/2 toward +X.
+    d = np.stack(np.broadcast_arrays(clat * np.sin(lon)[None], slat, clat * np.cos(lon)[None]), -1)
+    up_axis = UsdGeom.GetStageUpAxis(stage)
+    pole = dome.GetPoleAxisAttr().Get(time) if prim.IsA(UsdLux.DomeLight_1) else "Y"
+    if pole == "Z" or (pole == "scene" and up_axis == UsdGeom.Tokens.z):
+        d = np.stack([d[..., 0], -d[..., 2], d[..., 1]], -1)  # +Y onto +Z (90 degrees about X)
+    m = UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(time)
+    rot = np.array([[m[i][j] for j in range(3)] for i in range(3)])  # row vectors: d @ rot
+    world = d @ rot
+    world /= np.maximum(np.linalg.norm(world, axis=-1, keepdims=True), 1e-12)
+    up = np.array([0.0, 0.0, 1.0]) if up_axis == UsdGeom.Tokens.z else np.array([0.0, 1.0, 0.0])
+    weight = np.maximum(world @ up, 0.0) * clat * (math.pi / h) * (2 * math.pi / w)
+    per_channel = (rgb * weight[..., None]).sum(axis=(0, 1))
+    color = dome.GetColorAttr().Get(time) if dome.GetColorAttr() else None
+    tint = np.ones(3) if color is None else np.array([float(c) for c in color])
+    scale = _value(dome.GetIntensityAttr(), time, 1.0) * 2.0 ** _value(
+        dome.GetExposureAttr(), time, 0.0
+    )
+    return float(scale * np.dot(np.asarray(LUMA) * tint, per_channel))
 
 
 def light_ratio_at(
@@ -236,13 +330,21 @@ def light_ratio_at(
             p = _power(UsdLux.DistantLight(prim), time)
             if math.isfinite(p) and p > 0 and (sun is None or p > sun[0]):
                 sun = (p, prim)
-        elif prim.IsA(UsdLux.DomeLight) and _visible(prim, time):
-            dome = UsdLux.DomeLight(prim)
+        elif _is_dome(prim) and _visible(prim, time):
+            dome = (
+                UsdLux.DomeLight_1(prim) if prim.IsA(UsdLux.DomeLight_1) else UsdLux.DomeLight(prim)
+            )
             tex = dome.GetTextureFileAttr().Get(time) if dome.GetTextureFileAttr() else None
             if tex is not None and tex.path:
-                return None, f"DomeLight {prim.GetPath()} has a texture"
-            ambient += 0.5 * math.pi * _power(dome, time)
+                try:
+                    ambient += 0.5 * dome_irradiance(stage, prim, time)
+                except DomeTextureError as exc:
+                    return None, f"DomeLight {prim.GetPath()}: {exc}"
+            else:
+                ambient += 0.5 * math.pi * _power(dome, time)
             domes.append(str(prim.GetPath()))
     if sun is None or not domes or not math.isfinite(ambient) or ambient <= 0:
         return None, "none"
-    return min(sun[0] / ambient, MAX_RATIO), f"DistantLight {sun[1].GetPath()} over DomeLight {', '.join(domes)}"
+    return min(
+        sun[0] / ambient, MAX_RATIO
+    ), f"DistantLight {sun[1].GetPath()} over DomeLight {', '.join(domes)}"
