@@ -437,21 +437,21 @@ def test_light_ratio_reads_a_textured_dome(tmp_path: Path) -> None:
 
     # Longitude: a patch at latitude 0, longitude +pi/2 lies toward the
     # dome's +X. Turned -90 degrees about Y, +X faces up (+Z): the patch
-    # lights the ground; turned +90, it faces down: nothing.
-    patch = np.zeros((h, w, 3), np.float32)
+    # lights the ground; turned +90, it faces down. Over a uniform 5 and
+    # ten times brighter: not a sun.
+    patch = np.full((h, w, 3), 5.0, np.float32)
     col = round((math.pi - math.pi / 2) / (2 * math.pi) * w)  # column of longitude +pi/2
     patch[h // 2 - 2 : h // 2 + 2, col - 2 : col + 2] = 50.0
     _latlong(tmp_path / "patch.exr", patch)
     dome.GetTextureFileAttr().Set(Sdf.AssetPath("patch.exr"))
     solid = 16 * (math.pi / h) * (2 * math.pi / w)  # 4x4 texels at the equator
-    for turn, lit in ((-90.0, True), (90.0, False)):
+    for turn, extra in ((-90.0, 45.0 * solid), (90.0, 0.0)):
         UsdGeom.XformCommonAPI(dome).SetRotate(Gf.Vec3f(0.0, turn, 0.0))
         stage.GetRootLayer().Save()
         got = _ratio_values(path, Options(backend="bypass", out_dir=tmp_path / f"patch_{turn}"))
-        if lit:
-            assert got[0][0] == pytest.approx(1.5 / (0.5 * 0.5 * 50.0 * solid), rel=0.03), got[0][0]
-        else:
-            assert got[0][0] == 0.0 and got[0][1].light_ratio_source == "none", got[0]
+        want_patch = 1.5 / (0.5 * 0.5 * (5.0 * math.pi + extra))
+        assert got[0][0] == pytest.approx(want_patch, rel=0.005), (turn, got[0][0], want_patch)
+    UsdGeom.XformCommonAPI(dome).SetRotate(Gf.Vec3f(0.0, 0.0, 0.0))
 
     # DomeLight_1 with its pole on the scene's up axis: no turn needed.
     stage.RemovePrim("/World/Sky")
@@ -485,3 +485,57 @@ def test_light_ratio_reads_a_textured_dome(tmp_path: Path) -> None:
             tex,
             [r.light_ratio_source for _, r in got],
         )
+
+
+def test_the_sun_in_a_dome_s_texture_is_the_light(tmp_path: Path) -> None:
+    """Issue 19: an HDRI with a sun and no DistantLight: the direction is
+    toward the sun in the texture (its texels' power-weighted mean), the
+    ratio its irradiance over half the rest of the sky's; a sun below the
+    horizon is none; a DistantLight wins the direction and the ratio, the
+    texture's sun still left out of the ambient."""
+    h, w = 64, 128
+    tex = np.zeros((h, w, 3), np.float32)
+    tex[: h // 2] = 0.5  # sky
+    tex[h // 2 :] = 0.1  # ground
+    r0, c0 = 21, 31  # a 2x2 sun centred at latitude 90 - 180 * 22 / 64, longitude +pi/2
+    tex[r0 : r0 + 2, c0 : c0 + 2] = 500.0
+    _latlong(tmp_path / "sunny.exr", tex)
+    lat = math.pi / 2 - math.pi * (r0 + 1) / h
+    toward = np.array([math.cos(lat), math.sin(lat), 0.0])  # +X at longitude +pi/2, Y up
+    stage = _stage(tmp_path, up_axis="Y")
+    dome = UsdLux.DomeLight.Define(stage, "/World/Sky")
+    dome.CreateTextureFileAttr(Sdf.AssetPath("sunny.exr"))
+    stage.GetRootLayer().Save()
+    path = tmp_path / "stage.usda"
+    opts = Options(backend="bypass", out_dir=tmp_path / "dir")
+    for direction, r in _session_values(path, opts):
+        assert r.light_source == "DomeLight /World/Sky (the sun in its texture)"
+        d = _floats(direction)
+        angle = math.degrees(math.acos(min(1.0, float(np.dot(d, toward)))))
+        assert angle < 0.5, (d, toward)
+    # The sun's irradiance (texels at about one latitude) over half the sky's
+    # on a surface facing up (pi * 0.5, less the sky texels around the sun).
+    texel = [math.cos(math.pi / 2 - math.pi * (r + 0.5) / h) * (math.pi / h) * (2 * math.pi / w) for r in (r0, r0 + 1)]
+    direct = 500.0 * 2 * sum(texel)
+    want = direct / (0.5 * math.pi * 0.5)
+    got = _ratio_values(path, Options(backend="bypass", out_dir=tmp_path / "ratio"))
+    for param, r in got:
+        assert param == pytest.approx(want, rel=0.03), (param, want)
+        assert r.light_ratio_source == "the sun of DomeLight /World/Sky over DomeLight /World/Sky"
+    # Turned upside down (180 degrees about X): the sun is below the horizon.
+    UsdGeom.XformCommonAPI(dome).SetRotate(Gf.Vec3f(180.0, 0.0, 0.0))
+    stage.GetRootLayer().Save()
+    assert all(
+        r.light_direction is None and r.light_source == "none"
+        for _, r in _session_values(path, Options(backend="bypass", out_dir=tmp_path / "below"))
+    )
+    assert all(p == 0.0 for p, _ in _ratio_values(path, Options(backend="bypass", out_dir=tmp_path / "below_r")))
+    UsdGeom.XformCommonAPI(dome).SetRotate(Gf.Vec3f(0.0, 0.0, 0.0))
+    # A DistantLight wins; the texture's sun is still not ambient.
+    _distant(stage, "/World/Sun", 1.0, rotate=(-50.0, 0.0, 0.0))
+    stage.GetRootLayer().Save()
+    for _, r in _session_values(path, Options(backend="bypass", out_dir=tmp_path / "distant")):
+        assert r.light_source == "DistantLight /World/Sun"
+    got = _ratio_values(path, Options(backend="bypass", out_dir=tmp_path / "distant_r"))
+    assert got[0][0] == pytest.approx(1.0 / (0.5 * math.pi * 0.5), rel=0.03)
+    assert got[0][1].light_ratio_source == "DistantLight /World/Sun over DomeLight /World/Sky"

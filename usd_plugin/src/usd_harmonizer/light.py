@@ -12,14 +12,22 @@ Where it comes from, first found wins:
    inside instances are not looked for). A DistantLight emits along its
    local -Z, so the direction toward it is its local-to-world transform's
    +Z axis, normalized.
-3. None: the library casts no directional shadow (the contact shadow
+3. The sun in a textured dome (an HDRI; :func:`dome_lighting`): the
+   texels within :data:`SUN_RADIUS_DEG` of the texture's brightest, when
+   that texel is at least :data:`SUN_CONTRAST` times the mean radiance of
+   the rest of the sphere and those texels carry at least
+   :data:`SUN_SHARE` of its power (a clear sky's sun, a studio HDRI's key
+   light; not an overcast sky); the direction is their power-weighted mean,
+   under the dome's transform at the frame, when above the horizon. The
+   brightest such sun of the visible domes wins.
+4. None: the library casts no directional shadow (the contact shadow
    under an insert stays).
 
 The direction is in the stage's world space, whatever its ``upAxis``: the
 camera matrices the hook passes (:mod:`usd_harmonizer.camera`) are in that
 same space, and the library only needs the two to agree. Point, sphere,
-rect, disk and dome lights are not used: a point light's direction depends
-on where the insert stands, and a dome's dominant direction on its texture.
+rect and disk lights are not used: a point light's direction depends on
+where the insert stands.
 
 The scene's direct-to-ambient ratio (the library's ``light_ratio``,
 :func:`light_ratio_at`), first found wins:
@@ -33,13 +41,16 @@ The scene's direct-to-ambient ratio (the library's ``light_ratio``,
    that radiance), since a wall, an object's side or ground in a wall's
    shadow sees about half the sky. A dome with a texture file (an HDRI)
    gives the irradiance its texture sends onto a surface facing the
-   stage's up axis (:func:`dome_irradiance`): a latitude-longitude image
+   stage's up axis (:func:`dome_lighting`): a latitude-longitude image
    in OpenEXR's convention, as UsdLux specifies (the top row toward the
    dome's +Y, or its ``poleAxis`` for ``DomeLight_1``; longitude 0 toward
    +Z, +pi/2 toward +X), its linear RGB times the dome's color, under the
    dome's world transform at the frame, times ``intensity * 2^exposure``.
-   A texture that cannot be read that way (not found, not a float image,
-   another layout than lat-long) gives none, and says why.
+   A texture's sun (above) is direct light, left out of the ambient;
+   without a DistantLight the brightest dome sun is the direct light (its
+   irradiance on a surface facing it). A texture that cannot be read that
+   way (not found, not a float image, another layout than lat-long) gives
+   none, and says why.
 3. None: the library measures it from each frame's own shadows.
 """
 
@@ -182,11 +193,16 @@ def light_at(
     prims: list[Usd.Prim],
     frame: float,
     lights: list[Usd.Prim] | None = None,
+    domes: list[Usd.Prim] | None = None,
 ) -> Light:
     """The light of ``frame``: the override on ``prims`` (the product, then
     the settings prim), else the stage's brightest DistantLight (among
-    ``lights`` when given), else none."""
-    return override(prims, frame) or dominant_distant_light(stage, frame, lights)
+    ``lights`` when given), else the brightest sun in a dome's texture
+    (among ``domes`` when given), else none."""
+    found = override(prims, frame) or dominant_distant_light(stage, frame, lights)
+    if found is NO_LIGHT:
+        return dome_sun_light(stage, frame, domes)
+    return found
 
 
 def _power(light, time: Usd.TimeCode) -> float:
@@ -260,11 +276,68 @@ def _latlong(path: str, mtime: float) -> np.ndarray:
     return rgb[: hh * f, : ww * f].reshape(hh, f, ww, f, 3).mean(axis=(1, 3))
 
 
-def dome_irradiance(stage: Usd.Stage, prim: Usd.Prim, time: Usd.TimeCode) -> float:
-    """The irradiance a textured dome sends onto a surface facing the
-    stage's up axis (luminance; see the module's notes). Raises
-    :class:`DomeTextureError` where the texture cannot be read as lat-long."""
-    dome = UsdLux.DomeLight_1(prim) if prim.IsA(UsdLux.DomeLight_1) else UsdLux.DomeLight(prim)
+#: A texture's sun: the texels within this angle (degrees) of its brightest
+#: one (the disc, block-averaged, and its aureole) ...
+SUN_RADIUS_DEG = 6.0
+#: ... when the brightest texel is at least this many times the mean
+#: radiance of the rest of the sphere ...
+SUN_CONTRAST = 20.0
+#: ... and those texels carry at least this share of the texture's power.
+SUN_SHARE = 0.05
+
+
+@dataclass(frozen=True)
+class DomeLighting:
+    """What a textured dome gives at a frame (luminance, world space)."""
+
+    #: Irradiance on a surface facing the stage's up axis, the sun's
+    #: texels left out.
+    ambient_up: float
+    #: The direction toward the texture's sun (unit), or None: no compact
+    #: bright source, or one below the horizon.
+    sun: tuple[float, float, float] | None
+    #: The sun's irradiance on a surface facing it (0 without).
+    sun_irradiance: float
+
+
+def _latlong_directions(h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+    """Each texel's direction (OpenEXR's lat-long: +Y up, longitude 0 toward
+    +Z, +pi/2 toward +X; rows from the top) and solid angle."""
+    lat = math.pi / 2 - math.pi * (np.arange(h) + 0.5) / h
+    lon = math.pi - 2 * math.pi * (np.arange(w) + 0.5) / w
+    clat, slat = np.cos(lat)[:, None], np.sin(lat)[:, None]
+    d = np.stack(np.broadcast_arrays(clat * np.sin(lon)[None], slat, clat * np.cos(lon)[None]), -1)
+    solid = np.broadcast_to(clat * (math.pi / h) * (2 * math.pi / w), (h, w))
+    return d, solid
+
+
+@lru_cache(maxsize=8)
+def _latlong_sun(path: str, mtime: float) -> np.ndarray | None:
+    """The texels of a lat-long image's sun (a bool mask; see
+    :data:`SUN_RADIUS_DEG`), or None where it has none."""
+    rgb = _latlong(path, mtime)
+    h, w = rgb.shape[:2]
+    d, solid = _latlong_directions(h, w)
+    lum = rgb @ np.asarray(LUMA)
+    k = np.unravel_index(int(np.argmax(lum)), lum.shape)
+    near = d @ d[k] >= math.cos(math.radians(SUN_RADIUS_DEG))
+    power = lum * solid
+    total, sun = float(power.sum()), float(power[near].sum())
+    rest = (total - sun) / max(float(solid[~near].sum()), 1e-12)
+    if total <= 0 or sun < SUN_SHARE * total or lum[k] < SUN_CONTRAST * rest:
+        return None
+    return near
+
+
+def _dome(prim: Usd.Prim):
+    return UsdLux.DomeLight_1(prim) if prim.IsA(UsdLux.DomeLight_1) else UsdLux.DomeLight(prim)
+
+
+def dome_lighting(stage: Usd.Stage, prim: Usd.Prim, time: Usd.TimeCode) -> DomeLighting:
+    """What a textured dome's texture gives at ``time`` (see the module's
+    notes). Raises :class:`DomeTextureError` where the texture cannot be
+    read as lat-long."""
+    dome = _dome(prim)
     asset = dome.GetTextureFileAttr().Get(time)
     fmt = dome.GetTextureFormatAttr().Get(time) if dome.GetTextureFormatAttr() else None
     if fmt not in (None, "automatic", "latlong"):
@@ -272,13 +345,11 @@ def dome_irradiance(stage: Usd.Stage, prim: Usd.Prim, time: Usd.TimeCode) -> flo
     path = asset.resolvedPath
     if not path or not os.path.isfile(path):
         raise DomeTextureError(f"texture {asset.path!r} not found")
-    rgb = _latlong(path, os.path.getmtime(path))
+    mtime = os.path.getmtime(path)
+    rgb = _latlong(path, mtime)
+    sun_mask = _latlong_sun(path, mtime)
     h, w = rgb.shape[:2]
-    lat = math.pi / 2 - math.pi * (np.arange(h) + 0.5) / h
-    lon = math.pi - 2 * math.pi * (np.arange(w) + 0.5) / w
-    clat, slat = np.cos(lat)[:, None], np.sin(lat)[:, None]
-    # OpenEXR's lat-long: +Y up, longitude 0 toward +Z, +pi/2 toward +X.
-    d = np.stack(np.broadcast_arrays(clat * np.sin(lon)[None], slat, clat * np.cos(lon)[None]), -1)
+    d, solid = _latlong_directions(h, w)
     up_axis = UsdGeom.GetStageUpAxis(stage)
     pole = dome.GetPoleAxisAttr().Get(time) if prim.IsA(UsdLux.DomeLight_1) else "Y"
     if pole == "Z" or (pole == "scene" and up_axis == UsdGeom.Tokens.z):
@@ -288,14 +359,51 @@ def dome_irradiance(stage: Usd.Stage, prim: Usd.Prim, time: Usd.TimeCode) -> flo
     world = d @ rot
     world /= np.maximum(np.linalg.norm(world, axis=-1, keepdims=True), 1e-12)
     up = np.array([0.0, 0.0, 1.0]) if up_axis == UsdGeom.Tokens.z else np.array([0.0, 1.0, 0.0])
-    weight = np.maximum(world @ up, 0.0) * clat * (math.pi / h) * (2 * math.pi / w)
-    per_channel = (rgb * weight[..., None]).sum(axis=(0, 1))
     color = dome.GetColorAttr().Get(time) if dome.GetColorAttr() else None
     tint = np.ones(3) if color is None else np.array([float(c) for c in color])
     scale = _value(dome.GetIntensityAttr(), time, 1.0) * 2.0 ** _value(
         dome.GetExposureAttr(), time, 0.0
     )
-    return float(scale * np.dot(np.asarray(LUMA) * tint, per_channel))
+    lum = rgb @ (np.asarray(LUMA) * tint * scale)
+    facing_up = np.maximum(world @ up, 0.0) * solid
+    rest = np.ones((h, w), bool) if sun_mask is None else ~sun_mask
+    ambient = float((lum * facing_up)[rest].sum())
+    if sun_mask is None:
+        return DomeLighting(ambient, None, 0.0)
+    power = (lum * solid)[sun_mask]
+    toward = (world[sun_mask] * power[:, None]).sum(axis=0)
+    n = float(np.linalg.norm(toward))
+    if not math.isfinite(n) or n <= 0:
+        return DomeLighting(ambient, None, 0.0)
+    toward /= n
+    if float(toward @ up) <= 0:  # below the horizon: no direct light on the ground
+        return DomeLighting(ambient, None, 0.0)
+    direct = float((power * np.maximum(world[sun_mask] @ toward, 0.0)).sum())
+    return DomeLighting(ambient, (float(toward[0]), float(toward[1]), float(toward[2])), direct)
+
+
+def dome_sun_light(stage: Usd.Stage, frame: float, domes: list[Usd.Prim] | None = None) -> Light:
+    """The direction toward the brightest sun in the stage's textured domes
+    (among ``domes`` when given) at ``frame``, or :data:`NO_LIGHT`. A
+    texture that cannot be read gives none here (the ratio says why)."""
+    time = Usd.TimeCode(frame)
+    best: tuple[float, tuple[float, float, float], Usd.Prim] | None = None
+    for prim in [p for p in stage.Traverse() if _is_dome(p)] if domes is None else domes:
+        if not _is_dome(prim) or not _visible(prim, time):
+            continue
+        attr = _dome(prim).GetTextureFileAttr()
+        tex = attr.Get(time) if attr else None
+        if tex is None or not tex.path:
+            continue
+        try:
+            got = dome_lighting(stage, prim, time)
+        except DomeTextureError:
+            continue
+        if got.sun is not None and (best is None or got.sun_irradiance > best[0]):
+            best = (got.sun_irradiance, got.sun, prim)
+    if best is None:
+        return NO_LIGHT
+    return Light(best[1], f"DomeLight {best[2].GetPath()} (the sun in its texture)")
 
 
 def light_ratio_at(
@@ -324,6 +432,7 @@ def light_ratio_at(
             raise SettingsError(f"{where}: {r!r} is not a ratio (a number, at least 0)")
         return (min(r, MAX_RATIO) if r > 0 else None), where
     sun: tuple[float, Usd.Prim] | None = None
+    dome_sun: tuple[float, Usd.Prim] | None = None
     ambient, domes = 0.0, []
     for prim in ratio_lights(stage) if lights is None else lights:
         if prim.IsA(UsdLux.DistantLight) and _visible(prim, time):
@@ -331,20 +440,25 @@ def light_ratio_at(
             if math.isfinite(p) and p > 0 and (sun is None or p > sun[0]):
                 sun = (p, prim)
         elif _is_dome(prim) and _visible(prim, time):
-            dome = (
-                UsdLux.DomeLight_1(prim) if prim.IsA(UsdLux.DomeLight_1) else UsdLux.DomeLight(prim)
-            )
+            dome = _dome(prim)
             tex = dome.GetTextureFileAttr().Get(time) if dome.GetTextureFileAttr() else None
             if tex is not None and tex.path:
                 try:
-                    ambient += 0.5 * dome_irradiance(stage, prim, time)
+                    got = dome_lighting(stage, prim, time)
                 except DomeTextureError as exc:
                     return None, f"DomeLight {prim.GetPath()}: {exc}"
+                ambient += 0.5 * got.ambient_up
+                if got.sun is not None and (dome_sun is None or got.sun_irradiance > dome_sun[0]):
+                    dome_sun = (got.sun_irradiance, prim)
             else:
                 ambient += 0.5 * math.pi * _power(dome, time)
             domes.append(str(prim.GetPath()))
-    if sun is None or not domes or not math.isfinite(ambient) or ambient <= 0:
+    if not domes or not math.isfinite(ambient) or ambient <= 0:
         return None, "none"
-    return min(
-        sun[0] / ambient, MAX_RATIO
-    ), f"DistantLight {sun[1].GetPath()} over DomeLight {', '.join(domes)}"
+    if sun is not None:
+        source = f"DistantLight {sun[1].GetPath()}"
+    elif dome_sun is not None:
+        sun, source = dome_sun, f"the sun of DomeLight {dome_sun[1].GetPath()}"
+    else:
+        return None, "none"
+    return min(sun[0] / ambient, MAX_RATIO), f"{source} over DomeLight {', '.join(domes)}"

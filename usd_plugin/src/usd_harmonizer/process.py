@@ -259,6 +259,7 @@ class ProductRunner:
         #: session holds the user's own (``params``) or nothing set yet.
         self._light_param: str | None = None
         self._distant: list[Any] | None = None
+        self._domes: list[Any] | None = None
         #: The ``light_ratio`` the session holds (0.0: unset), and the
         #: stage's DistantLight and DomeLight prims, found once per run.
         self._ratio_param = 0.0
@@ -320,7 +321,8 @@ class ProductRunner:
             return self._fixed_light
         if self._distant is None:  # the stage's lights, found once per run
             self._distant = distant_lights(self.product.stage)
-        return light_at(self.product.stage, self._light_prims, frame, self._distant)
+            self._domes = [p for p in ratio_lights(self.product.stage) if p not in self._distant]
+        return light_at(self.product.stage, self._light_prims, frame, self._distant, self._domes)
 
     def light_ratio_for(self, frame: int, light: Light) -> tuple[float | None, str]:
         """The ``light_ratio`` of ``frame`` and where it came from: the
