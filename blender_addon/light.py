@@ -13,12 +13,22 @@ each frame, the +Z axis of the strongest Sun light that renders:
   matrix's +Z axis, normalized (Blender's world, Z up: the world of the
   camera matrices the extension passes).
 
-Without a Sun light, a Sky Texture's sun disc lights the scene (a common
-outdoor setup): the World's Sky Texture of a type that draws a disc
-(Multiple or Single Scattering), its disc on and its sun above the horizon,
-feeding the active Background's Color, gives the direction of its sun:
-``(cos e sin r, cos e cos r, sin e)`` for elevation ``e`` and rotation
-``r`` (checked against Cycles: a surface facing it gets the most light).
+Without a Sun light, the sun of the World lights the scene (common
+outdoor setups). An equirectangular environment image (the World's
+Background fed by an Environment Texture with the default mapping) has a
+sun where the texels within :data:`SUN_RADIUS_DEG` of its brightest are a
+compact bright source (the brightest at least :data:`SUN_CONTRAST` times
+the mean radiance of the rest of the sphere, those texels at least
+:data:`SUN_SHARE` of the image's power: a clear sky's sun, a studio
+image's key light; an overcast sky has none): the direction is toward
+their power-weighted mean (Blender's mapping: column ``u = 0.5 -
+atan2(y, x) / (2 pi)``, row from the bottom ``v = 0.5 + elevation / pi``),
+when above the horizon. A Sky Texture's sun disc: the World's Sky Texture
+of a type that draws a disc (Multiple or Single Scattering), its disc on
+and its sun above the horizon, feeding the active Background's Color,
+gives the direction of its sun: ``(cos e sin r, cos e cos r, sin e)`` for
+elevation ``e`` and rotation ``r``. Both checked against Cycles: a surface
+facing the direction gets the most light.
 
 Point, spot and area lights are not used: their direction depends on where
 the insert stands. Without a Sun the library casts no directional shadow
@@ -36,8 +46,9 @@ W/m^2, a World's color times strength its radiance, of which a whole sky
 gives ``pi`` times as much irradiance. ``scene_ratio`` reads
 it where the World says it plainly: a Background shader (its Strength not
 linked) whose Color is a constant or an equirectangular Environment
-Texture image with the default mapping (its upper half, cosine-weighted),
-or a World without nodes. Other Worlds (a Sky Texture, node setups) give
+Texture image with the default mapping (its upper half, cosine-weighted;
+its sun, above, left out of the ambient, and the direct light without a
+Sun light), or a World without nodes. Other Worlds (a Sky Texture, node setups) give
 None, and the library measures the scene's light from the frame's own
 shadows, which a reconstruction's depth cannot give (docs/inserts.md). The
 panel's *Sun to Sky* sets it by hand, or *Measure* renders it
@@ -120,8 +131,8 @@ def scene_direction(
     view_layer: bpy.types.ViewLayer, depsgraph=None, world: bpy.types.World | None = None
 ) -> tuple[float, float, float] | None:
     """The direction toward the strongest Sun of ``view_layer`` (world space,
-    unit); without one, toward ``world``'s Sky Texture sun (``sky_sun``);
-    else None.
+    unit); without one, toward ``world``'s Sky Texture sun (``sky_sun``) or
+    the sun in its environment image (``env_sun``); else None.
 
     With ``depsgraph`` (a ``frame_change_post`` handler's) the Sun and the
     World evaluated in it: during an animation render that is the light at
@@ -132,8 +143,12 @@ def scene_direction(
     best = dominant_sun(view_layer, depsgraph)
     if best is not None:
         return direction_of(best[0])
-    sky = sky_sun(_evaluated(world, depsgraph) if world is not None else None)
-    return None if sky is None else sky_sun_direction(sky)
+    world = _evaluated(world, depsgraph) if world is not None else None
+    sky = sky_sun(world)
+    if sky is not None:
+        return sky_sun_direction(sky)
+    env = env_sun(world)
+    return None if env is None else env[0]
 
 
 def manual_direction(v) -> tuple[float, float, float] | None:
@@ -160,30 +175,6 @@ def sun_irradiance(sun: bpy.types.Object) -> float:
     """The Sun's irradiance on a surface facing it (its strength times its
     color's luminance)."""
     return float(sun.data.energy) * _luma(sun.data.color)
-
-
-def _image_upper_irradiance(image: bpy.types.Image) -> float | None:
-    """Irradiance on a surface facing up from an equirectangular image
-    (Blender's mapping: the top row is the zenith), per unit of strength:
-    the upper half's luminance weighted by the cosine to the zenith and
-    each row's solid angle."""
-    import numpy as np
-
-    w, h = image.size
-    c = image.channels
-    if w < 2 or h < 2 or c < 3:
-        return None
-    px = np.empty(w * h * c, np.float32)
-    image.pixels.foreach_get(px)
-    # Rows from the bottom (Blender's pixel order): the upper half, each
-    # row's mean luminance.
-    rows = px.reshape(h, w, c)[h // 2 :, :, :3].astype(np.float64)
-    lum = (rows @ np.asarray(LUMA)).mean(axis=1)
-    elev = np.pi * ((np.arange(h // 2, h) + 0.5) / h - 0.5)
-    # Per row: 2 pi cos(elev) d_elev of solid angle, times sin(elev) (the
-    # cosine to a surface facing up).
-    total = float((lum * np.sin(elev) * np.cos(elev)).sum() * (np.pi / h) * 2.0 * np.pi)
-    return total if math.isfinite(total) else None
 
 
 def _background(world: bpy.types.World | None):
@@ -232,6 +223,135 @@ def sky_sun_direction(sky) -> tuple[float, float, float]:
     return (math.cos(e) * math.sin(r), math.cos(e) * math.cos(r), math.sin(e))
 
 
+#: A World image's sun: the texels within this angle (degrees) of its
+#: brightest one (the disc, block-averaged, and its aureole) ...
+SUN_RADIUS_DEG = 6.0
+#: ... when the brightest texel is at least this many times the mean
+#: radiance of the rest of the sphere ...
+SUN_CONTRAST = 20.0
+#: ... and those texels carry at least this share of the image's power.
+SUN_SHARE = 0.05
+#: A World image is read at most this many texels wide (block means; half
+#: as many rows): the irradiance is a smooth integral.
+ENV_TEXELS = 256
+
+
+@dataclass(frozen=True)
+class EnvLight:
+    """What an equirectangular World image gives, per unit of the
+    Background's strength (luminance; Blender's world, Z up)."""
+
+    #: Irradiance on a surface facing up, the sun's texels left out.
+    ambient_up: float
+    #: The direction toward the image's sun (unit), or None: no compact
+    #: bright source, or one below the horizon.
+    sun: tuple[float, float, float] | None
+    #: The sun's irradiance on a surface facing it (0 without).
+    sun_irradiance: float
+
+
+#: Block-averaged pixels of file images, by (path, size, file time).
+_ENV_CACHE: dict[tuple, object] = {}
+
+
+def _env_rgb(image: bpy.types.Image):
+    """An image's RGB, rows from the bottom, block-averaged to at most
+    :data:`ENV_TEXELS` wide (float64), or None. A file image not edited in
+    Blender is read once per file version; other images each time."""
+    import numpy as np
+
+    w, h = image.size
+    c = image.channels
+    if w < 2 or h < 2 or c < 3:
+        return None
+    key = None
+    path = bpy.path.abspath(image.filepath) if image.source == "FILE" and image.filepath else ""
+    if path and not image.is_dirty and os.path.isfile(path):
+        key = (path, w, h, os.path.getmtime(path))
+        if key in _ENV_CACHE:
+            return _ENV_CACHE[key]
+    px = np.empty(w * h * c, np.float32)
+    image.pixels.foreach_get(px)
+    rgb = px.reshape(h, w, c)[..., :3].astype(np.float64)
+    rgb = np.where(np.isfinite(rgb), np.maximum(rgb, 0.0), 0.0)
+    f = max(1, math.ceil(w / ENV_TEXELS))
+    hh, ww = h // f, w // f
+    rgb = rgb[: hh * f, : ww * f].reshape(hh, f, ww, f, 3).mean(axis=(1, 3))
+    if key is not None:
+        _ENV_CACHE.clear()  # one World image at a time
+        _ENV_CACHE[key] = rgb
+    return rgb
+
+
+def env_light(image: bpy.types.Image) -> EnvLight | None:
+    """What an equirectangular image with Blender's default mapping gives
+    (see the module's notes), or None where it cannot be read."""
+    import numpy as np
+
+    rgb = _env_rgb(image)
+    if rgb is None:
+        return None
+    h, w = rgb.shape[:2]
+    # Blender's mapping: column u = 0.5 - atan2(y, x) / (2 pi), row v (from
+    # the bottom) = 0.5 + elevation / pi.
+    lat = math.pi * ((np.arange(h) + 0.5) / h - 0.5)
+    phi = math.pi * (1.0 - 2.0 * (np.arange(w) + 0.5) / w)
+    clat, slat = np.cos(lat)[:, None], np.sin(lat)[:, None]
+    d = np.stack(np.broadcast_arrays(clat * np.cos(phi)[None], clat * np.sin(phi)[None], slat), -1)
+    solid = np.broadcast_to(clat * (math.pi / h) * (2.0 * math.pi / w), (h, w))
+    lum = rgb @ np.asarray(LUMA)
+    facing_up = np.maximum(d[..., 2], 0.0) * solid
+    k = np.unravel_index(int(np.argmax(lum)), lum.shape)
+    near = d @ d[k] >= math.cos(math.radians(SUN_RADIUS_DEG))
+    power = lum * solid
+    total, sun = float(power.sum()), float(power[near].sum())
+    rest = (total - sun) / max(float(solid[~near].sum()), 1e-12)
+    if total <= 0 or sun < SUN_SHARE * total or lum[k] < SUN_CONTRAST * rest:
+        ambient = float((lum * facing_up).sum())
+        return EnvLight(ambient, None, 0.0) if math.isfinite(ambient) else None
+    ambient = float((lum * facing_up)[~near].sum())
+    toward = (d[near] * power[near][:, None]).sum(axis=0)
+    n = float(np.linalg.norm(toward))
+    if not math.isfinite(ambient) or not math.isfinite(n) or n <= 0:
+        return None
+    toward /= n
+    if toward[2] <= 0:  # below the horizon: no direct light on the ground
+        return EnvLight(ambient, None, 0.0)
+    direct = float((power[near] * np.maximum(d[near] @ toward, 0.0)).sum())
+    return EnvLight(ambient, (float(toward[0]), float(toward[1]), float(toward[2])), direct)
+
+
+def _env_texture(world: bpy.types.World | None):
+    """(the World's Environment Texture node, the Background's strength)
+    where the World is lit plainly by an equirectangular image with the
+    default mapping (see the module's notes), else None."""
+    bg = _background(world)
+    if bg is None or not bg.inputs["Color"].is_linked:
+        return None
+    tex = bg.inputs["Color"].links[0].from_node
+    if (
+        tex.bl_idname != "ShaderNodeTexEnvironment"
+        or tex.mute
+        or tex.image is None
+        or tex.projection != "EQUIRECTANGULAR"
+        or tex.inputs["Vector"].is_linked
+    ):
+        return None
+    return tex, float(bg.inputs["Strength"].default_value)
+
+
+def env_sun(world: bpy.types.World | None) -> tuple[tuple[float, float, float], float] | None:
+    """The direction toward the sun in the World's image and its irradiance
+    on a surface facing it (times the Background's strength), or None."""
+    found = _env_texture(world)
+    if found is None or found[1] <= 0:
+        return None
+    got = env_light(found[0].image)
+    if got is None or got.sun is None:
+        return None
+    return got.sun, found[1] * got.sun_irradiance
+
+
 def world_ambient(world: bpy.types.World | None) -> float | None:
     """The World's irradiance on a surface facing up (see the module's
     notes), or None where the World does not say it plainly."""
@@ -247,28 +367,29 @@ def world_ambient(world: bpy.types.World | None) -> float | None:
     color = bg.inputs["Color"]
     if not color.is_linked:
         return math.pi * strength * _luma(color.default_value)
-    tex = color.links[0].from_node
-    if (
-        tex.bl_idname != "ShaderNodeTexEnvironment"
-        or tex.image is None
-        or tex.projection != "EQUIRECTANGULAR"
-        or tex.inputs["Vector"].is_linked
-    ):
-        return None
-    e = _image_upper_irradiance(tex.image)
-    return None if e is None else strength * e
+    found = _env_texture(world)
+    got = None if found is None else env_light(found[0].image)
+    return None if got is None else strength * got.ambient_up
 
 
 def scene_ratio(view_layer: bpy.types.ViewLayer, world: bpy.types.World | None) -> float | None:
-    """The strongest rendered Sun's irradiance over half the World's on a
-    surface facing up (the library's ``light_ratio``, at most
-    :data:`MAX_RATIO`; see the module's notes), or None without a Sun or
-    where the World does not say its light."""
+    """The strongest rendered Sun's irradiance (without one, the World
+    image's sun's) over half the World's on a surface facing up (the
+    library's ``light_ratio``, at most :data:`MAX_RATIO`; see the module's
+    notes), or None without a Sun or where the World does not say its
+    light."""
     best = dominant_sun(view_layer)
     ambient = world_ambient(world)
-    if best is None or ambient is None or not math.isfinite(ambient) or ambient <= 0:
+    if ambient is None or not math.isfinite(ambient) or ambient <= 0:
         return None
-    r = sun_irradiance(best[0]) / (0.5 * ambient)
+    if best is not None:
+        direct = sun_irradiance(best[0])
+    else:
+        found = env_sun(world)
+        if found is None:
+            return None
+        direct = found[1]
+    r = direct / (0.5 * ambient)
     return min(r, MAX_RATIO) if math.isfinite(r) and r > 0 else None
 
 

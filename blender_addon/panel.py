@@ -117,6 +117,9 @@ class RENDER_PT_harmonizer(bpy.types.Panel):
             elif sky is not None:
                 elev = math.degrees(float(sky.sun_elevation))
                 col.label(text=f"Sky Texture sun (elevation {elev:.1f}\u00b0)", icon="LIGHT_SUN")
+            elif (env := light.env_sun(scene.world)) is not None:
+                elev = math.degrees(math.asin(max(-1.0, min(1.0, env[0][2]))))
+                col.label(text=f"Environment image sun (elevation {elev:.1f}\u00b0)", icon="LIGHT_SUN")
             else:
                 col.label(text="No Sun light: no cast shadows", icon="INFO")
         if s.light_source != "OFF":

@@ -56,7 +56,8 @@ LIGHT_SOURCES = [
         "AUTO",
         "Scene Sun",
         "The strongest Sun light that renders, evaluated at each frame (animated suns follow); "
-        "without one, the World's Sky Texture sun; with neither, inserts cast no directional shadow",
+        "without one, the World's sun (a Sky Texture's or its environment image's); with neither, inserts "
+        "cast no directional shadow",
     ),
     ("MANUAL", "Manual", "A fixed direction toward the light, in world space"),
     (

@@ -696,3 +696,86 @@ def test_sequence_operator_renders_the_sky_s_light(addon, tmp_root, monkeypatch)
         assert _angle([float(c) for c in direction.split(",")], addon.light.sky_sun_direction(sky)) < 1e-3
         assert ratio == pytest.approx(want.ratio, rel=0.03), (ratio, want)
     assert _session_ratio(addon, scene) == 0.0
+
+
+def _env_world(scene, name: str, px: np.ndarray):
+    """The fixture's World lit by an equirectangular image (rows from the
+    bottom, RGBA) at strength 1."""
+    img = bpy.data.images.new(name, px.shape[1], px.shape[0], float_buffer=True)
+    img.pixels.foreach_set(px.ravel())
+    world = scene.world.copy()
+    nt = world.node_tree
+    env = nt.nodes.new("ShaderNodeTexEnvironment")
+    env.image = img
+    bg = nt.nodes["Background"]
+    bg.inputs["Strength"].default_value = 1.0
+    nt.links.new(env.outputs["Color"], bg.inputs["Color"])
+    return world
+
+
+def test_the_sun_in_the_world_s_image_is_the_light(addon, tmp_root):
+    """Issue 19: an environment image with a sun and no Sun light: the
+    direction passed is the one Cycles lights from (a white square facing it
+    gets more light than one turned 10 degrees in any of four ways), and Sun
+    to Sky is the sun's irradiance over half the rest of the sky's, as
+    Cycles renders them (the image with and without its sun); the same image
+    without its sun has none; a Sun light wins."""
+    scene, draw = _panel(addon, tmp_root, "env_sun")
+    vl = scene.view_layers["ViewLayer"]
+    bpy.data.objects["Sun"].hide_render = True
+    h, w = 64, 128
+    plain = np.zeros((h, w, 4), np.float32)
+    plain[..., 3] = 1.0
+    plain[h // 2 :, :, :3] = 0.4  # sky (rows from the bottom: the upper half)
+    plain[: h // 2, :, :3] = 0.1  # ground
+    sunny = plain.copy()
+    sunny[44:46, 80:82, :3] = 400.0  # elevation pi * (45 / 64 - 0.5): 36.6 degrees
+    scene.world = _env_world(scene, "plain", plain)
+    plain_world = scene.world
+    assert addon.light.env_sun(plain_world) is None
+    scene.world = _env_world(scene, "sunny", sunny)
+    runner = addon.runtime.Runner(scene)
+    try:
+        got = runner.light_at(scene)
+    finally:
+        runner.close()
+    assert got is not None
+    assert math.degrees(math.asin(got[2])) == pytest.approx(180.0 * (45 / 64 - 0.5), abs=0.5)
+    assert any(t.startswith("Environment image sun (elevation 36.") for t in draw().labels), draw().labels
+    ratio = addon.light.scene_ratio(vl, scene.world)
+    assert ratio is not None and f"Sun to Sky {ratio:.2f} (Sun and World)" in draw().labels
+    probe = addon.light._Probe()
+    try:
+        # The sun's own light: the image with its sun less the one without.
+        def direct(toward) -> float:
+            return probe.irradiance(scene.world, toward) - probe.irradiance(plain_world, toward)
+
+        facing = direct(got)
+        d = Vector(got)
+        side = d.cross(Vector((0.0, 0.0, 1.0))).normalized()
+        up = side.cross(d).normalized()
+        turned = [
+            direct(tuple((d * math.cos(math.radians(10)) + a * math.sin(math.radians(10))).normalized()))
+            for a in (side, -side, up, -up)
+        ]
+        ambient = probe.irradiance(plain_world, (0.0, 0.0, 1.0))
+    finally:
+        probe.close()
+    rendered = facing / (0.5 * ambient)
+    print(f"\nimage sun: direct facing {facing:.3f}, turned {[round(t, 3) for t in turned]}; ratio {ratio:.3f}, rendered {rendered:.3f}")
+    assert all(t < 0.995 * facing for t in turned), (facing, turned)
+    assert ratio == pytest.approx(rendered, rel=0.05)
+    # The image without its sun: none (the library measures it).
+    scene.world = plain_world
+    runner = addon.runtime.Runner(scene)
+    try:
+        assert runner.light_at(scene) is None
+    finally:
+        runner.close()
+    # A Sun light wins the direction.
+    bpy.data.objects["Sun"].hide_render = False
+    runner = addon.runtime.Runner(scene)
+    try:
+        assert _angle(runner.light_at(scene), _sun_z()) < 1e-4
+    finally:
+        runner.close()
