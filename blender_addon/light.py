@@ -15,7 +15,8 @@ each frame, the +Z axis of the strongest Sun light that renders:
 
 Without a Sun light, the sun of the World lights the scene (common
 outdoor setups). An equirectangular environment image (the World's
-Background fed by an Environment Texture with the default mapping) has a
+Background fed by an Environment Texture, unturned or turned by a Mapping
+node: ``_env_lookup``) has a
 sun where the texels within :data:`SUN_RADIUS_DEG` of its brightest are a
 compact bright source (the brightest at least :data:`SUN_CONTRAST` times
 the mean radiance of the rest of the sphere, those texels at least
@@ -46,7 +47,7 @@ W/m^2, a World's color times strength its radiance, of which a whole sky
 gives ``pi`` times as much irradiance. ``scene_ratio`` reads
 it where the World says it plainly: a Background shader (its Strength not
 linked) whose Color is a constant or an equirectangular Environment
-Texture image with the default mapping (its upper half, cosine-weighted;
+Texture image, unturned or turned by a Mapping node (its upper half, cosine-weighted;
 its sun, above, left out of the ambient, and the direct light without a
 Sun light), or a World without nodes. Other Worlds (a Sky Texture, node setups) give
 None, and the library measures the scene's light from the frame's own
@@ -283,9 +284,11 @@ def _env_rgb(image: bpy.types.Image):
     return rgb
 
 
-def env_light(image: bpy.types.Image) -> EnvLight | None:
-    """What an equirectangular image with Blender's default mapping gives
-    (see the module's notes), or None where it cannot be read."""
+def env_light(image: bpy.types.Image, lookup=None) -> EnvLight | None:
+    """What an equirectangular image gives (see the module's notes), or None
+    where it cannot be read. ``lookup``: the 3x3 rotation taking a world
+    direction to the direction the image is looked up with (a Mapping
+    node's, ``_env_lookup``); None: the identity (the default mapping)."""
     import numpy as np
 
     rgb = _env_rgb(image)
@@ -298,6 +301,10 @@ def env_light(image: bpy.types.Image) -> EnvLight | None:
     phi = math.pi * (1.0 - 2.0 * (np.arange(w) + 0.5) / w)
     clat, slat = np.cos(lat)[:, None], np.sin(lat)[:, None]
     d = np.stack(np.broadcast_arrays(clat * np.cos(phi)[None], clat * np.sin(phi)[None], slat), -1)
+    if lookup is not None:
+        # Looked up with e = M d, a texel's world direction is d = M^T e
+        # (row vectors: e @ M).
+        d = d @ np.asarray(lookup, np.float64)
     solid = np.broadcast_to(clat * (math.pi / h) * (2.0 * math.pi / w), (h, w))
     lum = rgb @ np.asarray(LUMA)
     facing_up = np.maximum(d[..., 2], 0.0) * solid
@@ -321,10 +328,44 @@ def env_light(image: bpy.types.Image) -> EnvLight | None:
     return EnvLight(ambient, (float(toward[0]), float(toward[1]), float(toward[2])), direct)
 
 
+def _env_lookup(tex):
+    """The 3x3 rotation (nested lists) taking a world direction to the one
+    ``tex`` looks its image up with: None for the default (its Vector not
+    linked); a Mapping node's rotation where the Vector comes from a
+    Mapping node fed by the Texture Coordinate's Generated output (the
+    world direction), with no location and a uniform scale (rotating an
+    image this way is how a World's image is turned); else False (not read).
+    """
+    vec = tex.inputs["Vector"]
+    if not vec.is_linked:
+        return None
+    node = vec.links[0].from_node
+    if node.bl_idname != "ShaderNodeMapping" or node.mute or not node.inputs["Vector"].is_linked:
+        return False
+    src = node.inputs["Vector"].links[0]
+    if src.from_node.bl_idname != "ShaderNodeTexCoord" or src.from_socket.name != "Generated":
+        return False
+    if any(node.inputs[k].is_linked for k in ("Location", "Rotation", "Scale") if k in node.inputs):
+        return False
+    if node.vector_type in ("POINT", "TEXTURE") and any(
+        abs(float(c)) > 1e-9 for c in node.inputs["Location"].default_value
+    ):
+        return False
+    sx, sy, sz = (float(c) for c in node.inputs["Scale"].default_value)
+    if not (sx > 0 and abs(sy - sx) <= 1e-6 * sx and abs(sz - sx) <= 1e-6 * sx):
+        return False
+    from mathutils import Euler
+
+    r = Euler(tuple(float(c) for c in node.inputs["Rotation"].default_value), "XYZ").to_matrix()
+    if node.vector_type == "TEXTURE":  # the inverse transform
+        r.transpose()
+    return [list(row) for row in r]
+
+
 def _env_texture(world: bpy.types.World | None):
-    """(the World's Environment Texture node, the Background's strength)
-    where the World is lit plainly by an equirectangular image with the
-    default mapping (see the module's notes), else None."""
+    """(the World's Environment Texture node, the Background's strength,
+    the lookup rotation of ``_env_lookup``) where the World is lit plainly
+    by an equirectangular image (see the module's notes), else None."""
     bg = _background(world)
     if bg is None or not bg.inputs["Color"].is_linked:
         return None
@@ -334,10 +375,12 @@ def _env_texture(world: bpy.types.World | None):
         or tex.mute
         or tex.image is None
         or tex.projection != "EQUIRECTANGULAR"
-        or tex.inputs["Vector"].is_linked
     ):
         return None
-    return tex, float(bg.inputs["Strength"].default_value)
+    lookup = _env_lookup(tex)
+    if lookup is False:
+        return None
+    return tex, float(bg.inputs["Strength"].default_value), lookup
 
 
 def env_sun(world: bpy.types.World | None) -> tuple[tuple[float, float, float], float] | None:
@@ -346,7 +389,7 @@ def env_sun(world: bpy.types.World | None) -> tuple[tuple[float, float, float], 
     found = _env_texture(world)
     if found is None or found[1] <= 0:
         return None
-    got = env_light(found[0].image)
+    got = env_light(found[0].image, found[2])
     if got is None or got.sun is None:
         return None
     return got.sun, found[1] * got.sun_irradiance
@@ -368,7 +411,7 @@ def world_ambient(world: bpy.types.World | None) -> float | None:
     if not color.is_linked:
         return math.pi * strength * _luma(color.default_value)
     found = _env_texture(world)
-    got = None if found is None else env_light(found[0].image)
+    got = None if found is None else env_light(found[0].image, found[2])
     return None if got is None else strength * got.ambient_up
 
 

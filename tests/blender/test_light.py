@@ -698,9 +698,10 @@ def test_sequence_operator_renders_the_sky_s_light(addon, tmp_root, monkeypatch)
     assert _session_ratio(addon, scene) == 0.0
 
 
-def _env_world(scene, name: str, px: np.ndarray):
+def _env_world(scene, name: str, px: np.ndarray, mapping: tuple[str, tuple, tuple] | None = None):
     """The fixture's World lit by an equirectangular image (rows from the
-    bottom, RGBA) at strength 1."""
+    bottom, RGBA) at strength 1; ``mapping``: (type, rotation in degrees,
+    location) of a Mapping node fed by the Generated coordinates."""
     img = bpy.data.images.new(name, px.shape[1], px.shape[0], float_buffer=True)
     img.pixels.foreach_set(px.ravel())
     world = scene.world.copy()
@@ -710,7 +711,38 @@ def _env_world(scene, name: str, px: np.ndarray):
     bg = nt.nodes["Background"]
     bg.inputs["Strength"].default_value = 1.0
     nt.links.new(env.outputs["Color"], bg.inputs["Color"])
+    if mapping is not None:
+        kind, rotation, location = mapping
+        coords = nt.nodes.new("ShaderNodeTexCoord")
+        node = nt.nodes.new("ShaderNodeMapping")
+        node.vector_type = kind
+        node.inputs["Rotation"].default_value = tuple(math.radians(a) for a in rotation)
+        node.inputs["Location"].default_value = location
+        nt.links.new(coords.outputs["Generated"], node.inputs["Vector"])
+        nt.links.new(node.outputs["Vector"], env.inputs["Vector"])
     return world
+
+
+def _image_sun_direct(addon, world, plain_world, toward) -> tuple[float, list[float]]:
+    """Cycles' light from an image's sun alone (the World less the same
+    without its sun) on a white square facing ``toward`` and turned 10
+    degrees from it in four ways."""
+    probe = addon.light._Probe()
+    try:
+
+        def direct(v) -> float:
+            return probe.irradiance(world, v) - probe.irradiance(plain_world, v)
+
+        d = Vector(toward)
+        side = d.cross(Vector((0.0, 0.0, 1.0))).normalized()
+        up = side.cross(d).normalized()
+        turned = [
+            direct(tuple((d * math.cos(math.radians(10)) + a * math.sin(math.radians(10))).normalized()))
+            for a in (side, -side, up, -up)
+        ]
+        return direct(toward), turned
+    finally:
+        probe.close()
 
 
 def test_the_sun_in_the_world_s_image_is_the_light(addon, tmp_root):
@@ -744,20 +776,9 @@ def test_the_sun_in_the_world_s_image_is_the_light(addon, tmp_root):
     assert any(t.startswith("Environment image sun (elevation 36.") for t in draw().labels), draw().labels
     ratio = addon.light.scene_ratio(vl, scene.world)
     assert ratio is not None and f"Sun to Sky {ratio:.2f} (Sun and World)" in draw().labels
+    facing, turned = _image_sun_direct(addon, scene.world, plain_world, got)
     probe = addon.light._Probe()
     try:
-        # The sun's own light: the image with its sun less the one without.
-        def direct(toward) -> float:
-            return probe.irradiance(scene.world, toward) - probe.irradiance(plain_world, toward)
-
-        facing = direct(got)
-        d = Vector(got)
-        side = d.cross(Vector((0.0, 0.0, 1.0))).normalized()
-        up = side.cross(d).normalized()
-        turned = [
-            direct(tuple((d * math.cos(math.radians(10)) + a * math.sin(math.radians(10))).normalized()))
-            for a in (side, -side, up, -up)
-        ]
         ambient = probe.irradiance(plain_world, (0.0, 0.0, 1.0))
     finally:
         probe.close()
@@ -779,3 +800,38 @@ def test_the_sun_in_the_world_s_image_is_the_light(addon, tmp_root):
         assert _angle(runner.light_at(scene), _sun_z()) < 1e-4
     finally:
         runner.close()
+
+
+def test_a_world_image_turned_by_a_mapping_node(addon, tmp_root):
+    """A World's image turned by a Mapping node (Generated coordinates, the
+    usual way to turn an HDRI): the sun's direction turns with it, for the
+    Point and the Texture (inverse) types, as Cycles lights it; a Mapping
+    with a location is not read (no direction, no Sun to Sky)."""
+    scene, _draw = _panel(addon, tmp_root, "env_mapping")
+    vl = scene.view_layers["ViewLayer"]
+    bpy.data.objects["Sun"].hide_render = True
+    h, w = 64, 128
+    plain = np.zeros((h, w, 4), np.float32)
+    plain[..., 3] = 1.0
+    plain[h // 2 :, :, :3] = 0.4
+    plain[: h // 2, :, :3] = 0.1
+    sunny = plain.copy()
+    sunny[44:46, 80:82, :3] = 400.0
+    unturned = None
+    for kind, rotation in (("POINT", (0.0, 0.0, 0.0)), ("POINT", (20.0, 0.0, 90.0)), ("TEXTURE", (20.0, 0.0, 90.0))):
+        mapping = (kind, rotation, (0.0, 0.0, 0.0))
+        scene.world = _env_world(scene, f"sunny_{kind}", sunny, mapping)
+        plain_world = _env_world(scene, f"plain_{kind}", plain, mapping)
+        got = addon.light.scene_direction(vl, None, scene.world)
+        assert got is not None, (kind, rotation)
+        if unturned is None:
+            unturned = got
+        else:
+            assert _angle(got, unturned) > 30.0, (kind, rotation, got, unturned)
+        facing, turned = _image_sun_direct(addon, scene.world, plain_world, got)
+        print(f"\n{kind} {rotation}: toward {np.round(got, 3)}, direct facing {facing:.3f}, turned {[round(t, 3) for t in turned]}")
+        assert all(t < 0.995 * facing for t in turned), (kind, rotation, facing, turned)
+        assert addon.light.scene_ratio(vl, scene.world) is not None
+    scene.world = _env_world(scene, "sunny_moved", sunny, ("POINT", (0.0, 0.0, 90.0), (0.1, 0.0, 0.0)))
+    assert addon.light.scene_direction(vl, None, scene.world) is None
+    assert addon.light.scene_ratio(vl, scene.world) is None
