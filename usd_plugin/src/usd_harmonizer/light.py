@@ -261,19 +261,23 @@ def _latlong(path: str, mtime: float) -> np.ndarray:
         idx = [names.index(c) for c in "RGB"] if all(c in names for c in "RGB") else [0, 1, 2]
         if spec.nchannels < 3:
             raise DomeTextureError(f"{path} has {spec.nchannels} channels, not RGB")
+        h, w = spec.height, spec.width
+        if w != 2 * h:
+            raise DomeTextureError(f"{path} is {w}x{h}: a lat-long image is twice as wide as high")
         px = inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT)
     finally:
         inp.close()
     if px is None:
         raise DomeTextureError(f"cannot read {path}: {oiio.geterror()}")
-    h, w = spec.height, spec.width
-    if w != 2 * h:
-        raise DomeTextureError(f"{path} is {w}x{h}: a lat-long image is twice as wide as high")
-    rgb = np.asarray(px, np.float64).reshape(h, w, spec.nchannels)[..., idx]
-    rgb = np.where(np.isfinite(rgb), np.maximum(rgb, 0.0), 0.0)
+    # In place (an 8k image is hundreds of megabytes as it is): no NaN,
+    # infinity or negative light; then block means, summed in float64.
+    px = np.asarray(px, np.float32).reshape(h, w, spec.nchannels)
+    np.nan_to_num(px, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
+    np.maximum(px, 0.0, out=px)
     f = max(1, math.ceil(w / DOME_TEXELS))
     hh, ww = h // f, w // f
-    return rgb[: hh * f, : ww * f].reshape(hh, f, ww, f, 3).mean(axis=(1, 3))
+    blocks = px[: hh * f, : ww * f].reshape(hh, f, ww, f, spec.nchannels)
+    return blocks.mean(axis=(1, 3), dtype=np.float64)[..., idx]
 
 
 #: A texture's sun: the texels within this angle (degrees) of its brightest
