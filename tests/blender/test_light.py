@@ -835,3 +835,33 @@ def test_a_world_image_turned_by_a_mapping_node(addon, tmp_root):
     scene.world = _env_world(scene, "sunny_moved", sunny, ("POINT", (0.0, 0.0, 90.0), (0.1, 0.0, 0.0)))
     assert addon.light.scene_direction(vl, None, scene.world) is None
     assert addon.light.scene_ratio(vl, scene.world) is None
+
+
+def test_an_animated_sky_sun_is_passed_per_frame_of_an_animation_render(addon, tmp_root):
+    """A Sky Texture's sun turning over an animation render (its rotation
+    keyframed, no Sun light): each frame passes its own direction, read
+    from the World evaluated at the frame being rendered."""
+    out = os.path.join(tmp_root, "sky_anim")
+    scene = fixture.build(os.path.join(out, "raw", "frame_####.exr"), frames=(1, 3))
+    _small(scene)
+    bpy.data.objects["Sun"].hide_render = True
+    sky = _sky(scene, disc=True, elevation=35.0, rotation=0.0)
+    sky.sun_rotation = math.radians(0.0)
+    sky.keyframe_insert("sun_rotation", frame=1)
+    sky.sun_rotation = math.radians(60.0)
+    sky.keyframe_insert("sun_rotation", frame=3)
+    configure(scene, backend="bypass", output_path=os.path.join(out, "enhanced", "frame_####.exr"))
+    scene.frame_set(2)  # the render starts elsewhere than frame 1
+    render(scene)
+    log = addon.handlers.last_run(scene.name)
+    assert not log.errors, log.errors
+    assert [f["frame"] for f in log.frames] == [1, 2, 3]
+    want = {}
+    for f in (1, 2, 3):
+        scene.frame_set(f)
+        want[f] = addon.light.sky_sun_direction(scene.world.node_tree.nodes[sky.name])
+    assert _angle(want[1], want[3]) > 30.0
+    for entry in log.frames:
+        f = entry["frame"]
+        assert entry["light_direction"] is not None, entry
+        np.testing.assert_allclose(entry["light_direction"], want[f], atol=1e-5, err_msg=f"frame {f}")
