@@ -16,15 +16,14 @@ each frame, the +Z axis of the strongest Sun light that renders:
 Without a Sun light, the sun of the World lights the scene (common
 outdoor setups). An equirectangular environment image (the World's
 Background fed by an Environment Texture, unturned or turned by a Mapping
-node: ``_env_lookup``) has a
-sun where the texels within :data:`SUN_RADIUS_DEG` of its brightest are a
-compact bright source (the brightest at least :data:`SUN_CONTRAST` times
-the mean radiance of the rest of the sphere, those texels at least
-:data:`SUN_SHARE` of the image's power: a clear sky's sun, a studio
-image's key light; an overcast sky has none): the direction is toward
-their power-weighted mean (Blender's mapping: column ``u = 0.5 -
-atan2(y, x) / (2 pi)``, row from the bottom ``v = 0.5 + elevation / pi``),
-when above the horizon. A Sky Texture's sun disc: the World's Sky Texture
+node: ``_env_lookup``) has a sun where the texels within
+:data:`SUN_RADIUS_DEG` of its brightest are a compact bright source (the
+brightest at least :data:`SUN_CONTRAST` times the mean radiance of the
+rest of the sphere, those texels at least :data:`SUN_SHARE` of the image's
+power: a clear sky's sun, a studio image's key light; an overcast sky has
+none): the direction is toward their power-weighted mean (Blender's
+mapping: column ``u = 0.5 - atan2(y, x) / (2 pi)``, row from the bottom
+``v = 0.5 + elevation / pi``), when above the horizon. A Sky Texture's sun disc: the World's Sky Texture
 of a type that draws a disc (Multiple or Single Scattering), its disc on
 and its sun above the horizon, feeding the active Background's Color,
 gives the direction of its sun: ``(cos e sin r, cos e cos r, sin e)`` for
@@ -47,10 +46,10 @@ W/m^2, a World's color times strength its radiance, of which a whole sky
 gives ``pi`` times as much irradiance. ``scene_ratio`` reads
 it where the World says it plainly: a Background shader (its Strength not
 linked) whose Color is a constant or an equirectangular Environment
-Texture image, unturned or turned by a Mapping node (its upper half, cosine-weighted;
-its sun, above, left out of the ambient, and the direct light without a
-Sun light), or a World without nodes. Other Worlds (a Sky Texture, node setups) give
-None, and the library measures the scene's light from the frame's own
+Texture image, unturned or turned by a Mapping node (its upper half,
+cosine-weighted; its sun, above, left out of the ambient, and the direct
+light without a Sun light), or a World without nodes. Other Worlds (a Sky
+Texture, node setups) give None, and the library measures the scene's light from the frame's own
 shadows, which a reconstruction's depth cannot give (docs/inserts.md). The
 panel's *Sun to Sky* sets it by hand, or *Measure* renders it
 (``measure_ratio``): Cycles renders a white diffuse square lit by the World
@@ -251,26 +250,40 @@ class EnvLight:
     sun_irradiance: float
 
 
-#: Block-averaged pixels of file images, by (path, size, file time).
+#: The block-averaged pixels of the last World image read, by
+#: ``_env_key``.
 _ENV_CACHE: dict[tuple, object] = {}
+
+
+def _env_key(image: bpy.types.Image) -> tuple | None:
+    """What identifies an image's pixels while it is not edited in Blender
+    (a file's version, a packed file's size), or None (read it again)."""
+    if image.is_dirty:
+        return None
+    w, h = image.size
+    key = (image.name_full, image.source, image.filepath, w, h, image.channels)
+    if image.packed_file is not None:
+        return (*key, "packed", image.packed_file.size)
+    path = bpy.path.abspath(image.filepath) if image.source == "FILE" and image.filepath else ""
+    if path and os.path.isfile(path):
+        return (*key, "file", os.path.getmtime(path), os.path.getsize(path))
+    return None
 
 
 def _env_rgb(image: bpy.types.Image):
     """An image's RGB, rows from the bottom, block-averaged to at most
-    :data:`ENV_TEXELS` wide (float64), or None. A file image not edited in
-    Blender is read once per file version; other images each time."""
+    :data:`ENV_TEXELS` wide (float64), or None. An image not edited in
+    Blender (a file or a packed file) is read once per version (the panel
+    draws often; an 8k image takes seconds); other images each time."""
     import numpy as np
 
     w, h = image.size
     c = image.channels
     if w < 2 or h < 2 or c < 3:
         return None
-    key = None
-    path = bpy.path.abspath(image.filepath) if image.source == "FILE" and image.filepath else ""
-    if path and not image.is_dirty and os.path.isfile(path):
-        key = (path, w, h, os.path.getmtime(path))
-        if key in _ENV_CACHE:
-            return _ENV_CACHE[key]
+    key = _env_key(image)
+    if key is not None and key in _ENV_CACHE:
+        return _ENV_CACHE[key]
     px = np.empty(w * h * c, np.float32)
     image.pixels.foreach_get(px)
     # In place (an 8k image is half a gigabyte as it is): no NaN, infinity

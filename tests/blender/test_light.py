@@ -865,3 +865,37 @@ def test_an_animated_sky_sun_is_passed_per_frame_of_an_animation_render(addon, t
         f = entry["frame"]
         assert entry["light_direction"] is not None, entry
         np.testing.assert_allclose(entry["light_direction"], want[f], atol=1e-5, err_msg=f"frame {f}")
+
+
+def test_a_world_image_file_is_read_once_per_version(addon, tmp_root):
+    """A World image from a file is read once (the panel draws often; an 8k
+    image takes seconds) and again when the file changes."""
+    h, w = 32, 64
+    path = os.path.join(tmp_root, "world_image", "sky.exr")
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+
+    def write(col: int) -> None:
+        px = np.zeros((h, w, 4), np.float32)
+        px[..., 3] = 1.0
+        px[h // 2 :, :, :3] = 0.3
+        px[22:24, col : col + 2, :3] = 300.0
+        img = bpy.data.images.new("sky_writer", w, h, float_buffer=True)
+        img.pixels.foreach_set(px.ravel())
+        img.filepath_raw = path
+        img.file_format = "OPEN_EXR"
+        img.save()
+        bpy.data.images.remove(img)
+
+    write(10)
+    image = bpy.data.images.load(path, check_existing=False)
+    first = addon.light.env_light(image)
+    assert first is not None and first.sun is not None
+    assert len(addon.light._ENV_CACHE) == 1 and next(iter(addon.light._ENV_CACHE))[-3] == "file"
+    assert addon.light.env_light(image) == first
+    st = os.stat(path)
+    write(40)  # the sun elsewhere; the file's time moves on
+    os.utime(path, (st.st_atime, st.st_mtime + 5.0))
+    image.reload()
+    second = addon.light.env_light(image)
+    assert second is not None and second.sun is not None
+    assert _angle(first.sun, second.sun) > 90.0, (first.sun, second.sun)
