@@ -225,7 +225,7 @@ def test_cli_light_flags(tmp_path: Path, capsys) -> None:
     np.testing.assert_allclose(
         _floats(attrs["harmonizer:lightDirection"]), [0.0, math.sqrt(0.5), math.sqrt(0.5)], atol=1e-6
     )
-    assert "light: DistantLight /World/Sun" in printed, printed
+    assert "light: DistantLight /World/Sun, light ratio: measured by the library" in printed, printed
     # A negative first component needs the = form (argparse takes "-1,..." for an option).
     attrs, printed = run("flag", "--light-direction=-1,0,1")
     np.testing.assert_allclose(
@@ -539,3 +539,31 @@ def test_the_sun_in_a_dome_s_texture_is_the_light(tmp_path: Path) -> None:
     got = _ratio_values(path, Options(backend="bypass", out_dir=tmp_path / "distant_r"))
     assert got[0][0] == pytest.approx(1.0 / (0.5 * math.pi * 0.5), rel=0.03)
     assert got[0][1].light_ratio_source == "DistantLight /World/Sun over DomeLight /World/Sky"
+
+
+def test_the_summary_line_says_the_light_ratio(tmp_path: Path, capsys) -> None:
+    """``usd-harmonize`` says the ratio it passed and where it came from, or
+    why the library measures it."""
+    h, w = 32, 64
+    tex = np.zeros((h, w, 3), np.float32)
+    tex[: h // 2] = 0.5
+    tex[10:12, 15:17] = 500.0
+    _latlong(tmp_path / "sunny.exr", tex)
+    stage = _stage(tmp_path, up_axis="Y")
+    dome = UsdLux.DomeLight.Define(stage, "/World/Sky")
+    dome.CreateTextureFileAttr(Sdf.AssetPath("sunny.exr"))
+    stage.GetRootLayer().Save()
+    common = [str(tmp_path / "stage.usda"), "--backend", "bypass", "--no-layer", "--frames", "1-2"]
+    capsys.readouterr()
+    assert main([*common, "--out-dir", str(tmp_path / "a")]) == 0
+    printed = capsys.readouterr().out
+    assert "light: DomeLight /World/Sky (the sun in its texture), light ratio: " in printed, printed
+    assert "(the sun of DomeLight /World/Sky over DomeLight /World/Sky)" in printed, printed
+    # A texture that cannot be read: the sun's light passes, the ratio says why not.
+    dome.GetTextureFileAttr().Set(Sdf.AssetPath("missing.exr"))
+    _distant(stage, "/World/Sun", 2.0)
+    stage.GetRootLayer().Save()
+    assert main([*common, "--out-dir", str(tmp_path / "b")]) == 0
+    printed = capsys.readouterr().out
+    want = "light ratio: measured by the library; DomeLight /World/Sky: texture 'missing.exr' not found"
+    assert f"light: DistantLight /World/Sun, {want}" in printed, printed

@@ -226,6 +226,15 @@ class _Progress:
         sys.stderr.flush()
 
 
+
+def _ratio_text(r) -> str:
+    """The summary's words for a frame's ``light_ratio``: the value and where
+    it came from, or why the library measures it."""
+    if r.light_ratio is not None:
+        return f"{r.light_ratio:.2f} ({r.light_ratio_source})"
+    why = "" if r.light_ratio_source == "none" else f"; {r.light_ratio_source}"
+    return f"measured by the library{why}"
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``usd-harmonize``; returns the exit status."""
     parser = argparse.ArgumentParser(
@@ -277,6 +286,7 @@ def main(argv: list[str] | None = None) -> int:
                 f"resets: {resets}, warnings: {warns}, denoised: {denoised}"
                 + (f" ({decisions[-1]})" if decisions else "")
                 + f", light: {res[-1].light_source}"
+                + f", light ratio: {_ratio_text(res[-1])}"
                 + f"\n  -> {res[0].output.parent}"
             )
         if summary.preroll_frames:
