@@ -16,6 +16,7 @@ session's temporal state stays as it was before that frame.
 from __future__ import annotations
 
 import os
+import threading
 import time
 from dataclasses import dataclass, field
 
@@ -88,6 +89,15 @@ def _close(scene_name: str) -> None:
         log.finished = True
 
 
+def _can_render_here() -> bool:
+    """Whether a render may start from this handler: in a background
+    render (``blender -b``, the ``bpy`` module) the handlers run on the main
+    thread before the render, and Cycles renders the Sun to Sky probe
+    there; an interactive render runs them on its own thread, where Blender
+    cannot start another (the panel's *Measure Sun to Sky* does it)."""
+    return bool(bpy.app.background) and threading.current_thread() is threading.main_thread()
+
+
 @persistent
 def on_render_init(scene, *_args):
     """Render start: set up passes, open the session."""
@@ -99,7 +109,7 @@ def on_render_init(scene, *_args):
     for level, text in passes.check(scene, apply=scene.harmonizer.manage_passes, at_render=True):
         reports.post(level, text)
     try:
-        runner = runtime.Runner(scene)
+        runner = runtime.Runner(scene, measure_light=_can_render_here())
     except Exception as exc:  # reported; the render itself goes on unchanged
         msg = f"Harmonizer: cannot start for scene {scene.name!r}: {exc}"
         log.errors.append(msg)

@@ -56,7 +56,9 @@ panel's *Sun to Sky* sets it by hand, or *Measure* renders it
 alone, facing up, with every Sky Texture's sun disc off (the ambient), and
 for a Sky Texture's sun the same square facing it with the disc on and off
 (the difference is the disc's irradiance); a Sun light's irradiance is its
-strength. Any World works, as Cycles renders it.
+strength. Any World works, as Cycles renders it. Besides the button, the
+sequence operator and a background render's start render it by
+themselves (``runtime.Runner``'s ``measure_light``).
 """
 
 from __future__ import annotations

@@ -42,8 +42,8 @@ class Runner:
         files say, ``denoise.sequence_settings``). ``denoise_mode``: the
         ``denoise`` parameter (default: the panel's, see below).
         ``measure_light``: where the World does not say its light, render
-        the Sun to Sky (``light.measure_ratio``, a second or two; not from a
-        render handler, where Blender cannot render).
+        the Sun to Sky (``light.measure_ratio``, a second or two; from a
+        render handler only in a background render: ``handlers``).
         """
         s = scene.harmonizer
         hz = deps.harmonizer()

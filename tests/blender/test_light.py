@@ -899,3 +899,39 @@ def test_a_world_image_file_is_read_once_per_version(addon, tmp_root):
     second = addon.light.env_light(image)
     assert second is not None and second.sun is not None
     assert _angle(first.sun, second.sun) > 90.0, (first.sun, second.sun)
+
+
+def test_a_background_render_measures_the_sky_s_sun_to_sky(addon, tmp_root, monkeypatch):
+    """A background render (``blender -b``, as here) of a World whose light
+    cannot be read (a Sky Texture under a Sun) renders its Sun to Sky when
+    it starts and passes it on every frame; the panel's value wins."""
+    out = os.path.join(tmp_root, "sky_render")
+    scene = fixture.build(os.path.join(out, "raw", "frame_####.exr"), frames=(1, 2))
+    _small(scene)
+    _sky(scene, disc=False)
+    configure(scene, backend="bypass", output_path=os.path.join(out, "enhanced", "frame_####.exr"))
+    assert addon.light.scene_ratio(scene.view_layers["ViewLayer"], scene.world) is None
+    want = addon.light.measure_ratio(scene.view_layers["ViewLayer"], scene.world)
+    passed = {}
+    process = addon.processor.FrameProcessor.process
+
+    def recording(self, raw_path, output_path, *, frame, **kw):
+        result = process(self, raw_path, output_path, frame=frame, **kw)
+        passed[frame] = float(self.session.get("light_ratio"))
+        return result
+
+    monkeypatch.setattr(addon.processor.FrameProcessor, "process", recording)
+    before = len(addon.reports.RECENT)
+    render(scene)
+    log = addon.handlers.last_run(scene.name)
+    assert not log.errors, log.errors
+    assert [f["frame"] for f in log.frames] == [1, 2]
+    posted = [t for _l, t in list(addon.reports.RECENT)[before:]]
+    seen = [t for t in posted if t.startswith("Harmonizer: Sun to Sky ")]
+    assert seen and "(rendered: Sun light 'Sun' over the World)" in seen[0], posted
+    assert sorted(passed) == [1, 2]
+    assert all(r == pytest.approx(want.ratio, rel=0.03) for r in passed.values()), (passed, want)
+    # The panel's value wins, and nothing is rendered for it.
+    scene.harmonizer.light_ratio = 2.5
+    render(scene)
+    assert all(r == pytest.approx(2.5) for r in passed.values()), passed
