@@ -302,11 +302,28 @@ def _env_rgb(image: bpy.types.Image):
     return rgb
 
 
+#: The last few ``env_light`` results of images read once (``_env_key``),
+#: by (key, lookup): the panel asks on every draw.
+_ENV_LIGHTS: dict[tuple, EnvLight | None] = {}
+
+
 def env_light(image: bpy.types.Image, lookup=None) -> EnvLight | None:
     """What an equirectangular image gives (see the module's notes), or None
     where it cannot be read. ``lookup``: the 3x3 rotation taking a world
     direction to the direction the image is looked up with (a Mapping
     node's, ``_env_lookup``); None: the identity (the default mapping)."""
+    key = _env_key(image)
+    if key is not None:
+        memo = (key, None if lookup is None else tuple(tuple(float(c) for c in row) for row in lookup))
+        if memo not in _ENV_LIGHTS:
+            if len(_ENV_LIGHTS) >= 8:
+                _ENV_LIGHTS.clear()
+            _ENV_LIGHTS[memo] = _env_light(image, lookup)
+        return _ENV_LIGHTS[memo]
+    return _env_light(image, lookup)
+
+
+def _env_light(image: bpy.types.Image, lookup) -> EnvLight | None:
     import numpy as np
 
     rgb = _env_rgb(image)
