@@ -133,21 +133,30 @@ def test_manual_and_off(addon, tmp_root):
     assert [f["light_direction"] for f in addon.handlers.last_run(scene.name).frames] == [None, None]
 
 
+def _record_frames(addon, monkeypatch, what) -> dict:
+    """Records ``what(processor, kw)`` after each frame the extension
+    processes (the session's values then), by frame."""
+    seen: dict = {}
+    process = addon.processor.FrameProcessor.process
+
+    def recording(self, raw_path, output_path, *, frame, **kw):
+        result = process(self, raw_path, output_path, frame=frame, **kw)
+        seen[frame] = what(self, kw)
+        return result
+
+    monkeypatch.setattr(addon.processor.FrameProcessor, "process", recording)
+    return seen
+
+
 def test_sequence_operator_reads_the_sun_at_each_files_frame(addon, tmp_root, monkeypatch):
     out = os.path.join(tmp_root, "light_seq")
     scene = _animated_sun_scene(out)
     configure(scene, backend="bypass", output_path=os.path.join(out, "enhanced", "frame_####.exr"))
     scene.harmonizer.enabled = False  # only render the raw frames
     render(scene)
-    seen = {}
-    process = addon.processor.FrameProcessor.process
-
-    def recording(self, raw_path, output_path, *, frame, **kw):
-        result = process(self, raw_path, output_path, frame=frame, **kw)
-        seen[frame] = (kw.get("light_direction"), self.session.get("light_direction"))
-        return result
-
-    monkeypatch.setattr(addon.processor.FrameProcessor, "process", recording)
+    seen = _record_frames(
+        addon, monkeypatch, lambda p, kw: (kw.get("light_direction"), p.session.get("light_direction"))
+    )
     scene.frame_set(2)
     result = bpy.ops.harmonizer.enhance_sequence(
         directory=os.path.join(out, "raw"), output_directory=os.path.join(out, "seq")
@@ -676,15 +685,9 @@ def test_sequence_operator_renders_the_sky_s_light(addon, tmp_root, monkeypatch)
     configure(scene, backend="bypass", output_path=os.path.join(out, "enhanced", "frame_####.exr"))
     scene.harmonizer.enabled = False  # only render the raw frames
     render(scene)
-    seen = {}
-    process = addon.processor.FrameProcessor.process
-
-    def recording(self, raw_path, output_path, *, frame, **kw):
-        result = process(self, raw_path, output_path, frame=frame, **kw)
-        seen[frame] = (self.session.get("light_direction"), float(self.session.get("light_ratio")))
-        return result
-
-    monkeypatch.setattr(addon.processor.FrameProcessor, "process", recording)
+    seen = _record_frames(
+        addon, monkeypatch, lambda p, _kw: (p.session.get("light_direction"), float(p.session.get("light_ratio")))
+    )
     result = bpy.ops.harmonizer.enhance_sequence(
         directory=os.path.join(out, "raw"), output_directory=os.path.join(out, "seq")
     )
@@ -912,15 +915,7 @@ def test_a_background_render_measures_the_sky_s_sun_to_sky(addon, tmp_root, monk
     configure(scene, backend="bypass", output_path=os.path.join(out, "enhanced", "frame_####.exr"))
     assert addon.light.scene_ratio(scene.view_layers["ViewLayer"], scene.world) is None
     want = addon.light.measure_ratio(scene.view_layers["ViewLayer"], scene.world)
-    passed = {}
-    process = addon.processor.FrameProcessor.process
-
-    def recording(self, raw_path, output_path, *, frame, **kw):
-        result = process(self, raw_path, output_path, frame=frame, **kw)
-        passed[frame] = float(self.session.get("light_ratio"))
-        return result
-
-    monkeypatch.setattr(addon.processor.FrameProcessor, "process", recording)
+    passed = _record_frames(addon, monkeypatch, lambda p, _kw: float(p.session.get("light_ratio")))
     addon.reports.RECENT.clear()  # a bounded deque: what this render posts
     render(scene)
     log = addon.handlers.last_run(scene.name)
