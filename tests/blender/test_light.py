@@ -76,12 +76,13 @@ def _animated_sun_scene(out: str):
     return scene
 
 
-def test_scene_sun_is_passed_per_frame_of_an_animation_render(addon, tmp_root):
-    out = os.path.join(tmp_root, "light_anim")
-    scene = _animated_sun_scene(out)
-    configure(scene, backend="bypass", output_path=os.path.join(out, "enhanced", "frame_####.exr"))
-    assert scene.harmonizer.light_source == "AUTO"  # the default
-    scene.frame_set(2)  # the render starts elsewhere than frame 1
+def _animation_render_directions(addon, scene, toward) -> tuple:
+    """Renders frames 1-3 of ``scene`` from frame 2 (an animation render
+    starting elsewhere than its first frame) and checks that each frame
+    passed ``toward()`` as evaluated at that frame (read back from the
+    session after the frame). Returns (the run's log, what was wanted by
+    frame)."""
+    scene.frame_set(2)
     render(scene)
     log = addon.handlers.last_run(scene.name)
     assert not log.errors, log.errors
@@ -89,13 +90,22 @@ def test_scene_sun_is_passed_per_frame_of_an_animation_render(addon, tmp_root):
     want = {}
     for f in (1, 2, 3):
         scene.frame_set(f)
-        want[f] = _sun_z()
-    assert _angle(want[1], want[3]) > 20.0, "the Sun does not turn: the test would not see a stale direction"
+        want[f] = toward()
     for entry in log.frames:
         f = entry["frame"]
-        got = entry["light_direction"]  # read back from the session after the frame
-        assert got is not None, entry
-        np.testing.assert_allclose(got, want[f], atol=1e-5, err_msg=f"frame {f}")
+        assert entry["light_direction"] is not None, entry
+        np.testing.assert_allclose(entry["light_direction"], want[f], atol=1e-5, err_msg=f"frame {f}")
+    return log, want
+
+
+def test_scene_sun_is_passed_per_frame_of_an_animation_render(addon, tmp_root):
+    out = os.path.join(tmp_root, "light_anim")
+    scene = _animated_sun_scene(out)
+    configure(scene, backend="bypass", output_path=os.path.join(out, "enhanced", "frame_####.exr"))
+    assert scene.harmonizer.light_source == "AUTO"  # the default
+    log, want = _animation_render_directions(addon, scene, _sun_z)
+    assert _angle(want[1], want[3]) > 20.0, "the Sun does not turn: the test would not see a stale direction"
+    for f in (1, 2, 3):
         _, attrs = read_exr(os.path.join(out, "enhanced", f"frame_{f:04d}.exr"))
         np.testing.assert_allclose(
             [float(c) for c in attrs["harmonizer/lightDirection"].split(",")], want[f], atol=1e-5
@@ -854,20 +864,10 @@ def test_an_animated_sky_sun_is_passed_per_frame_of_an_animation_render(addon, t
     sky.sun_rotation = math.radians(60.0)
     sky.keyframe_insert("sun_rotation", frame=3)
     configure(scene, backend="bypass", output_path=os.path.join(out, "enhanced", "frame_####.exr"))
-    scene.frame_set(2)  # the render starts elsewhere than frame 1
-    render(scene)
-    log = addon.handlers.last_run(scene.name)
-    assert not log.errors, log.errors
-    assert [f["frame"] for f in log.frames] == [1, 2, 3]
-    want = {}
-    for f in (1, 2, 3):
-        scene.frame_set(f)
-        want[f] = addon.light.sky_sun_direction(scene.world.node_tree.nodes[sky.name])
+    _, want = _animation_render_directions(
+        addon, scene, lambda: addon.light.sky_sun_direction(scene.world.node_tree.nodes[sky.name])
+    )
     assert _angle(want[1], want[3]) > 30.0
-    for entry in log.frames:
-        f = entry["frame"]
-        assert entry["light_direction"] is not None, entry
-        np.testing.assert_allclose(entry["light_direction"], want[f], atol=1e-5, err_msg=f"frame {f}")
 
 
 def test_a_world_image_file_is_read_once_per_version(addon, tmp_root):
