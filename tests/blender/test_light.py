@@ -758,6 +758,20 @@ def _image_sun_direct(addon, world, plain_world, toward) -> tuple[float, list[fl
         probe.close()
 
 
+def _sky_images() -> tuple[np.ndarray, np.ndarray]:
+    """Two 128x64 World images (RGBA, rows from the bottom): a sky of 0.4
+    over a ground of 0.1, and the same with a 2x2 sun of 400 at elevation
+    pi * (45 / 64 - 0.5) (36.6 degrees)."""
+    h, w = 64, 128
+    plain = np.zeros((h, w, 4), np.float32)
+    plain[..., 3] = 1.0
+    plain[h // 2 :, :, :3] = 0.4
+    plain[: h // 2, :, :3] = 0.1
+    sunny = plain.copy()
+    sunny[44:46, 80:82, :3] = 400.0
+    return plain, sunny
+
+
 def test_the_sun_in_the_world_s_image_is_the_light(addon, tmp_root):
     """Issue 19: an environment image with a sun and no Sun light: the
     direction passed is the one Cycles lights from (a white square facing it
@@ -768,13 +782,7 @@ def test_the_sun_in_the_world_s_image_is_the_light(addon, tmp_root):
     scene, draw = _panel(addon, tmp_root, "env_sun")
     vl = scene.view_layers["ViewLayer"]
     bpy.data.objects["Sun"].hide_render = True
-    h, w = 64, 128
-    plain = np.zeros((h, w, 4), np.float32)
-    plain[..., 3] = 1.0
-    plain[h // 2 :, :, :3] = 0.4  # sky (rows from the bottom: the upper half)
-    plain[: h // 2, :, :3] = 0.1  # ground
-    sunny = plain.copy()
-    sunny[44:46, 80:82, :3] = 400.0  # elevation pi * (45 / 64 - 0.5): 36.6 degrees
+    plain, sunny = _sky_images()
     scene.world = _env_world(scene, "plain", plain)
     plain_world = scene.world
     assert addon.light.env_sun(plain_world) is None
@@ -823,13 +831,7 @@ def test_a_world_image_turned_by_a_mapping_node(addon, tmp_root):
     scene, _draw = _panel(addon, tmp_root, "env_mapping")
     vl = scene.view_layers["ViewLayer"]
     bpy.data.objects["Sun"].hide_render = True
-    h, w = 64, 128
-    plain = np.zeros((h, w, 4), np.float32)
-    plain[..., 3] = 1.0
-    plain[h // 2 :, :, :3] = 0.4
-    plain[: h // 2, :, :3] = 0.1
-    sunny = plain.copy()
-    sunny[44:46, 80:82, :3] = 400.0
+    plain, sunny = _sky_images()
     unturned = None
     for kind, rotation in (("POINT", (0.0, 0.0, 0.0)), ("POINT", (20.0, 0.0, 90.0)), ("TEXTURE", (20.0, 0.0, 90.0))):
         mapping = (kind, rotation, (0.0, 0.0, 0.0))
