@@ -227,10 +227,11 @@ def _visible(prim: Usd.Prim, time: Usd.TimeCode) -> bool:
 def ratio_lights(stage: Usd.Stage) -> list[Usd.Prim]:
     """The stage's DistantLight and DomeLight (or DomeLight_1) prims, in
     namespace order (one traversal, which a run keeps)."""
-    return [p for p in stage.Traverse() if p.IsA(UsdLux.DistantLight) or _is_dome(p)]
+    return [p for p in stage.Traverse() if p.IsA(UsdLux.DistantLight) or is_dome(p)]
 
 
-def _is_dome(prim: Usd.Prim) -> bool:
+def is_dome(prim: Usd.Prim) -> bool:
+    """A DomeLight or DomeLight_1 prim."""
     return prim.IsA(UsdLux.DomeLight) or prim.IsA(UsdLux.DomeLight_1)
 
 
@@ -304,14 +305,17 @@ class DomeLighting:
     sun_irradiance: float
 
 
+@lru_cache(maxsize=4)
 def _latlong_directions(h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
     """Each texel's direction (OpenEXR's lat-long: +Y up, longitude 0 toward
-    +Z, +pi/2 toward +X; rows from the top) and solid angle."""
+    +Z, +pi/2 toward +X; rows from the top) and solid angle, read-only
+    (computed once per size: every frame asks)."""
     lat = math.pi / 2 - math.pi * (np.arange(h) + 0.5) / h
     lon = math.pi - 2 * math.pi * (np.arange(w) + 0.5) / w
     clat, slat = np.cos(lat)[:, None], np.sin(lat)[:, None]
     d = np.stack(np.broadcast_arrays(clat * np.sin(lon)[None], slat, clat * np.cos(lon)[None]), -1)
     solid = np.broadcast_to(clat * (math.pi / h) * (2 * math.pi / w), (h, w))
+    d.setflags(write=False)
     return d, solid
 
 
@@ -392,8 +396,8 @@ def dome_sun_light(stage: Usd.Stage, frame: float, domes: list[Usd.Prim] | None 
     texture that cannot be read gives none here (the ratio says why)."""
     time = Usd.TimeCode(frame)
     best: tuple[float, tuple[float, float, float], Usd.Prim] | None = None
-    for prim in [p for p in stage.Traverse() if _is_dome(p)] if domes is None else domes:
-        if not _is_dome(prim) or not _visible(prim, time):
+    for prim in [p for p in stage.Traverse() if is_dome(p)] if domes is None else domes:
+        if not is_dome(prim) or not _visible(prim, time):
             continue
         attr = _dome(prim).GetTextureFileAttr()
         tex = attr.Get(time) if attr else None
@@ -443,7 +447,7 @@ def light_ratio_at(
             p = _power(UsdLux.DistantLight(prim), time)
             if math.isfinite(p) and p > 0 and (sun is None or p > sun[0]):
                 sun = (p, prim)
-        elif _is_dome(prim) and _visible(prim, time):
+        elif is_dome(prim) and _visible(prim, time):
             dome = _dome(prim)
             tex = dome.GetTextureFileAttr().Get(time) if dome.GetTextureFileAttr() else None
             if tex is not None and tex.path:

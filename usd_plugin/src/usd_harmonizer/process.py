@@ -33,7 +33,7 @@ from .exrio import read_exr, write_exr_atomic
 from .light import (
     NO_LIGHT,
     Light,
-    distant_lights,
+    is_dome,
     light_at,
     light_ratio_at,
     normalized,
@@ -320,9 +320,16 @@ class ProductRunner:
         if self._fixed_light is not None:
             return self._fixed_light
         if self._distant is None:  # the stage's lights, found once per run
-            self._distant = distant_lights(self.product.stage)
-            self._domes = [p for p in ratio_lights(self.product.stage) if p not in self._distant]
+            lights = self._stage_lights()
+            self._distant = [p for p in lights if not is_dome(p)]
+            self._domes = [p for p in lights if is_dome(p)]
         return light_at(self.product.stage, self._light_prims, frame, self._distant, self._domes)
+
+    def _stage_lights(self) -> list[Any]:
+        """The stage's DistantLight and DomeLight prims (one traversal per run)."""
+        if self._ratio_lights is None:
+            self._ratio_lights = ratio_lights(self.product.stage)
+        return self._ratio_lights
 
     def light_ratio_for(self, frame: int, light: Light) -> tuple[float | None, str]:
         """The ``light_ratio`` of ``frame`` and where it came from: the
@@ -332,9 +339,7 @@ class ProductRunner:
             return None, "parameter light_ratio"
         if light.direction is None:
             return None, "none"
-        if self._ratio_lights is None:
-            self._ratio_lights = ratio_lights(self.product.stage)
-        return light_ratio_at(self.product.stage, self._light_prims, frame, self._ratio_lights)
+        return light_ratio_at(self.product.stage, self._light_prims, frame, self._stage_lights())
 
     # -- paths ---------------------------------------------------------------
     def output_for(self, frame: int) -> Path:
