@@ -4,6 +4,7 @@
 use crate::denoise::Quality;
 use crate::error::{Error, Result};
 use crate::frame::{DepthKind, FrameShape};
+use crate::ops::LUMA;
 
 /// A parameter value as a host passes it.
 #[derive(Debug, Clone, PartialEq)]
@@ -205,6 +206,20 @@ pub struct Params {
     /// (a reconstruction's depth is too rough to trace shadows through) and
     /// where the frame shows no shadow of its own.
     pub light_ratio: f32,
+    /// The dominant light's color and strength (`light_color`: "r, g, b",
+    /// empty when unknown): its irradiance on a surface facing it, in the
+    /// frame's scene-linear units (a Blender Sun's strength times its
+    /// color; a USD DistantLight's intensity times its color and
+    /// `2^exposure`). With `ambient_color`, the light an inserted object
+    /// is matched to when its background shows no albedo to read the
+    /// scene's light from (`albedo_tone`, a reconstruction: the albedo
+    /// only on the object), and the ratio when `light_ratio` is 0.
+    pub light_color: Option<[f32; 3]>,
+    /// The rest of the scene's light (`ambient_color`: "r, g, b", empty
+    /// when unknown): the irradiance (sky, dome, world) on a surface in
+    /// the dominant light's shadow, hosts take half of what a surface
+    /// facing up gets; see `light_color`.
+    pub ambient_color: Option<[f32; 3]>,
     /// Space of `light_direction` (`light_space`: "world", the default, or
     /// "camera": OpenEXR camera space, +x right, +y up, +z forward).
     pub light_space: LightSpace,
@@ -273,6 +288,8 @@ impl Default for Params {
             shadow_strength: 0.6,
             light_direction: None,
             light_ratio: 0.0,
+            light_color: None,
+            ambient_color: None,
             light_space: LightSpace::World,
             stabilize: true,
             temporal_blend: 0.6,
@@ -294,6 +311,39 @@ impl Default for Params {
     }
 }
 
+/// Reads a color parameter: "r, g, b" (commas or spaces), three finite
+/// numbers at least 0, not all 0; empty is none.
+pub fn parse_color(s: &str) -> std::result::Result<Option<[f32; 3]>, String> {
+    let s = s.trim();
+    if s.is_empty() {
+        return Ok(None);
+    }
+    let v: Vec<f32> = s
+        .split(|c: char| c == ',' || c.is_whitespace())
+        .filter(|t| !t.is_empty())
+        .map(|t| {
+            t.parse::<f32>()
+                .map_err(|_| format!("{t:?} is not a number"))
+        })
+        .collect::<std::result::Result<_, _>>()?;
+    match v[..] {
+        [r, g, b]
+            if [r, g, b].iter().all(|c| c.is_finite() && *c >= 0.0)
+                && (r > 0.0 || g > 0.0 || b > 0.0) =>
+        {
+            Ok(Some([r, g, b]))
+        }
+        _ => Err(format!(
+            "expected three finite numbers at least 0, not all 0 (\"r, g, b\"), got {s:?}"
+        )),
+    }
+}
+
+fn color_text(c: Option<[f32; 3]>) -> String {
+    c.map(|[r, g, b]| format!("{r}, {g}, {b}"))
+        .unwrap_or_default()
+}
+
 /// The names of all parameters, for help texts and bindings.
 pub const PARAM_NAMES: &[&str] = &[
     "context_frames",
@@ -309,6 +359,8 @@ pub const PARAM_NAMES: &[&str] = &[
     "shadow_strength",
     "light_direction",
     "light_ratio",
+    "light_color",
+    "ambient_color",
     "light_space",
     "stabilize",
     "temporal_blend",
@@ -410,6 +462,22 @@ impl Params {
         }
     }
 
+    /// The host's direct-to-ambient ratio: `light_ratio`, or where it is 0
+    /// the luminance of `light_color` over `ambient_color`'s (at most
+    /// [`crate::ops::relight::MAX_RATIO`]); 0 when neither says.
+    pub fn host_light_ratio(&self) -> f32 {
+        if self.light_ratio > 0.0 {
+            return self.light_ratio;
+        }
+        let lum = |c: [f32; 3]| c[0] * LUMA[0] + c[1] * LUMA[1] + c[2] * LUMA[2];
+        match (self.light_color, self.ambient_color) {
+            (Some(d), Some(a)) if lum(a) > 0.0 && lum(d) > 0.0 => {
+                (lum(d) / lum(a)).min(crate::ops::relight::MAX_RATIO)
+            }
+            _ => 0.0,
+        }
+    }
+
     /// Sets one parameter by name; unknown names and out-of-range values are errors.
     pub fn set(&mut self, name: &str, v: &ParamValue) -> Result<()> {
         match name {
@@ -430,6 +498,14 @@ impl Params {
             }
             "light_ratio" => {
                 self.light_ratio = want_float(name, v, 0.0, crate::ops::relight::MAX_RATIO as f64)?
+            }
+            "light_color" | "ambient_color" => {
+                let c = parse_color(want_str(name, v)?)
+                    .map_err(|e| Error::invalid(format!("parameter {name}: {e}")))?;
+                match name {
+                    "light_color" => self.light_color = c,
+                    _ => self.ambient_color = c,
+                }
             }
             "light_space" => {
                 self.light_space = match want_str(name, v)? {
@@ -508,6 +584,8 @@ impl Params {
                     .unwrap_or_default(),
             ),
             "light_ratio" => ParamValue::Float(self.light_ratio as f64),
+            "light_color" => ParamValue::Str(color_text(self.light_color)),
+            "ambient_color" => ParamValue::Str(color_text(self.ambient_color)),
             "light_space" => ParamValue::Str(
                 match self.light_space {
                     LightSpace::World => "world",
@@ -591,6 +669,55 @@ mod tests {
             let e = p.set(name, &v).unwrap_err().to_string();
             assert!(e.contains(name) && e.contains(needle), "{e}");
         }
+    }
+
+    #[test]
+    fn light_colors_parse_and_give_the_ratio() {
+        let mut p = Params::default();
+        assert_eq!(p.host_light_ratio(), 0.0);
+        p.set("light_color", &ParamValue::Str("4.5, 4.32 4.05".into()))
+            .unwrap();
+        assert_eq!(p.light_color, Some([4.5, 4.32, 4.05]));
+        // One of the two says nothing of the ratio.
+        assert_eq!(p.host_light_ratio(), 0.0);
+        p.set("ambient_color", &ParamValue::Str("1.3, 2.2, 3.9".into()))
+            .unwrap();
+        let lum = |c: [f32; 3]| c[0] * LUMA[0] + c[1] * LUMA[1] + c[2] * LUMA[2];
+        let want = lum([4.5, 4.32, 4.05]) / lum([1.3, 2.2, 3.9]);
+        assert!((p.host_light_ratio() - want).abs() < 1e-6);
+        // The host's ratio wins.
+        p.set("light_ratio", &ParamValue::Float(3.0)).unwrap();
+        assert_eq!(p.host_light_ratio(), 3.0);
+        // A faint ambient gives at most the largest ratio.
+        p.set("light_ratio", &ParamValue::Float(0.0)).unwrap();
+        p.set("ambient_color", &ParamValue::Str("0.001, 0, 0".into()))
+            .unwrap();
+        assert_eq!(p.host_light_ratio(), crate::ops::relight::MAX_RATIO);
+        // Round trip, and empty is none.
+        let v = p.get("light_color").unwrap();
+        p.set("light_color", &v).unwrap();
+        assert_eq!(p.light_color, Some([4.5, 4.32, 4.05]));
+        p.set("light_color", &ParamValue::Str(" ".into())).unwrap();
+        assert_eq!(p.light_color, None);
+        for bad in [
+            "1, 2",
+            "1, -2, 3",
+            "0, 0, 0",
+            "1, nan, 2",
+            "a, b, c",
+            "1, 2, 3, 4",
+        ] {
+            let e = p
+                .set("ambient_color", &ParamValue::Str(bad.into()))
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains("ambient_color"), "{e}");
+        }
+        let e = p
+            .set("light_color", &ParamValue::Float(2.0))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("light_color"), "{e}");
     }
 
     #[test]

@@ -171,7 +171,8 @@ fn shadows(
 /// between does not change it).
 ///
 /// Measured from the frame's own shadows ([`cast_shadow::scene_light`]),
-/// except where the host gives the ratio (`light_ratio`) and the frame has
+/// except where the host gives the ratio (`light_ratio`, or its
+/// `light_color` and `ambient_color`) and the frame has
 /// holes (a reconstruction's depth is too rough to trace its shadows:
 /// out of domain the measure read a third of a render's ratio there) or
 /// shows no shadow of its own: then the host's ratio, at
@@ -231,7 +232,7 @@ impl SceneLightOnce {
     ) -> Option<cast_shadow::SceneLight> {
         let (carried, record) = (&self.carried, &mut self.record);
         *self.now.get_or_insert_with(|| {
-            let host = input.params.light_ratio;
+            let host = input.params.host_light_ratio();
             // The host's ratio, at the facing the shading correction
             // compares at.
             let given = (host > 0.0).then(|| cast_shadow::SceneLight {
@@ -631,9 +632,21 @@ pub fn insert_ops(
                 }),
                 _ => None,
             };
+            // Where the background shows no albedo (a reconstruction, the
+            // albedo only on the object), the host's lights, when it gives
+            // them: the normals are the host's world-space ones.
+            let host_light = || {
+                let toward = params.light_direction_world(frame.camera.as_ref())?;
+                albedo_tone::Light::given(
+                    params.ambient_color?,
+                    params.light_color?,
+                    toward.as_vec3().to_array(),
+                )
+            };
             let albedo_light = albedo_aovs.as_ref().and_then(|aovs| {
                 stages.time("harmonize", || {
                     pool.install(|| albedo_tone::light(img, aovs, mask))
+                        .or_else(host_light)
                         .map(|light| (aovs, light))
                 })
             });

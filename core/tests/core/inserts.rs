@@ -762,17 +762,10 @@ fn graded_insert() -> (Scene, Scene) {
     (truth, graded)
 }
 
-/// An object inserted into a reconstruction (a frame with holes) under the
-/// neural backend: the network runs (the identity model here), then the
-/// insert operations on its output, so the object graded off its albedo is
-/// brought back as over a render. The `harmonize` stage runs after
-/// `inference` on every frame.
-#[test]
-fn an_insert_in_a_frame_with_holes_is_harmonized_after_the_network() {
-    let (truth, graded) = graded_insert();
-    let n = W * H;
-    // A reconstruction's hole in the ground, away from the object.
-    let coverage: Vec<f32> = (0..n)
+/// A reconstruction's hole in the ground, away from the object of
+/// [`graded_insert`].
+fn ground_hole(sc: &Scene) -> Vec<f32> {
+    let coverage: Vec<f32> = (0..W * H)
         .map(|i| {
             let (x, y) = (i % W, i / W);
             if (8..40).contains(&x) && (H - 30..H - 6).contains(&y) {
@@ -782,14 +775,29 @@ fn an_insert_in_a_frame_with_holes_is_harmonized_after_the_network() {
             }
         })
         .collect();
-    assert!((0..n).all(|i| coverage[i] == 1.0 || graded.mask[i] == 0.0));
+    assert!((0..W * H).all(|i| coverage[i] == 1.0 || sc.mask[i] == 0.0));
+    coverage
+}
+
+/// [`graded_insert`]'s graded scene through six frames of the neural
+/// backend (the identity model) with [`ground_hole`], `albedo` and the
+/// scene's normals, and `extra` parameters: the insert's error against the
+/// truth before and after, in stops. Checks that the `harmonize` stage
+/// runs after `inference` on every frame.
+fn graded_insert_in_holes(albedo: &[f32], extra: &[(&str, ParamValue)]) -> (f64, f64) {
+    let (truth, graded) = graded_insert();
+    let n = W * H;
+    let coverage = ground_hole(&graded);
     let mut params = harmonizer_core::Params::default();
     for (name, v) in [
         ("backend", ParamValue::Str("neural".into())),
         ("denoise", ParamValue::Str("off".into())),
         ("contact_shadows", ParamValue::Bool(false)),
-    ] {
-        params.set(name, &v).unwrap();
+    ]
+    .iter()
+    .chain(extra)
+    {
+        params.set(name, v).unwrap();
     }
     let mut s = Session::new(crate::neural::device_file("identity"), params).unwrap();
     assert_eq!(s.backend_name(), "neural");
@@ -805,7 +813,7 @@ fn an_insert_in_a_frame_with_holes_is_harmonized_after_the_network() {
     let mut after = f64::MAX;
     for t in 0..6 {
         let mut input = input_of(&graded, t, true);
-        input.albedo = Some(ImageView::from_f32("albedo", &graded.albedo, W, H, 3).unwrap());
+        input.albedo = Some(ImageView::from_f32("albedo", albedo, W, H, 3).unwrap());
         input.normal = Some(ImageView::from_f32("normal", &graded.normal, W, H, 3).unwrap());
         input.coverage = Some(ImageView::from_f32("coverage", &coverage, W, H, 1).unwrap());
         let (out, report) = s.process(&input, None).unwrap();
@@ -817,9 +825,74 @@ fn an_insert_in_a_frame_with_holes_is_harmonized_after_the_network() {
         );
         after = insert_log_error(&out, &truth);
     }
+    (before, after)
+}
+
+/// An object inserted into a reconstruction (a frame with holes) under the
+/// neural backend: the network runs (the identity model here), then the
+/// insert operations on its output, so the object graded off its albedo is
+/// brought back as over a render.
+#[test]
+fn an_insert_in_a_frame_with_holes_is_harmonized_after_the_network() {
+    let (_, graded) = graded_insert();
+    let (before, after) = graded_insert_in_holes(&graded.albedo, &[]);
     assert!(
         after < 0.2 * before,
         "insert error {before:.3} -> {after:.3} stops"
+    );
+}
+
+/// Issue 19: a reconstruction has no albedo, the host knows it only on the
+/// object it inserts. The background then says nothing of the scene's
+/// light, and the object keeps its grade; with the host's lights
+/// (`light_color`, `ambient_color`, `light_direction`: the fixture's ground
+/// is lit `0.2 * (1 + k * n.l)`), it is brought back as the background's
+/// albedo would bring it. The same with the light in camera space.
+#[test]
+fn the_host_s_lights_bring_an_insert_back_where_the_background_has_no_albedo() {
+    let (_, graded) = graded_insert();
+    let mut albedo = graded.albedo.clone();
+    for i in (0..W * H).filter(|&i| graded.mask[i] == 0.0) {
+        albedo[3 * i..3 * i + 3].fill(0.0);
+    }
+    let (before, alone) = graded_insert_in_holes(&albedo, &[]);
+    assert!(
+        (alone - before).abs() < 0.05 * before,
+        "without the host's light the insert changed: {before:.3} -> {alone:.3} stops"
+    );
+    let pi = std::f64::consts::PI;
+    let k = 4.0 / std::f64::consts::FRAC_1_SQRT_2;
+    let gray = |v: f64| ParamValue::Str(format!("{v}, {v}, {v}"));
+    let lights = [
+        ("ambient_color", gray(0.2 * pi)),
+        ("light_color", gray(0.2 * k * pi)),
+    ];
+    let (_, after) =
+        graded_insert_in_holes(&albedo, &[lights[0].clone(), lights[1].clone(), light()]);
+    assert!(
+        after < 0.2 * before,
+        "insert error {before:.3} -> {after:.3} stops"
+    );
+    // The light in camera space.
+    let (truth, _) = graded_insert();
+    let toward = truth
+        .camera
+        .world_to_camera
+        .as_dmat4()
+        .transform_vector3(DVec3::from(LIGHT));
+    let camera_light = [
+        lights[0].clone(),
+        lights[1].clone(),
+        (
+            "light_direction",
+            ParamValue::Str(format!("{}, {}, {}", toward.x, toward.y, toward.z)),
+        ),
+        ("light_space", ParamValue::Str("camera".into())),
+    ];
+    let (_, in_camera) = graded_insert_in_holes(&albedo, &camera_light);
+    assert!(
+        (in_camera - after).abs() < 0.01,
+        "world {after:.4}, camera {in_camera:.4} stops"
     );
 }
 
@@ -899,11 +972,13 @@ fn an_insert_s_covered_pixels_keep_their_rendered_color_under_the_network() {
     );
 }
 
-/// On the next frame the kept object is stabilized against the history: a
-/// flicker of its rendered color, pixel by pixel, is damped (with
-/// `stabilize` off it comes back as rendered).
+/// A kept object the insert operations leave as it came is the host's
+/// render on every frame, as over a render: not stabilized against the
+/// history (a resampled history blurs it; out of domain a correctly lit
+/// object in a reconstruction lost 0.7 dB to it), with `stabilize` on or
+/// off, even where its render changes from one frame to the next.
 #[test]
-fn a_kept_insert_is_stabilized_against_the_history() {
+fn a_kept_insert_is_not_stabilized_unless_recolored() {
     let sc = scene(0.0, None);
     let n = W * H;
     let coverage = corner_hole(&sc);
@@ -916,27 +991,24 @@ fn a_kept_insert_is_stabilized_against_the_history() {
             next.rgb[3 * i + c] *= k;
         }
     }
-    let run = |stabilize: bool| {
+    for stabilize in [true, false] {
         let mut s = box3_session("stabilize", stabilize);
-        let mut out = None;
         for (t, frame) in [&sc, &next].into_iter().enumerate() {
             let mut input = input_of(frame, t as i64, true);
             input.coverage = Some(ImageView::from_f32("coverage", &coverage, W, H, 1).unwrap());
-            out = Some(s.process(&input, None).unwrap().0);
+            let out = s.process(&input, None).unwrap().0;
+            for i in (0..n).filter(|&i| sc.mask[i] >= 1.0) {
+                for c in 0..3 {
+                    let want = frame.rgb[3 * i + c];
+                    let got = out.data[c * n + i];
+                    assert!(
+                        (got - want).abs() <= 1e-5 * want.max(1.0),
+                        "frame {t}, pixel {i}, stabilize {stabilize}: {got} against {want}"
+                    );
+                }
+            }
         }
-        out.unwrap()
-    };
-    let (on, off) = (run(true), run(false));
-    // The change from the first frame, summed over the object (green).
-    let (mut flicker, mut left) = (0.0f64, 0.0f64);
-    for i in (0..n).filter(|&i| sc.mask[i] >= 1.0) {
-        let g = |img: &Image| img.data[n + i];
-        let (before, now) = (sc.rgb[3 * i + 1], next.rgb[3 * i + 1]);
-        assert!((g(&off) - now).abs() <= 1e-5 * now.max(1.0), "pixel {i}");
-        flicker += f64::from((now - before).abs());
-        left += f64::from((g(&on) - before).abs());
     }
-    assert!(left < 0.8 * flicker, "{left} of {flicker} left");
 }
 
 /// Issue 19: with the renderer's albedo and normals, an insert graded a

@@ -1232,20 +1232,19 @@ impl<'a> Repair<'a> {
 /// the classical backend's in its region, 0.02 with this; by the mask alone
 /// 0.03, wholly wherever the mask is above 0 0.01 but 0.04 dB lower over
 /// the frame). The insert operations then
-/// harmonize it as over a render. Off with `keep_covered`. Returns the box
-/// of the pixels kept (with [`crate::backend::classical::INSERT_MARGIN`]),
-/// which is then stabilized against the history as the classical backend
-/// stabilizes a frame with holes (insert_recon's object: 8.33 dB against
-/// 8.27 left as kept and 8.35 with the classical backend, the warping error
-/// 2.38 against 2.57; about 1 ms at 1920x1080, `harmonize bench --albedo`).
-fn keep_inserts(img: &mut Image, input: &BackendInput<'_>) -> Option<crate::ops::Rect> {
+/// harmonize it as over a render; one they leave as it came is not
+/// stabilized either, as over a render (out of domain, the correctly lit
+/// object in the reconstruction, insert_recon_control: 32.66 dB in its
+/// region against 31.98 when its box was stabilized; its input 35.03). Off
+/// with `keep_covered`.
+fn keep_inserts(img: &mut Image, input: &BackendInput<'_>) {
     let frame = input.frame;
     let (Some(mask), Some(coverage)) = (frame.insert_mask.as_deref(), frame.coverage.as_deref())
     else {
-        return None;
+        return;
     };
     if !input.params.keep_covered || img.channels < 4 {
-        return None;
+        return;
     }
     let (w, h, floor) = (img.width, img.height, input.params.coverage_floor);
     let n = w * h;
@@ -1257,7 +1256,9 @@ fn keep_inserts(img: &mut Image, input: &BackendInput<'_>) -> Option<crate::ops:
             .pool
             .install(|| crate::ops::harmonize::insert_rect(mask, w, h)),
     };
-    let rect = rect?;
+    let Some(rect) = rect else {
+        return;
+    };
     let color = &frame.color;
     let (rgb, alpha) = img.data.split_at_mut(3 * n);
     let alpha = &alpha[..n];
@@ -1279,7 +1280,6 @@ fn keep_inserts(img: &mut Image, input: &BackendInput<'_>) -> Option<crate::ops:
                 }
             })
     });
-    Some(rect.expand(crate::backend::classical::INSERT_MARGIN, w, h))
 }
 
 /// Adds `ms` to stage `name` (as [`Stages::time`] does).
@@ -1480,7 +1480,7 @@ impl Backend for Neural {
             let mid = lo + 0.9 * (hi - lo);
             progress.set_span(lo, mid);
             let mut img = self.run_frame(input, progress, stages)?;
-            let kept = stages.time("keep_inserts", || keep_inserts(&mut img, input));
+            stages.time("keep_inserts", || keep_inserts(&mut img, input));
             progress.set_span(mid, hi);
             let done =
                 crate::backend::classical::insert_ops(&mut img, input, carry, progress, stages);
@@ -1489,10 +1489,10 @@ impl Backend for Neural {
             if self.model.manifest.stabilize {
                 // The model asks for temporal stabilization of its output.
                 crate::backend::classical::stabilize_with_history(&mut img, input, stages, None);
-            } else if let Some(area) = changed.or(kept) {
-                // The insert (recolored, or kept as rendered) is stabilized,
-                // as the classical backend stabilizes its frames (the rest
-                // is the network's, already blended with its history).
+            } else if let Some(area) = changed {
+                // A recolored insert is stabilized, as over a render (the
+                // rest is the network's, already blended with its history).
+                // One kept as rendered is the host's render, as it came.
                 crate::backend::classical::stabilize_with_history(
                     &mut img,
                     input,
