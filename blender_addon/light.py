@@ -173,10 +173,24 @@ def _luma(c) -> float:
     return sum(w * float(v) for w, v in zip(LUMA, c, strict=False))
 
 
+RGB = tuple[float, float, float]
+
+
+def _rgb(c, scale: float = 1.0) -> RGB:
+    r, g, b = (scale * float(v) for v in tuple(c)[:3])
+    return (r, g, b)
+
+
 def sun_irradiance(sun: bpy.types.Object) -> float:
     """The Sun's irradiance on a surface facing it (its strength times its
     color's luminance)."""
-    return float(sun.data.energy) * _luma(sun.data.color)
+    return _luma(sun_color(sun))
+
+
+def sun_color(sun: bpy.types.Object) -> RGB:
+    """The Sun's irradiance on a surface facing it per channel (its strength
+    times its color)."""
+    return _rgb(sun.data.color, float(sun.data.energy))
 
 
 def _background(world: bpy.types.World | None):
@@ -241,15 +255,25 @@ ENV_TEXELS = 256
 @dataclass(frozen=True)
 class EnvLight:
     """What an equirectangular World image gives, per unit of the
-    Background's strength (luminance; Blender's world, Z up)."""
+    Background's strength (Blender's world, Z up)."""
 
-    #: Irradiance on a surface facing up, the sun's texels left out.
-    ambient_up: float
+    #: Irradiance on a surface facing up, the sun's texels left out (RGB).
+    ambient_up_rgb: RGB
     #: The direction toward the image's sun (unit), or None: no compact
     #: bright source, or one below the horizon.
     sun: tuple[float, float, float] | None
-    #: The sun's irradiance on a surface facing it (0 without).
-    sun_irradiance: float
+    #: The sun's irradiance on a surface facing it (RGB; 0 without).
+    sun_rgb: RGB
+
+    @property
+    def ambient_up(self) -> float:
+        """``ambient_up_rgb``'s luminance."""
+        return _luma(self.ambient_up_rgb)
+
+    @property
+    def sun_irradiance(self) -> float:
+        """``sun_rgb``'s luminance."""
+        return _luma(self.sun_rgb)
 
 
 #: The block-averaged pixels of the last World image read, by
@@ -348,19 +372,21 @@ def _env_light(image: bpy.types.Image, lookup) -> EnvLight | None:
     power = lum * solid
     total, sun = float(power.sum()), float(power[near].sum())
     rest = (total - sun) / max(float(solid[~near].sum()), 1e-12)
+    none = (0.0, 0.0, 0.0)
     if total <= 0 or sun < SUN_SHARE * total or lum[k] < SUN_CONTRAST * rest:
-        ambient = float((lum * facing_up).sum())
-        return EnvLight(ambient, None, 0.0) if math.isfinite(ambient) else None
-    ambient = float((lum * facing_up)[~near].sum())
+        ambient = (rgb * facing_up[..., None]).sum(axis=(0, 1))
+        return EnvLight(_rgb(ambient), None, none) if np.isfinite(ambient).all() else None
+    ambient = (rgb * facing_up[..., None])[~near].sum(axis=0)
     toward = (d[near] * power[near][:, None]).sum(axis=0)
     n = float(np.linalg.norm(toward))
-    if not math.isfinite(ambient) or not math.isfinite(n) or n <= 0:
+    if not np.isfinite(ambient).all() or not math.isfinite(n) or n <= 0:
         return None
     toward /= n
     if toward[2] <= 0:  # below the horizon: no direct light on the ground
-        return EnvLight(ambient, None, 0.0)
-    direct = float((power[near] * np.maximum(d[near] @ toward, 0.0)).sum())
-    return EnvLight(ambient, (float(toward[0]), float(toward[1]), float(toward[2])), direct)
+        return EnvLight(_rgb(ambient), None, none)
+    facing = solid[near] * np.maximum(d[near] @ toward, 0.0)
+    direct = (rgb[near] * facing[:, None]).sum(axis=0)
+    return EnvLight(_rgb(ambient), (float(toward[0]), float(toward[1]), float(toward[2])), _rgb(direct))
 
 
 def _env_lookup(tex):
@@ -418,36 +444,43 @@ def _env_texture(world: bpy.types.World | None):
     return tex, float(bg.inputs["Strength"].default_value), lookup
 
 
-def env_sun(world: bpy.types.World | None) -> tuple[tuple[float, float, float], float] | None:
+def env_sun(world: bpy.types.World | None) -> tuple[tuple[float, float, float], float, RGB] | None:
     """The direction toward the sun in the World's image and its irradiance
-    on a surface facing it (times the Background's strength), or None."""
+    on a surface facing it (times the Background's strength; luminance and
+    RGB), or None."""
     found = _env_texture(world)
     if found is None or found[1] <= 0:
         return None
     got = env_light(found[0].image, found[2])
     if got is None or got.sun is None:
         return None
-    return got.sun, found[1] * got.sun_irradiance
+    return got.sun, found[1] * got.sun_irradiance, _rgb(got.sun_rgb, found[1])
 
 
 def world_ambient(world: bpy.types.World | None) -> float | None:
     """The World's irradiance on a surface facing up (see the module's
     notes), or None where the World does not say it plainly."""
+    rgb = world_ambient_rgb(world)
+    return None if rgb is None else _luma(rgb)
+
+
+def world_ambient_rgb(world: bpy.types.World | None) -> RGB | None:
+    """``world_ambient`` per channel."""
     if world is None:
         return None
     if world.node_tree is None:
         # Blender 5.0 renders a World's nodes whatever ``use_nodes`` says.
-        return math.pi * _luma(world.color)
+        return _rgb(world.color, math.pi)
     bg = _background(world)
     if bg is None:
         return None
     strength = float(bg.inputs["Strength"].default_value)
     color = bg.inputs["Color"]
     if not color.is_linked:
-        return math.pi * strength * _luma(color.default_value)
+        return _rgb(color.default_value, math.pi * strength)
     found = _env_texture(world)
     got = None if found is None else env_light(found[0].image, found[2])
-    return None if got is None else strength * got.ambient_up
+    return None if got is None else _rgb(got.ambient_up_rgb, strength)
 
 
 def scene_ratio(view_layer: bpy.types.ViewLayer, world: bpy.types.World | None) -> float | None:
@@ -456,19 +489,26 @@ def scene_ratio(view_layer: bpy.types.ViewLayer, world: bpy.types.World | None) 
     library's ``light_ratio``, at most :data:`MAX_RATIO`; see the module's
     notes), or None without a Sun or where the World does not say its
     light."""
+    got = scene_light(view_layer, world)
+    return None if got is None else got.ratio
+
+
+def scene_light(view_layer: bpy.types.ViewLayer, world: bpy.types.World | None) -> RatioMeasure | None:
+    """``scene_ratio`` with its parts: the direct light's and the World's
+    irradiance per channel (the library's ``light_color``, and twice its
+    ``ambient_color``), or None."""
     best = dominant_sun(view_layer)
-    ambient = world_ambient(world)
-    if ambient is None or not math.isfinite(ambient) or ambient <= 0:
+    ambient = world_ambient_rgb(world)
+    if ambient is None or not all(math.isfinite(c) for c in ambient) or _luma(ambient) <= 0:
         return None
     if best is not None:
-        direct = sun_irradiance(best[0])
+        direct, source = sun_color(best[0]), f"Sun light '{best[0].name}'"
     else:
         found = env_sun(world)
         if found is None:
             return None
-        direct = found[1]
-    r = direct / (0.5 * ambient)
-    return min(r, MAX_RATIO) if math.isfinite(r) and r > 0 else None
+        direct, source = found[2], "the World image's sun"
+    return RatioMeasure.of(direct, ambient, f"{source} and the World")
 
 
 #: The probe's render: pixels per side and Cycles samples per pixel (about
@@ -478,18 +518,43 @@ PROBE_SIZE = 8
 PROBE_SAMPLES = 128
 
 
+def color_text(c) -> str:
+    """A color parameter's text: "r, g, b" (negative values as 0)."""
+    return ", ".join(f"{max(float(v), 0.0):.6g}" for v in c)
+
+
 @dataclass(frozen=True)
 class RatioMeasure:
-    """A rendered ``light_ratio`` and its parts (Cycles' irradiance units)."""
+    """A ``light_ratio`` and its parts (Cycles' irradiance units)."""
 
     #: ``direct / (0.5 * ambient)``, at most :data:`MAX_RATIO`.
     ratio: float
-    #: The direct light's irradiance on a surface facing it.
+    #: The direct light's irradiance on a surface facing it (luminance).
     direct: float
-    #: The World's irradiance on a surface facing up, sun discs off.
+    #: The World's irradiance on a surface facing up, sun discs off (luminance).
     ambient: float
     #: Where the direct light came from ("Sun light 'NAME'" or "Sky Texture 'NAME'").
     source: str
+    #: ``direct`` per channel: the library's ``light_color``.
+    direct_rgb: RGB = (0.0, 0.0, 0.0)
+    #: ``ambient`` per channel; half of it is the library's ``ambient_color``.
+    ambient_rgb: RGB = (0.0, 0.0, 0.0)
+
+    @classmethod
+    def of(cls, direct: RGB, ambient: RGB, source: str) -> RatioMeasure | None:
+        """From the two irradiances per channel; None unless both are finite
+        and positive."""
+        d, a = _luma(direct), _luma(ambient)
+        if not (math.isfinite(d) and math.isfinite(a)) or d <= 0 or a <= 0:
+            return None
+        return cls(min(d / (0.5 * a), MAX_RATIO), d, a, source, _rgb(direct), _rgb(ambient))
+
+    def params(self) -> dict[str, str]:
+        """The library's ``light_color`` and ``ambient_color`` ("r, g, b")."""
+        return {
+            "light_color": color_text(self.direct_rgb),
+            "ambient_color": color_text(tuple(0.5 * v for v in self.ambient_rgb)),
+        }
 
 
 class _Probe:
@@ -541,6 +606,11 @@ class _Probe:
     def irradiance(self, world: bpy.types.World, toward: tuple[float, float, float]) -> float:
         """The irradiance ``world`` alone gives a surface facing ``toward``:
         pi times the white square's rendered luminance."""
+        return _luma(self.irradiance_rgb(world, toward))
+
+    def irradiance_rgb(self, world: bpy.types.World, toward: tuple[float, float, float]) -> RGB:
+        """``irradiance`` per channel: pi times the white square's rendered
+        color."""
         from mathutils import Vector
 
         n = Vector(toward).normalized()
@@ -560,7 +630,7 @@ class _Probe:
             px = np.empty(len(img.pixels), np.float32)
             img.pixels.foreach_get(px)
             rgb = px.reshape(-1, img.channels)[:, :3].astype(np.float64)
-            return math.pi * float((rgb @ np.asarray(LUMA)).mean())
+            return _rgb(rgb.mean(axis=0), math.pi)
         finally:
             bpy.data.images.remove(img)
 
@@ -599,16 +669,14 @@ def measure_ratio(view_layer: bpy.types.ViewLayer, world: bpy.types.World | None
     probe = _Probe()
     try:
         sky_only = probe.without_discs(world)
-        ambient = probe.irradiance(sky_only, (0.0, 0.0, 1.0))
+        ambient = probe.irradiance_rgb(sky_only, (0.0, 0.0, 1.0))
         if best is not None:
-            direct, source = sun_irradiance(best[0]), f"Sun light '{best[0].name}'"
+            direct, source = sun_color(best[0]), f"Sun light '{best[0].name}'"
         else:
             toward = sky_sun_direction(sky)
-            direct = probe.irradiance(world, toward)
-            direct -= probe.irradiance(sky_only, toward)
+            on, off = probe.irradiance_rgb(world, toward), probe.irradiance_rgb(sky_only, toward)
+            direct = _rgb(max(a - b, 0.0) for a, b in zip(on, off, strict=True))
             source = f"Sky Texture '{sky.name}'"
     finally:
         probe.close()
-    if not (math.isfinite(ambient) and math.isfinite(direct)) or ambient <= 0 or direct <= 0:
-        return None
-    return RatioMeasure(min(direct / (0.5 * ambient), MAX_RATIO), direct, ambient, source)
+    return RatioMeasure.of(direct, ambient, source)

@@ -44,6 +44,8 @@ class HARMONIZER_OT_measure_light_ratio(bpy.types.Operator):
             )
             return {"CANCELLED"}
         scene.harmonizer.light_ratio = got.ratio
+        scene.harmonizer.measured_light_color = got.direct_rgb
+        scene.harmonizer.measured_ambient_color = got.ambient_rgb
         clipped = " (the largest taken)" if got.ratio < got.direct / (0.5 * got.ambient) else ""
         self.report(
             {"INFO"},

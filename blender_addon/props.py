@@ -157,6 +157,26 @@ class HarmonizerSceneSettings(bpy.types.PropertyGroup):
         min=0.0,
         max=12.0,
     )
+    measured_light_color: FloatVectorProperty(
+        name="Measured Sun",
+        description=(
+            "The Sun's irradiance per channel as Measure Sun to Sky rendered it (passed with Sun to Sky "
+            "while that is the measured value)"
+        ),
+        size=3,
+        default=(0.0, 0.0, 0.0),
+        min=0.0,
+    )
+    measured_ambient_color: FloatVectorProperty(
+        name="Measured Sky",
+        description=(
+            "The World's irradiance on a surface facing up per channel as Measure Sun to Sky rendered it "
+            "(passed with Sun to Sky while that is the measured value)"
+        ),
+        size=3,
+        default=(0.0, 0.0, 0.0),
+        min=0.0,
+    )
     light_direction: FloatVectorProperty(
         name="Direction",
         description="Direction toward the light, in world space (Z up); normalized when used",

@@ -104,10 +104,14 @@ class Runner:
             self.notes.append(("WARNING", "Harmonizer: the manual light direction is (0, 0, 0): no cast shadows"))
         #: The session's ``light_ratio`` (see ``light.scene_ratio``), None
         #: to let the library measure it.
-        self.light_ratio, ratio_from = light_ratio_of(
+        self.light_ratio, ratio_from, colors = light_ratio_of(
             s, scene.view_layers.get(view_layer), scene.world, measure=measure_light
         )
-        extra = {} if self.light_ratio is None else {"light_ratio": self.light_ratio}
+        #: The session's ``light_color`` and ``ambient_color`` (empty where
+        #: unknown): the light an insert over a background without albedo
+        #: (a reconstruction) is matched to.
+        self.light_colors = colors
+        extra = {} if self.light_ratio is None else {"light_ratio": self.light_ratio, **colors}
         if self.light_ratio is not None:
             self.notes.append(("INFO", f"Harmonizer: Sun to Sky {self.light_ratio:.2f} ({ratio_from})"))
         self._messages: list[tuple[str, str]] = []
@@ -245,21 +249,29 @@ def camera_matrices(scene: bpy.types.Scene, depsgraph=None):
     return None if params is None else processor.blender_camera_matrices(params)
 
 
-def light_ratio_of(s, view_layer: bpy.types.ViewLayer | None, world, measure: bool = False) -> tuple[float | None, str]:
-    """The session's ``light_ratio`` and where it came from: the panel's
-    *Sun to Sky* when set; else, with the Light on *Scene Sun*, the ratio of
-    the Sun's light to the World's where the World says it
-    (``light.scene_ratio``), or with ``measure`` as Cycles renders it
+def light_ratio_of(
+    s, view_layer: bpy.types.ViewLayer | None, world, measure: bool = False
+) -> tuple[float | None, str, dict[str, str]]:
+    """The session's ``light_ratio``, where it came from, and the library's
+    ``light_color`` and ``ambient_color`` where known (else empty): the
+    panel's *Sun to Sky* when set (with the colors *Measure* stored, while
+    the value is the one it measured); else, with the Light on *Scene Sun*,
+    the Sun's light and the World's where the World says it
+    (``light.scene_light``), or with ``measure`` as Cycles renders them
     (``light.measure_ratio``); else None (the library measures it)."""
     if s.light_ratio > 0:
-        return float(s.light_ratio), "the panel's"
+        colors = {}
+        got = light.RatioMeasure.of(tuple(s.measured_light_color), tuple(s.measured_ambient_color), "")
+        if got is not None and abs(got.ratio - s.light_ratio) <= 0.01 * s.light_ratio:
+            colors = got.params()
+        return float(s.light_ratio), "the panel's", colors
     if s.light_source != "AUTO" or view_layer is None:
-        return None, "none"
-    ratio = light.scene_ratio(view_layer, world)
-    if ratio is not None:
-        return ratio, "Sun and World"
+        return None, "none", {}
+    got = light.scene_light(view_layer, world)
+    if got is not None:
+        return got.ratio, "Sun and World", got.params()
     if measure:
         got = light.measure_ratio(view_layer, world)
         if got is not None:
-            return got.ratio, f"rendered: {got.source} over the World"
-    return None, "none"
+            return got.ratio, f"rendered: {got.source} over the World", got.params()
+    return None, "none", {}

@@ -612,6 +612,63 @@ def test_a_sky_texture_s_sun_gives_the_direction(addon, tmp_root):
         runner.close()
 
 
+def test_the_courtyard_s_light_as_the_benchmark_passes_it(addon, tmp_root):
+    """Issue 19: the out-of-domain courtyard's light (its Sky Texture World
+    and Sun, built by the benchmark's own renderer) measured by the
+    extension gives the ``light_color`` and ``ambient_color`` the benchmark
+    passes as the host's (``training.ood.sequences.COURTYARD_SKY_UP``); the
+    Measure button stores them and the session gets them with the panel's
+    Sun to Sky, until that is edited by hand."""
+    import json
+    import sys
+
+    root = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", ".."))
+    if root not in sys.path:
+        sys.path.insert(0, root)
+    from training.ood import render as ood_render
+    from training.ood import sequences
+
+    with open(os.path.join(root, "training", "ood", "data", "courtyard", "meta.json")) as f:
+        meta = json.load(f)
+    lit = meta["light"]
+    scene, _ = _panel(addon, tmp_root, "courtyard_light")
+    ood_render.set_sky(lit["sun_elev"], lit["sun_azim"], lit["sky"])
+    scene.world = bpy.data.worlds["World"]
+    ood_render.set_sun(bpy.data.objects["Sun"], lit["sun_elev"], lit["sun_azim"], lit["sun_energy"], lit["sun_color"])
+    vl = scene.view_layers["ViewLayer"]
+    assert addon.light.scene_light(vl, scene.world) is None  # a Sky Texture: rendered only
+    got = addon.light.measure_ratio(vl, scene.world)
+    print(f"\ncourtyard: {got}")
+    assert got.direct_rgb == pytest.approx([lit["sun_energy"] * c for c in lit["sun_color"]], rel=1e-5)
+    assert got.ambient_rgb == pytest.approx(sequences.COURTYARD_SKY_UP, rel=0.03)
+    assert got.ratio == pytest.approx(2.0, rel=0.03)
+    s = sequences.build("insert_recon", frames=1)
+    host = s["host_params"]
+    for name in ("light_color", "ambient_color"):
+        want = [float(v) for v in host[name].split(",")]
+        have = [float(v) for v in got.params()[name].split(",")]
+        assert have == pytest.approx(want, rel=0.03), (name, have, want)
+
+    # The Measure button stores the colors; the session gets them with the
+    # panel's value, and not once the value is edited by hand.
+    assert bpy.ops.harmonizer.measure_light_ratio() == {"FINISHED"}
+    assert tuple(scene.harmonizer.measured_ambient_color) == pytest.approx(got.ambient_rgb, rel=0.03)
+    runner = addon.runtime.Runner(scene)
+    try:
+        colors = [float(v) for v in runner.session.get("ambient_color").split(",")]
+        assert colors == pytest.approx([0.5 * c for c in got.ambient_rgb], rel=0.03)
+        assert runner.session.get("light_color") != ""
+    finally:
+        runner.close()
+    scene.harmonizer.light_ratio = 3.0
+    runner = addon.runtime.Runner(scene)
+    try:
+        assert runner.session.get("light_ratio") == pytest.approx(3.0)
+        assert runner.session.get("ambient_color") == "" and runner.session.get("light_color") == ""
+    finally:
+        runner.close()
+
+
 def test_sun_to_sky_measured_by_cycles(addon, tmp_root):
     """Issue 19: *Measure Sun to Sky* renders the ratio for any World. Where
     the World says its light (a color, an environment image) it agrees with

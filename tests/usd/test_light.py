@@ -541,6 +541,62 @@ def test_the_sun_in_a_dome_s_texture_is_the_light(tmp_path: Path) -> None:
     assert got[0][1].light_ratio_source == "DistantLight /World/Sun over DomeLight /World/Sky"
 
 
+def test_the_lights_colors_reach_the_session(tmp_path: Path) -> None:
+    """Issue 19: with the ratio, the session gets the lights themselves: the
+    brightest DistantLight's irradiance per channel (``intensity *
+    2^exposure`` times its color: ``light_color``) and half the domes' on a
+    surface facing up (``ambient_color``; a textured dome's from its texture,
+    the sun's texels as the direct light without a DistantLight), read at
+    each frame; an override of the ratio, the params' own colors, or no
+    dome leave them unset (or the params')."""
+    stage = _stage(tmp_path)
+    sun = _distant(stage, "/World/Sun", 2.0, exposure=1.0)
+    sun.CreateColorAttr(Gf.Vec3f(1.0, 0.8, 0.5))
+    dome = UsdLux.DomeLight.Define(stage, "/World/Sky")
+    dome.CreateColorAttr(Gf.Vec3f(0.4, 0.6, 1.0))
+    dome.CreateIntensityAttr(0.5)
+    dome.GetIntensityAttr().Set(0.5, Usd.TimeCode(1))
+    dome.GetIntensityAttr().Set(1.0, Usd.TimeCode(3))
+    stage.GetRootLayer().Save()
+    path = tmp_path / "stage.usda"
+
+    def colors(out: str, **kw) -> list[tuple[str, str]]:
+        got = _session_values(path, Options(backend="bypass", out_dir=tmp_path / out, **kw), "light_color")
+        amb = _session_values(path, Options(backend="bypass", out_dir=tmp_path / (out + "_a"), **kw), "ambient_color")
+        return [(c, a) for (c, _), (a, _) in zip(got, amb, strict=True)]
+
+    for f, (light, ambient) in zip(FRAMES, colors("plain"), strict=True):
+        i = {1: 0.5, 2: 0.75, 3: 1.0}[f]
+        assert _floats(light) == pytest.approx([4.0, 3.2, 2.0], rel=1e-5), f
+        assert _floats(ambient) == pytest.approx([0.5 * math.pi * i * c for c in (0.4, 0.6, 1.0)], rel=1e-5), f
+    # The params' own colors win, and the other one still comes from the stage.
+    got = colors("params", params={"light_color": "1, 1, 1"})
+    assert all(_floats(c) == [1.0, 1.0, 1.0] and a != "" for c, a in got)
+    # An override of the ratio says nothing of the colors.
+    attr = stage.GetPrimAtPath("/Render/Products/beauty").CreateAttribute(
+        "harmonizer:lightRatio", Sdf.ValueTypeNames.Float
+    )
+    attr.Set(2.5)
+    stage.GetRootLayer().Save()
+    assert all(c == "" and a == "" for c, a in colors("override"))
+    attr.Clear()
+    # A textured dome: its texture's light, per channel.
+    h, w = 64, 128
+    tex = np.zeros((h, w, 3), np.float32)
+    tex[: h // 2] = (0.2, 0.4, 0.8)
+    _latlong(tmp_path / "blue.exr", tex)
+    dome.CreateTextureFileAttr(Sdf.AssetPath("blue.exr"))
+    dome.GetIntensityAttr().Clear()
+    dome.GetColorAttr().Set(Gf.Vec3f(1.0, 1.0, 1.0))
+    stage.GetRootLayer().Save()
+    for _, ambient in colors("textured"):
+        # Half of pi times the upper half's radiance (a Y-up stage).
+        assert _floats(ambient) == pytest.approx([0.5 * math.pi * c for c in (0.2, 0.4, 0.8)], rel=0.02)
+    stage.RemovePrim("/World/Sky")
+    stage.GetRootLayer().Save()
+    assert all(c == "" and a == "" for c, a in colors("no_dome"))
+
+
 def test_the_summary_line_says_the_light_ratio(tmp_path: Path, capsys) -> None:
     """``usd-harmonize`` says the ratio it passed and where it came from, or
     why the library measures it."""

@@ -23,6 +23,7 @@ Sequences (``SEQUENCES``; the parameters are fixed, so building is deterministic
 | ``insert_tone`` | courtyard | insert A with +0.9 stop, warm white balance, more saturation; its shadow present |
 | ``insert_tone_rgb`` | courtyard | the same without the albedo AOV (the frame alone) |
 | ``insert_recon`` | courtyard | ``insert_relight``'s insert in ``recon_courtyard``'s reconstruction (its albedo only) |
+| ``insert_recon_control`` | courtyard | the same insert correctly lit (the truth's pixels): nothing to change on it |
 | ``insert_relight`` | courtyard | insert A lit by another sun and sky (low, warm, from the side); shadow present |
 | ``insert_noshadow`` | courtyard | inserts A and B correctly lit, composited over the plate: no contact shadows |
 | ``two_inserts`` | courtyard | A tone-shifted (cool, darker) and B relit, over the plate: no contact shadows |
@@ -59,10 +60,20 @@ SEQUENCES = (
     "recon_ruins",
     "insert_tone_rgb",
     "insert_recon",
+    "insert_recon_control",
 )
 
 TONE_A = {"exposure": 0.9, "wb": [1.22, 0.98, 0.72], "gamma": 1.0, "saturation": 1.25}
 TONE_A_COOL = {"exposure": -0.7, "wb": [0.8, 1.0, 1.3], "gamma": 1.15, "saturation": 0.8}
+
+
+#: The courtyard's sky (``training.ood.render.set_sky``: a Sky Texture at
+#: 0.35, its disc off, sun at 38 degrees) on a white surface facing up:
+#: irradiance per channel (pi times the rendered color), rendered by Cycles
+#: with the Blender extension's *Measure Sun to Sky*
+#: (``tests/blender/test_light.py::test_the_courtyard_s_light_as_the_benchmark_passes_it``
+#: checks it within 3 %).
+COURTYARD_SKY_UP = (2.613, 4.476, 7.800)
 
 
 class SequenceError(RuntimeError):
@@ -208,7 +219,7 @@ def build(name: str, data: Path = DATA, cache: dict | None = None, frames: int =
         # (Denoising Albedo): every insert sequence but ``insert_tone_rgb``.
         if "albedo" in sc and name != "insert_tone_rgb":
             s["albedo"] = sc["albedo"][:T]
-            if name == "insert_recon":
+            if name in ("insert_recon", "insert_recon_control"):
                 # A reconstruction has no albedo: the host knows it on the
                 # object it renders and inserts, nowhere else.
                 s["albedo"] = s["albedo"] * (sc["mask_a"][:T, ..., None] > 0)
@@ -216,9 +227,9 @@ def build(name: str, data: Path = DATA, cache: dict | None = None, frames: int =
         ab = np.clip(a + b, 0.0, 1.0)
         plate = sc["noinsert_ab"][:T]
         s["mask_shadow"] = degrade.shadow_mask(gt, plate, ab)
-    if name.startswith("recon_") or name == "insert_recon":
-        # ``insert_recon`` reconstructs as ``recon_courtyard`` does.
-        seed = SEQUENCES.index("recon_courtyard" if name == "insert_recon" else name)
+    if name.startswith("recon_") or name.startswith("insert_recon"):
+        # The inserts into a reconstruction reconstruct as ``recon_courtyard`` does.
+        seed = SEQUENCES.index("recon_courtyard" if name.startswith("insert_recon") else name)
         rgba, depth, params = degrade.reconstruction_inputs(
             np.random.default_rng([2026, 17, seed]),
             list(sc["ctx_rgb"]),
@@ -230,11 +241,13 @@ def build(name: str, data: Path = DATA, cache: dict | None = None, frames: int =
         )
         s.update(input=rgba, depth=depth, region="hole", params=params)
         s["about"] = f"sparse-view reconstruction ({len(sc['ctx_rgb'])} views, point splats), {s['kind']}"
-        if name == "insert_recon":
+        if name.startswith("insert_recon"):
             # The object is rendered whole (covered) over the reconstruction,
-            # at its own depth.
+            # at its own depth: lit by another light, or as the scene lights
+            # it (the control).
             inside = a > 0.5
-            rgb = degrade.composite(rgba, sc["relit"][:T], a)
+            obj = gt if name == "insert_recon_control" else sc["relit"][:T]
+            rgb = degrade.composite(rgba, obj, a)
             cov = rgba[..., 3] * (1 - a) + a
             s.update(
                 input=np.concatenate([rgb, cov[..., None]], -1).astype(np.float32),
@@ -242,7 +255,11 @@ def build(name: str, data: Path = DATA, cache: dict | None = None, frames: int =
                 mask_insert=a,
                 region="insert",
             )
-            s["about"] = "insert lit by another sun and sky, composited into the courtyard's reconstruction"
+            s["about"] = (
+                "insert lit by another sun and sky, composited into the courtyard's reconstruction"
+                if name == "insert_recon"
+                else "insert correctly lit, composited into the courtyard's reconstruction (nothing to change on it)"
+            )
     elif name in ("insert_tone", "insert_tone_rgb"):
         s.update(input=np.concatenate([degrade.composite(gt, _tone(gt, TONE_A), a), ones], -1), mask_insert=a)
         s.update(region="insert", about="insert with a tone / white-balance mismatch (shadow present)")
@@ -281,10 +298,16 @@ def build(name: str, data: Path = DATA, cache: dict | None = None, frames: int =
         # does): its sample count, or that it denoised each frame itself.
         s["host_params"] = {"samples": "4"} if name == "noisy_raw" else {"denoise": "temporal"}
     if scene_name == "courtyard" and "light" in sc["meta"]:
-        # What a host knows of its scene and passes on (the Blender
-        # extension reads the sun): the direction toward the sun, world space.
-        e, a = np.radians(sc["meta"]["light"]["sun_elev"]), np.radians(sc["meta"]["light"]["sun_azim"])
+        # What a host knows of its scene and passes on, as the Blender
+        # extension does: the direction toward the sun (world space), the
+        # Sun's irradiance (its strength times its color) and half the sky's
+        # on a surface facing up (`COURTYARD_SKY_UP`, what its Measure renders).
+        light = sc["meta"]["light"]
+        e, a = np.radians(light["sun_elev"]), np.radians(light["sun_azim"])
         sun = (np.cos(e) * np.sin(a), np.cos(e) * np.cos(a), np.sin(e))
-        s.setdefault("host_params", {})["light_direction"] = ", ".join(f"{c:.6f}" for c in sun)
+        host = s.setdefault("host_params", {})
+        host["light_direction"] = ", ".join(f"{c:.6f}" for c in sun)
+        host["light_color"] = ", ".join(f"{light['sun_energy'] * c:.6g}" for c in light["sun_color"])
+        host["ambient_color"] = ", ".join(f"{0.5 * c:.6g}" for c in COURTYARD_SKY_UP)
     s["frames"] = T
     return s

@@ -207,13 +207,17 @@ def light_at(
 
 def _power(light, time: Usd.TimeCode) -> float:
     """``intensity * 2^exposure`` times the color's luminance."""
+    return _luma(_power_rgb(light, time))
+
+
+def _power_rgb(light, time: Usd.TimeCode) -> tuple[float, float, float]:
+    """``intensity * 2^exposure`` times the color."""
     color = light.GetColorAttr().Get(time) if light.GetColorAttr() else None
-    luma = 1.0 if color is None else sum(w * float(c) for w, c in zip(LUMA, color, strict=True))
-    return (
-        _value(light.GetIntensityAttr(), time, 1.0)
-        * 2.0 ** _value(light.GetExposureAttr(), time, 0.0)
-        * luma
+    tint = (1.0, 1.0, 1.0) if color is None else _rgb(color)
+    scale = _value(light.GetIntensityAttr(), time, 1.0) * 2.0 ** _value(
+        light.GetExposureAttr(), time, 0.0
     )
+    return _rgb(scale * c for c in tint)
 
 
 def _visible(prim: Usd.Prim, time: Usd.TimeCode) -> bool:
@@ -293,16 +297,35 @@ SUN_SHARE = 0.05
 
 @dataclass(frozen=True)
 class DomeLighting:
-    """What a textured dome gives at a frame (luminance, world space)."""
+    """What a textured dome gives at a frame (world space)."""
 
     #: Irradiance on a surface facing the stage's up axis, the sun's
-    #: texels left out.
-    ambient_up: float
+    #: texels left out (RGB).
+    ambient_up_rgb: tuple[float, float, float]
     #: The direction toward the texture's sun (unit), or None: no compact
     #: bright source, or one below the horizon.
     sun: tuple[float, float, float] | None
-    #: The sun's irradiance on a surface facing it (0 without).
-    sun_irradiance: float
+    #: The sun's irradiance on a surface facing it (RGB; 0 without).
+    sun_rgb: tuple[float, float, float]
+
+    @property
+    def ambient_up(self) -> float:
+        """``ambient_up_rgb``'s luminance."""
+        return _luma(self.ambient_up_rgb)
+
+    @property
+    def sun_irradiance(self) -> float:
+        """``sun_rgb``'s luminance."""
+        return _luma(self.sun_rgb)
+
+
+def _luma(c) -> float:
+    return sum(w * float(v) for w, v in zip(LUMA, c, strict=True))
+
+
+def _rgb(c) -> tuple[float, float, float]:
+    r, g, b = (float(v) for v in c)
+    return (r, g, b)
 
 
 @lru_cache(maxsize=4)
@@ -372,21 +395,24 @@ def dome_lighting(stage: Usd.Stage, prim: Usd.Prim, time: Usd.TimeCode) -> DomeL
     scale = _value(dome.GetIntensityAttr(), time, 1.0) * 2.0 ** _value(
         dome.GetExposureAttr(), time, 0.0
     )
-    lum = rgb @ (np.asarray(LUMA) * tint * scale)
+    lit = rgb * (tint * scale)
+    lum = lit @ np.asarray(LUMA)
     facing_up = np.maximum(world @ up, 0.0) * solid
     rest = np.ones((h, w), bool) if sun_mask is None else ~sun_mask
-    ambient = float((lum * facing_up)[rest].sum())
+    ambient = _rgb((lit * facing_up[..., None])[rest].sum(axis=0))
+    none = (0.0, 0.0, 0.0)
     if sun_mask is None:
-        return DomeLighting(ambient, None, 0.0)
+        return DomeLighting(ambient, None, none)
     power = (lum * solid)[sun_mask]
     toward = (world[sun_mask] * power[:, None]).sum(axis=0)
     n = float(np.linalg.norm(toward))
     if not math.isfinite(n) or n <= 0:
-        return DomeLighting(ambient, None, 0.0)
+        return DomeLighting(ambient, None, none)
     toward /= n
     if float(toward @ up) <= 0:  # below the horizon: no direct light on the ground
-        return DomeLighting(ambient, None, 0.0)
-    direct = float((power * np.maximum(world[sun_mask] @ toward, 0.0)).sum())
+        return DomeLighting(ambient, None, none)
+    facing = solid[sun_mask] * np.maximum(world[sun_mask] @ toward, 0.0)
+    direct = _rgb((lit[sun_mask] * facing[:, None]).sum(axis=0))
     return DomeLighting(ambient, (float(toward[0]), float(toward[1]), float(toward[2])), direct)
 
 
@@ -414,6 +440,39 @@ def dome_sun_light(stage: Usd.Stage, frame: float, domes: list[Usd.Prim] | None 
     return Light(best[1], f"DomeLight {best[2].GetPath()} (the sun in its texture)")
 
 
+def color_text(c) -> str:
+    """A color parameter's text: "r, g, b" (negative values as 0)."""
+    return ", ".join(f"{max(float(v), 0.0):.6g}" for v in c)
+
+
+@dataclass(frozen=True)
+class SceneLight:
+    """The scene's light at a frame as the stage's lights say it."""
+
+    #: The direct-to-ambient ratio (the library's ``light_ratio``), None:
+    #: the library measures it.
+    ratio: float | None
+    #: Where it came from.
+    source: str
+    #: The direct light's irradiance on a surface facing it, and the
+    #: ambient's on a surface in its shadow (half the domes' on a surface
+    #: facing up), per channel: the library's ``light_color`` and
+    #: ``ambient_color``; None where the ratio is not the lights' (an
+    #: override, or none).
+    light_color: tuple[float, float, float] | None = None
+    ambient_color: tuple[float, float, float] | None = None
+
+    def params(self) -> dict[str, str]:
+        """The library's ``light_color`` and ``ambient_color`` ("r, g, b"),
+        empty without them."""
+        if self.light_color is None or self.ambient_color is None:
+            return {}
+        return {
+            "light_color": color_text(self.light_color),
+            "ambient_color": color_text(self.ambient_color),
+        }
+
+
 def light_ratio_at(
     stage: Usd.Stage,
     prims: list[Usd.Prim],
@@ -425,6 +484,17 @@ def light_ratio_at(
     ``prims``: where the override is looked for (the product, then the
     settings prim); ``lights``: the candidates (default:
     :func:`ratio_lights` of the stage)."""
+    got = scene_light_at(stage, prims, frame, lights)
+    return got.ratio, got.source
+
+
+def scene_light_at(
+    stage: Usd.Stage,
+    prims: list[Usd.Prim],
+    frame: float,
+    lights: list[Usd.Prim] | None = None,
+) -> SceneLight:
+    """:func:`light_ratio_at` with the lights' colors (:class:`SceneLight`)."""
     time = Usd.TimeCode(frame)
     for prim in prims:
         attr = prim.GetAttribute(ATTR_LIGHT_RATIO)
@@ -438,15 +508,16 @@ def light_ratio_at(
             raise SettingsError(f"{where}: {v!r} is not a ratio (a number, at least 0)") from None
         if not math.isfinite(r) or r < 0:
             raise SettingsError(f"{where}: {r!r} is not a ratio (a number, at least 0)")
-        return (min(r, MAX_RATIO) if r > 0 else None), where
-    sun: tuple[float, Usd.Prim] | None = None
-    dome_sun: tuple[float, Usd.Prim] | None = None
-    ambient, domes = 0.0, []
+        return SceneLight((min(r, MAX_RATIO) if r > 0 else None), where)
+    sun: tuple[float, Usd.Prim, tuple[float, float, float]] | None = None
+    dome_sun: tuple[float, Usd.Prim, tuple[float, float, float]] | None = None
+    ambient, domes = np.zeros(3), []
     for prim in ratio_lights(stage) if lights is None else lights:
         if prim.IsA(UsdLux.DistantLight) and _visible(prim, time):
-            p = _power(UsdLux.DistantLight(prim), time)
+            c = _power_rgb(UsdLux.DistantLight(prim), time)
+            p = _luma(c)
             if math.isfinite(p) and p > 0 and (sun is None or p > sun[0]):
-                sun = (p, prim)
+                sun = (p, prim, c)
         elif is_dome(prim) and _visible(prim, time):
             dome = _dome(prim)
             tex = dome.GetTextureFileAttr().Get(time) if dome.GetTextureFileAttr() else None
@@ -454,19 +525,25 @@ def light_ratio_at(
                 try:
                     got = dome_lighting(stage, prim, time)
                 except DomeTextureError as exc:
-                    return None, f"DomeLight {prim.GetPath()}: {exc}"
-                ambient += 0.5 * got.ambient_up
+                    return SceneLight(None, f"DomeLight {prim.GetPath()}: {exc}")
+                ambient += 0.5 * np.asarray(got.ambient_up_rgb)
                 if got.sun is not None and (dome_sun is None or got.sun_irradiance > dome_sun[0]):
-                    dome_sun = (got.sun_irradiance, prim)
+                    dome_sun = (got.sun_irradiance, prim, got.sun_rgb)
             else:
-                ambient += 0.5 * math.pi * _power(dome, time)
+                ambient += 0.5 * math.pi * np.asarray(_power_rgb(dome, time))
             domes.append(str(prim.GetPath()))
-    if not domes or not math.isfinite(ambient) or ambient <= 0:
-        return None, "none"
+    amb = _luma(ambient)
+    if not domes or not math.isfinite(amb) or amb <= 0:
+        return SceneLight(None, "none")
     if sun is not None:
         source = f"DistantLight {sun[1].GetPath()}"
     elif dome_sun is not None:
         sun, source = dome_sun, f"the sun of DomeLight {dome_sun[1].GetPath()}"
     else:
-        return None, "none"
-    return min(sun[0] / ambient, MAX_RATIO), f"{source} over DomeLight {', '.join(domes)}"
+        return SceneLight(None, "none")
+    return SceneLight(
+        min(sun[0] / amb, MAX_RATIO),
+        f"{source} over DomeLight {', '.join(domes)}",
+        _rgb(sun[2]),
+        _rgb(np.maximum(ambient, 0.0)),
+    )

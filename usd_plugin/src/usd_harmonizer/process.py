@@ -35,9 +35,10 @@ from .light import (
     Light,
     is_dome,
     light_at,
-    light_ratio_at,
+    SceneLight,
     normalized,
     ratio_lights,
+    scene_light_at,
 )
 from .settings import ProductInfo, SettingsInfo
 from .varmap import Binding, find_channels, map_vars
@@ -264,6 +265,11 @@ class ProductRunner:
         #: stage's DistantLight and DomeLight prims, found once per run.
         self._ratio_param = 0.0
         self._ratio_lights: list[Any] | None = None
+        #: The ``light_color`` and ``ambient_color`` the session holds
+        #: ("": unset), those the params do not give.
+        self._color_params: dict[str, str] = {
+            k: "" for k in ("light_color", "ambient_color") if k not in params
+        }
         if "light_direction" not in params:
             # The stage's and the CLI's directions are in the stage's world.
             params["light_space"] = "world"
@@ -335,11 +341,17 @@ class ProductRunner:
         """The ``light_ratio`` of ``frame`` and where it came from: the
         params' own (then never changed here), none without a light, else
         the stage's (:func:`usd_harmonizer.light.light_ratio_at`)."""
+        got = self.scene_light_for(frame, light)
+        return got.ratio, got.source
+
+    def scene_light_for(self, frame: int, light: Light) -> SceneLight:
+        """:meth:`light_ratio_for` with the lights' colors
+        (:func:`usd_harmonizer.light.scene_light_at`)."""
         if "light_ratio" in self.options.params:
-            return None, "parameter light_ratio"
+            return SceneLight(None, "parameter light_ratio")
         if light.direction is None:
-            return None, "none"
-        return light_ratio_at(self.product.stage, self._light_prims, frame, self._stage_lights())
+            return SceneLight(None, "none")
+        return scene_light_at(self.product.stage, self._light_prims, frame, self._stage_lights())
 
     # -- paths ---------------------------------------------------------------
     def output_for(self, frame: int) -> Path:
@@ -493,14 +505,25 @@ class ProductRunner:
                     f"{where}: light direction from {light.source}: {e}"
                 ) from e
             self._light_param = light.param
-        ratio, ratio_source = self.light_ratio_for(frame, light)
-        if (ratio or 0.0) != self._ratio_param:
+        scene_light = self.scene_light_for(frame, light)
+        ratio, ratio_source = scene_light.ratio, scene_light.source
+        # The lights' colors ("": unset), unless the params give their own.
+        given = scene_light.params()
+        colors = {
+            k: given.get(k, "")
+            for k in ("light_color", "ambient_color")
+            if k not in self.options.params
+        }
+        if (ratio or 0.0) != self._ratio_param or colors != self._color_params:
             try:
                 self.session.set("light_ratio", float(ratio or 0.0))
+                for k, v in colors.items():
+                    self.session.set(k, v)
                 self.session.commit()
             except hz.HarmonizerError as e:
                 raise FrameError(f"{where}: light ratio from {ratio_source}: {e}") from e
             self._ratio_param = ratio or 0.0
+            self._color_params = colors
         try:
             t_l0 = time.perf_counter()
             out = self.session.process(
