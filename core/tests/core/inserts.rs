@@ -972,6 +972,51 @@ fn an_insert_s_covered_pixels_keep_their_rendered_color_under_the_network() {
     );
 }
 
+/// An object's soft edge over a reconstruction's hole (the object covers
+/// part of a pixel, no splat the rest: coverage below the floor) keeps the
+/// share it covers as rendered, and the network fills the rest: the
+/// premultiplied render plus the uncovered share of the network's color.
+#[test]
+fn an_insert_s_edge_over_a_hole_keeps_its_covered_share() {
+    let mut sc = scene(0.0, None);
+    let n = W * H;
+    let mut coverage = corner_hole(&sc);
+    // The object's pixels beside its background: 0.7 object, 0.3 nothing.
+    let edge: Vec<usize> = (W + 1..n - W - 1)
+        .filter(|&i| {
+            sc.mask[i] >= 1.0
+                && [i - 1, i + 1, i - W, i + W]
+                    .iter()
+                    .any(|&j| sc.mask[j] == 0.0)
+        })
+        .collect();
+    assert!(edge.len() > 40, "{}", edge.len());
+    for &i in &edge {
+        sc.mask[i] = 0.7;
+        coverage[i] = 0.7;
+        for c in 0..3 {
+            sc.rgb[3 * i + c] *= 0.7;
+        }
+    }
+    let run = |keep: bool| {
+        let mut s = box3_session("keep_covered", keep);
+        let mut input = input_of(&sc, 0, true);
+        input.coverage = Some(ImageView::from_f32("coverage", &coverage, W, H, 1).unwrap());
+        s.process(&input, None).unwrap().0
+    };
+    let (kept, network) = (run(true), run(false));
+    for &i in &edge {
+        for c in 0..3 {
+            let want = sc.rgb[3 * i + c] + 0.3 * network.data[c * n + i];
+            let got = kept.data[c * n + i];
+            assert!(
+                (got - want).abs() <= 1e-5 * want.max(1.0),
+                "pixel {i}: {got} against {want}"
+            );
+        }
+    }
+}
+
 /// A kept object the insert operations leave as it came is the host's
 /// render on every frame, as over a render: not stabilized against the
 /// history (a resampled history blurs it; out of domain a correctly lit
