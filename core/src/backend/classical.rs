@@ -395,6 +395,16 @@ fn run_ops_on(
     let history = input.history;
     let (w, h) = (img.width, img.height);
 
+    // An insert's pixels covered less than the floor (its soft edge over a
+    // hole), as rendered, before the fill drops their color: a frame with
+    // holes keeps them (`KeptInsert`).
+    let edge = match (&frame.insert_mask, frame.scan, frame.coverage.as_deref()) {
+        (Some(mask), Some(scan), Some(cov)) if frame.has_holes() && !params.stabilize_all => scan
+            .insert
+            .map(|rect| InsertEdge::capture(img, mask, cov, rect, params.coverage_floor)),
+        _ => None,
+    };
+
     if params.fill_holes {
         let scanned = frame
             .scan
@@ -530,9 +540,116 @@ fn run_ops_on(
     } else {
         Some(changed.unwrap_or_default())
     };
+    // In a frame with holes an insert the operations left as it came keeps
+    // its render, as in a frame without holes: it is the host's object,
+    // which a resampled history only softens.
+    let kept = match (&frame.insert_mask, frame.scan) {
+        (Some(mask), Some(scan))
+            if area.is_none() && !params.stabilize_all && changed.is_none() =>
+        {
+            scan.insert
+                .map(|rect| KeptInsert::save(img, mask, rect, edge.as_ref()))
+        }
+        _ => None,
+    };
     stabilize_with_history(img, input, stages, area);
+    if let Some(k) = kept {
+        k.restore(img, input.kept);
+    }
     progress.report(1.0)?;
     Ok(())
+}
+
+/// An insert's pixels covered more than 0 and less than the floor, as
+/// rendered (premultiplied color and coverage), in pixel order.
+struct InsertEdge {
+    pixels: Vec<(usize, [f32; 3], f32)>,
+}
+
+impl InsertEdge {
+    fn capture(img: &Image, mask: &[f32], coverage: &[f32], rect: Rect, floor: f32) -> InsertEdge {
+        let (w, n) = (img.width, img.width * img.height);
+        let mut pixels = Vec::new();
+        for y in rect.y0..rect.y1 {
+            for x in rect.x0..rect.x1 {
+                let p = y * w + x;
+                let v = coverage[p];
+                if mask[p] > 0.0 && v > 0.0 && v < floor {
+                    pixels.push((p, [0, 1, 2].map(|k| img.data[k * n + p]), v));
+                }
+            }
+        }
+        InsertEdge { pixels }
+    }
+}
+
+/// An insert's pixels before stabilization, weighted as the neural
+/// backend keeps an object (twice the mask, at most 1).
+struct KeptInsert {
+    rect: Rect,
+    /// Per pixel of `rect` with a mask above 0: its index, weight and RGBA.
+    pixels: Vec<(usize, f32, [f32; 4])>,
+}
+
+impl KeptInsert {
+    /// `edge`: the insert's pixels covered less than the floor as
+    /// rendered; such a pixel (its soft edge over a hole, whose color the
+    /// fill dropped) is saved as the share it covers plus the fill for the
+    /// rest.
+    fn save(img: &Image, mask: &[f32], rect: Rect, edge: Option<&InsertEdge>) -> KeptInsert {
+        let w = img.width;
+        let n = w * img.height;
+        let mut pixels = Vec::new();
+        for y in rect.y0..rect.y1 {
+            for x in rect.x0..rect.x1 {
+                let p = y * w + x;
+                if mask[p] > 0.0 {
+                    let c = [0, 1, 2, 3].map(|k| img.data[k * n + p]);
+                    pixels.push((p, (2.0 * mask[p]).min(1.0), c));
+                }
+            }
+        }
+        // Both lists are in pixel order.
+        let mut i = 0;
+        for &(p, rendered, cov) in edge.map_or(&[][..], |e| &e.pixels[..]) {
+            while i < pixels.len() && pixels[i].0 < p {
+                i += 1;
+            }
+            if let Some((_, _, c)) = pixels.get_mut(i).filter(|e| e.0 == p) {
+                let a = c[3];
+                if a > 0.0 {
+                    for k in 0..3 {
+                        c[k] = rendered[k] + (a - cov).max(0.0) * (c[k] / a);
+                    }
+                }
+            }
+        }
+        KeptInsert { rect, pixels }
+    }
+
+    /// Blends the saved pixels back into `img` and into the history's copy
+    /// of the result, where that holds it.
+    fn restore(&self, img: &mut Image, kept: Option<&KeptColor>) {
+        if self.rect.is_empty() {
+            return;
+        }
+        let n = img.width * img.height;
+        for &(p, t, c) in &self.pixels {
+            for (k, v) in c.iter().enumerate() {
+                let o = &mut img.data[k * n + p];
+                *o += t * (v - *o);
+            }
+        }
+        if let Some(slot) = kept {
+            slot.patch(|buf| {
+                for &(p, _, _) in &self.pixels {
+                    for k in 0..4 {
+                        buf.data[4 * p + k] = img.data[k * n + p];
+                    }
+                }
+            });
+        }
+    }
 }
 
 /// The insert operations of [`run_ops`] alone: each inserted object's

@@ -116,6 +116,16 @@ impl KeptColor {
         *s = (Some(buffer), filled);
     }
 
+    /// Changes the buffer by `f` where it holds the result (a backend that
+    /// changes its output after the buffer was filled makes the same change
+    /// here, so it still holds the result); nothing otherwise.
+    pub fn patch(&self, f: impl FnOnce(&mut RgbaImage)) {
+        let mut s = self.slot.lock().unwrap_or_else(|e| e.into_inner());
+        if let (Some(buffer), true) = &mut *s {
+            f(buffer);
+        }
+    }
+
     /// The buffer and whether it holds the result.
     pub fn into_inner(self) -> (Option<RgbaImage>, bool) {
         self.slot.into_inner().unwrap_or_else(|e| e.into_inner())

@@ -1017,6 +1017,70 @@ fn an_insert_s_edge_over_a_hole_keeps_its_covered_share() {
     }
 }
 
+/// The classical backend stabilizes a reconstruction's frame whole, but an
+/// insert the operations leave as it came keeps its render there, as in a
+/// frame without holes (its flicker too: the host's object), its soft edge
+/// over a hole its covered share.
+#[test]
+fn the_classical_backend_keeps_an_unchanged_insert_in_a_frame_with_holes() {
+    let sc = scene(0.0, None);
+    let n = W * H;
+    let coverage = corner_hole(&sc);
+    let mut next = scene(0.0, None);
+    for i in (0..n).filter(|&i| sc.mask[i] >= 1.0) {
+        let k = 1.0 + 0.3 * (hash(i as u64 + 77) - 0.5);
+        for c in 0..3 {
+            next.rgb[3 * i + c] *= k;
+        }
+    }
+    // A soft edge over a hole: 0.7 of the object, nothing behind it.
+    let mut cov_next = coverage.clone();
+    let edge: Vec<usize> = (W + 1..n - W - 1)
+        .filter(|&i| {
+            sc.mask[i] >= 1.0
+                && [i - 1, i + 1, i - W, i + W]
+                    .iter()
+                    .any(|&j| sc.mask[j] == 0.0)
+        })
+        .collect();
+    for &i in &edge {
+        next.mask[i] = 0.7;
+        cov_next[i] = 0.7;
+        for c in 0..3 {
+            next.rgb[3 * i + c] *= 0.7;
+        }
+    }
+    let no_shadows = ("contact_shadows", ParamValue::Bool(false));
+    let mut s = session(std::slice::from_ref(&no_shadows));
+    let mut out = None;
+    for (t, (frame, cov)) in [(&sc, &coverage), (&next, &cov_next)]
+        .into_iter()
+        .enumerate()
+    {
+        let mut input = input_of(frame, t as i64, true);
+        input.coverage = Some(ImageView::from_f32("coverage", cov, W, H, 1).unwrap());
+        out = Some(s.process(&input, None).unwrap().0);
+    }
+    let out = out.unwrap();
+    for i in (0..n).filter(|&i| next.mask[i] >= 1.0) {
+        for c in 0..3 {
+            let (got, want) = (out.data[c * n + i], next.rgb[3 * i + c]);
+            assert!(
+                (got - want).abs() <= 1e-5 * want.max(1.0),
+                "pixel {i}: {got} against {want}"
+            );
+        }
+    }
+    // The edge: at least the share it covers, less than a whole pixel of it.
+    for &i in &edge {
+        let (got, part) = (out.data[n + i], next.rgb[3 * i + 1]);
+        assert!(
+            got >= part - 1e-6 && got < part / 0.7 + 0.5,
+            "pixel {i}: {got}, rendered {part}"
+        );
+    }
+}
+
 /// A kept object the insert operations leave as it came is the host's
 /// render on every frame, as over a render: not stabilized against the
 /// history (a resampled history blurs it; out of domain a correctly lit
