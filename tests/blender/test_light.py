@@ -441,9 +441,17 @@ def test_a_glowing_insert_is_brought_back_by_its_albedo(addon, tmp_root):
 
 
 def _session_ratio(addon, scene) -> float:
+    return float(_session_light(addon, scene)[0])
+
+
+def _session_light(addon, scene) -> tuple[float, list[float] | None, list[float] | None]:
+    """The session's ``light_ratio``, ``light_color`` and ``ambient_color``
+    (None: unset)."""
     runner = addon.runtime.Runner(scene)
     try:
-        return float(runner.session.get("light_ratio"))
+        colors = [runner.session.get(k) for k in ("light_color", "ambient_color")]
+        rgb = [[float(v) for v in c.split(",")] if c else None for c in colors]
+        return float(runner.session.get("light_ratio")), rgb[0], rgb[1]
     finally:
         runner.close()
 
@@ -459,7 +467,12 @@ def test_sun_to_sky_reaches_the_session(addon, tmp_root):
     # (0.25, 0.35, 0.55) at strength 0.6.
     world_lum = 0.2126 * 0.25 + 0.7152 * 0.35 + 0.0722 * 0.55
     want = 3.0 / (0.5 * math.pi * 0.6 * world_lum)
-    assert _session_ratio(addon, scene) == pytest.approx(want, rel=1e-5)
+    ratio, light_color, ambient_color = _session_light(addon, scene)
+    assert ratio == pytest.approx(want, rel=1e-5)
+    # The lights themselves: the Sun's strength times its color, half the
+    # World's irradiance on a surface facing up.
+    assert light_color == pytest.approx([3.0, 3.0, 3.0], rel=1e-5)
+    assert ambient_color == pytest.approx([0.5 * math.pi * 0.6 * c for c in (0.25, 0.35, 0.55)], rel=1e-5)
     assert f"Sun to Sky {want:.2f} (Sun and World)" in draw().labels
     assert "light_ratio" in draw().props
 
@@ -474,17 +487,20 @@ def test_sun_to_sky_reaches_the_session(addon, tmp_root):
     env = nt.nodes.new("ShaderNodeTexEnvironment")
     env.image = img
     nt.links.new(env.outputs["Color"], nt.nodes["Background"].inputs["Color"])
-    got = _session_ratio(addon, scene)
+    got, _, ambient_color = _session_light(addon, scene)
     assert got == pytest.approx(3.0 / (0.5 * math.pi * 0.6 * 0.5), rel=0.01)
+    assert ambient_color == pytest.approx([0.5 * math.pi * 0.6 * 0.5] * 3, rel=0.01)
 
     # A Sky Texture does not say its light: the library measures it.
     sky = nt.nodes.new("ShaderNodeTexSky")
     nt.links.new(sky.outputs["Color"], nt.nodes["Background"].inputs["Color"])
     assert _session_ratio(addon, scene) == 0.0
     assert "Sun to Sky: measured from each frame" in draw().labels
-    # The user's value wins; with the Light off, nothing is passed.
+    assert _session_light(addon, scene)[1:] == (None, None)
+    # The user's value wins (without colors: none measured); with the Light
+    # off, nothing is passed.
     s.light_ratio = 2.5
-    assert _session_ratio(addon, scene) == pytest.approx(2.5)
+    assert _session_light(addon, scene) == (pytest.approx(2.5), None, None)
     s.light_ratio = 0.0
     nt.links.new(env.outputs["Color"], nt.nodes["Background"].inputs["Color"])
     s.light_source = "OFF"
