@@ -311,9 +311,9 @@ impl Default for Params {
     }
 }
 
-/// Reads a color parameter: "r, g, b" (commas or spaces), three finite
-/// numbers at least 0, not all 0; empty is none.
-pub fn parse_color(s: &str) -> std::result::Result<Option<[f32; 3]>, String> {
+/// Reads three numbers separated by commas or spaces ("x, y, z"); empty is
+/// none. The error names what is not a number or how many there were.
+pub(crate) fn parse_three(s: &str) -> std::result::Result<Option<[f32; 3]>, String> {
     let s = s.trim();
     if s.is_empty() {
         return Ok(None);
@@ -327,14 +327,22 @@ pub fn parse_color(s: &str) -> std::result::Result<Option<[f32; 3]>, String> {
         })
         .collect::<std::result::Result<_, _>>()?;
     match v[..] {
-        [r, g, b]
-            if [r, g, b].iter().all(|c| c.is_finite() && *c >= 0.0)
-                && (r > 0.0 || g > 0.0 || b > 0.0) =>
-        {
-            Ok(Some([r, g, b]))
+        [x, y, z] => Ok(Some([x, y, z])),
+        _ => Err(format!("expected three numbers, got {} in {s:?}", v.len())),
+    }
+}
+
+/// Reads a color parameter: "r, g, b" (commas or spaces), three finite
+/// numbers at least 0, not all 0; empty is none.
+pub fn parse_color(s: &str) -> std::result::Result<Option<[f32; 3]>, String> {
+    match parse_three(s)? {
+        Some(c) if c.iter().all(|v| v.is_finite() && *v >= 0.0) && c.iter().any(|v| *v > 0.0) => {
+            Ok(Some(c))
         }
-        _ => Err(format!(
-            "expected three finite numbers at least 0, not all 0 (\"r, g, b\"), got {s:?}"
+        None => Ok(None),
+        Some(_) => Err(format!(
+            "expected three finite numbers at least 0, not all 0 (\"r, g, b\"), got {:?}",
+            s.trim()
         )),
     }
 }

@@ -456,26 +456,12 @@ fn blur_lines(src: &[f32], dst: &mut [f32], k: &[f32], lines: Lines) {
 /// Parses `light_direction`: three numbers separated by commas or spaces,
 /// not all zero; `Ok(None)` for an empty string.
 pub fn parse_direction(s: &str) -> std::result::Result<Option<[f32; 3]>, String> {
-    let s = s.trim();
-    if s.is_empty() {
-        return Ok(None);
-    }
-    let v: Vec<f32> = s
-        .split(|c: char| c == ',' || c.is_whitespace())
-        .filter(|t| !t.is_empty())
-        .map(|t| {
-            t.parse::<f32>()
-                .map_err(|_| format!("{t:?} is not a number"))
-        })
-        .collect::<std::result::Result<_, _>>()?;
-    match v[..] {
-        [x, y, z]
-            if [x, y, z].iter().all(|c| c.is_finite()) && (x != 0.0 || y != 0.0 || z != 0.0) =>
-        {
-            Ok(Some([x, y, z]))
-        }
-        _ => Err(format!(
-            "expected three finite numbers, not all zero (\"x, y, z\"), got {s:?}"
+    match crate::params::parse_three(s)? {
+        Some(d) if d.iter().all(|c| c.is_finite()) && d.iter().any(|c| *c != 0.0) => Ok(Some(d)),
+        None => Ok(None),
+        Some(_) => Err(format!(
+            "expected three finite numbers, not all zero (\"x, y, z\"), got {:?}",
+            s.trim()
         )),
     }
 }

@@ -972,16 +972,11 @@ fn an_insert_s_covered_pixels_keep_their_rendered_color_under_the_network() {
     );
 }
 
-/// An object's soft edge over a reconstruction's hole (the object covers
-/// part of a pixel, no splat the rest: coverage below the floor) keeps the
-/// share it covers as rendered, and the network fills the rest: the
-/// premultiplied render plus the uncovered share of the network's color.
-#[test]
-fn an_insert_s_edge_over_a_hole_keeps_its_covered_share() {
-    let mut sc = scene(0.0, None);
+/// The object's pixels beside its background made a soft edge over a
+/// hole: 0.7 of the object (mask and coverage 0.7, its color premultiplied
+/// by it), nothing behind it. Returns those pixels.
+fn soft_edge_over_a_hole(sc: &mut Scene, coverage: &mut [f32]) -> Vec<usize> {
     let n = W * H;
-    let mut coverage = corner_hole(&sc);
-    // The object's pixels beside its background: 0.7 object, 0.3 nothing.
     let edge: Vec<usize> = (W + 1..n - W - 1)
         .filter(|&i| {
             sc.mask[i] >= 1.0
@@ -998,6 +993,33 @@ fn an_insert_s_edge_over_a_hole_keeps_its_covered_share() {
             sc.rgb[3 * i + c] *= 0.7;
         }
     }
+    edge
+}
+
+/// `scene(0.0, None)` with each of the object's pixels up to 15 % brighter
+/// or darker: its next frame, flickering.
+fn flickering_object() -> Scene {
+    let mut next = scene(0.0, None);
+    for i in (0..W * H).filter(|&i| next.mask[i] >= 1.0) {
+        let k = 1.0 + 0.3 * (hash(i as u64 + 77) - 0.5);
+        for c in 0..3 {
+            next.rgb[3 * i + c] *= k;
+        }
+    }
+    next
+}
+
+/// An object's soft edge over a reconstruction's hole (the object covers
+/// part of a pixel, no splat the rest: coverage below the floor) keeps the
+/// share it covers as rendered, and the network fills the rest: the
+/// premultiplied render plus the uncovered share of the network's color.
+#[test]
+fn an_insert_s_edge_over_a_hole_keeps_its_covered_share() {
+    let mut sc = scene(0.0, None);
+    let n = W * H;
+    let mut coverage = corner_hole(&sc);
+    // The object's pixels beside its background: 0.7 object, 0.3 nothing.
+    let edge = soft_edge_over_a_hole(&mut sc, &mut coverage);
     let run = |keep: bool| {
         let mut s = box3_session("keep_covered", keep);
         let mut input = input_of(&sc, 0, true);
@@ -1026,30 +1048,10 @@ fn the_classical_backend_keeps_an_unchanged_insert_in_a_frame_with_holes() {
     let sc = scene(0.0, None);
     let n = W * H;
     let coverage = corner_hole(&sc);
-    let mut next = scene(0.0, None);
-    for i in (0..n).filter(|&i| sc.mask[i] >= 1.0) {
-        let k = 1.0 + 0.3 * (hash(i as u64 + 77) - 0.5);
-        for c in 0..3 {
-            next.rgb[3 * i + c] *= k;
-        }
-    }
-    // A soft edge over a hole: 0.7 of the object, nothing behind it.
+    // The next frame: the object flickering, its soft edge over a hole.
+    let mut next = flickering_object();
     let mut cov_next = coverage.clone();
-    let edge: Vec<usize> = (W + 1..n - W - 1)
-        .filter(|&i| {
-            sc.mask[i] >= 1.0
-                && [i - 1, i + 1, i - W, i + W]
-                    .iter()
-                    .any(|&j| sc.mask[j] == 0.0)
-        })
-        .collect();
-    for &i in &edge {
-        next.mask[i] = 0.7;
-        cov_next[i] = 0.7;
-        for c in 0..3 {
-            next.rgb[3 * i + c] *= 0.7;
-        }
-    }
+    let edge = soft_edge_over_a_hole(&mut next, &mut cov_next);
     let no_shadows = ("contact_shadows", ParamValue::Bool(false));
     let mut s = session(std::slice::from_ref(&no_shadows));
     let mut out = None;
@@ -1091,15 +1093,8 @@ fn a_kept_insert_is_not_stabilized_unless_recolored() {
     let sc = scene(0.0, None);
     let n = W * H;
     let coverage = corner_hole(&sc);
-    // The next frame: the same view, each of the object's pixels up to 15 %
-    // brighter or darker.
-    let mut next = scene(0.0, None);
-    for i in (0..n).filter(|&i| sc.mask[i] >= 1.0) {
-        let k = 1.0 + 0.3 * (hash(i as u64 + 77) - 0.5);
-        for c in 0..3 {
-            next.rgb[3 * i + c] *= k;
-        }
-    }
+    // The next frame: the same view, the object flickering.
+    let next = flickering_object();
     for stabilize in [true, false] {
         let mut s = box3_session("stabilize", stabilize);
         for (t, frame) in [&sc, &next].into_iter().enumerate() {
