@@ -395,11 +395,14 @@ fn run_ops_on(
     let history = input.history;
     let (w, h) = (img.width, img.height);
 
-    // An insert's pixels covered less than the floor (its soft edge over a
-    // hole), as rendered, before the fill drops their color: a frame with
-    // holes keeps them (`KeptInsert`).
+    // A frame with holes is stabilized whole, and its fill drops what is
+    // covered less than the floor: an insert there gets its render back
+    // (`KeptInsert`), its soft edge over a hole the share it covers.
+    let keeps_inserts = frame.has_holes() && !params.stabilize_all;
+    // That edge as rendered, before the fill (`img` is the frame's color
+    // here, not another backend's output).
     let edge = match (&frame.insert_mask, frame.scan, frame.coverage.as_deref()) {
-        (Some(mask), Some(scan), Some(cov)) if frame.has_holes() && !params.stabilize_all => scan
+        (Some(mask), Some(scan), Some(cov)) if keeps_inserts && alpha_is_coverage => scan
             .insert
             .map(|rect| InsertEdge::capture(img, mask, cov, rect, params.coverage_floor)),
         _ => None,
@@ -544,12 +547,9 @@ fn run_ops_on(
     // its render, as in a frame without holes: it is the host's object,
     // which a resampled history only softens.
     let kept = match (&frame.insert_mask, frame.scan) {
-        (Some(mask), Some(scan))
-            if area.is_none() && !params.stabilize_all && changed.is_none() =>
-        {
-            scan.insert
-                .map(|rect| KeptInsert::save(img, mask, rect, edge.as_ref()))
-        }
+        (Some(mask), Some(scan)) if keeps_inserts && changed.is_none() => scan
+            .insert
+            .map(|rect| KeptInsert::save(img, mask, rect, edge.as_ref())),
         _ => None,
     };
     stabilize_with_history(img, input, stages, area);
