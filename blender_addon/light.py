@@ -181,12 +181,6 @@ def _rgb(c, scale: float = 1.0) -> RGB:
     return (r, g, b)
 
 
-def sun_irradiance(sun: bpy.types.Object) -> float:
-    """The Sun's irradiance on a surface facing it (its strength times its
-    color's luminance)."""
-    return _luma(sun_color(sun))
-
-
 def sun_color(sun: bpy.types.Object) -> RGB:
     """The Sun's irradiance on a surface facing it per channel (its strength
     times its color)."""
@@ -264,11 +258,6 @@ class EnvLight:
     sun: tuple[float, float, float] | None
     #: The sun's irradiance on a surface facing it (RGB; 0 without).
     sun_rgb: RGB
-
-    @property
-    def ambient_up(self) -> float:
-        """``ambient_up_rgb``'s luminance."""
-        return _luma(self.ambient_up_rgb)
 
     @property
     def sun_irradiance(self) -> float:
@@ -457,15 +446,9 @@ def env_sun(world: bpy.types.World | None) -> tuple[tuple[float, float, float], 
     return got.sun, found[1] * got.sun_irradiance, _rgb(got.sun_rgb, found[1])
 
 
-def world_ambient(world: bpy.types.World | None) -> float | None:
-    """The World's irradiance on a surface facing up (see the module's
-    notes), or None where the World does not say it plainly."""
-    rgb = world_ambient_rgb(world)
-    return None if rgb is None else _luma(rgb)
-
-
 def world_ambient_rgb(world: bpy.types.World | None) -> RGB | None:
-    """``world_ambient`` per channel."""
+    """The World's irradiance on a surface facing up per channel (see the
+    module's notes), or None where the World does not say it plainly."""
     if world is None:
         return None
     if world.node_tree is None:

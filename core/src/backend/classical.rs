@@ -586,8 +586,8 @@ impl InsertEdge {
 /// An insert's pixels before stabilization, weighted as the neural
 /// backend keeps an object (twice the mask, at most 1).
 struct KeptInsert {
-    rect: Rect,
-    /// Per pixel of `rect` with a mask above 0: its index, weight and RGBA.
+    /// Per pixel of the insert's box with a mask above 0: its index,
+    /// weight and RGBA.
     pixels: Vec<(usize, f32, [f32; 4])>,
 }
 
@@ -617,20 +617,18 @@ impl KeptInsert {
             }
             if let Some((_, _, c)) = pixels.get_mut(i).filter(|e| e.0 == p) {
                 let a = c[3];
-                if a > 0.0 {
-                    for k in 0..3 {
-                        c[k] = rendered[k] + (a - cov).max(0.0) * (c[k] / a);
-                    }
+                for k in 0..3 {
+                    c[k] = inpaint::over_fill(rendered[k], cov, c[k], a);
                 }
             }
         }
-        KeptInsert { rect, pixels }
+        KeptInsert { pixels }
     }
 
     /// Blends the saved pixels back into `img` and into the history's copy
     /// of the result, where that holds it.
     fn restore(&self, img: &mut Image, kept: Option<&KeptColor>) {
-        if self.rect.is_empty() {
+        if self.pixels.is_empty() {
             return;
         }
         let n = img.width * img.height;

@@ -22,6 +22,19 @@ pub use far::{push_pull_far, OwnCoverage, FAR_TOLERANCE};
 /// Coverage at or above this counts as complete (snaps to exactly 1).
 pub const FULL: f32 = 1.0 - 1e-5;
 
+/// One channel of a pixel covered `coverage` of the way by what was
+/// rendered (`rendered`, premultiplied by it), the rest by a fill (`fill`,
+/// premultiplied by the result's `alpha`): the render over the fill, the
+/// result premultiplied by `alpha`. An inserted object's soft edge over a
+/// reconstruction's hole keeps the share it covers this way.
+pub fn over_fill(rendered: f32, coverage: f32, fill: f32, alpha: f32) -> f32 {
+    if alpha > 0.0 {
+        rendered + (alpha - coverage).max(0.0) * (fill / alpha)
+    } else {
+        fill
+    }
+}
+
 /// Where the holes of an image are.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Holes {

@@ -205,11 +205,6 @@ def light_at(
     return found
 
 
-def _power(light, time: Usd.TimeCode) -> float:
-    """``intensity * 2^exposure`` times the color's luminance."""
-    return _luma(_power_rgb(light, time))
-
-
 def _power_rgb(light, time: Usd.TimeCode) -> tuple[float, float, float]:
     """``intensity * 2^exposure`` times the color."""
     color = light.GetColorAttr().Get(time) if light.GetColorAttr() else None
@@ -307,11 +302,6 @@ class DomeLighting:
     sun: tuple[float, float, float] | None
     #: The sun's irradiance on a surface facing it (RGB; 0 without).
     sun_rgb: tuple[float, float, float]
-
-    @property
-    def ambient_up(self) -> float:
-        """``ambient_up_rgb``'s luminance."""
-        return _luma(self.ambient_up_rgb)
 
     @property
     def sun_irradiance(self) -> float:

@@ -1282,10 +1282,8 @@ fn keep_inserts(img: &mut Image, input: &BackendInput<'_>) {
                         let a = alpha[s.start + x];
                         let rendered = if cov >= floor {
                             src[x] * (a / cov)
-                        } else if a > 0.0 {
-                            src[x] + (a - cov).max(0.0) * (row[x] / a)
                         } else {
-                            continue;
+                            crate::ops::inpaint::over_fill(src[x], cov, row[x], a)
                         };
                         row[x] += (2.0 * m).min(1.0) * (rendered - row[x]);
                     }
