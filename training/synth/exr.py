@@ -11,7 +11,6 @@ import json
 from pathlib import Path
 
 import numpy as np
-import OpenEXR
 
 
 class ExrError(RuntimeError):
@@ -19,6 +18,10 @@ class ExrError(RuntimeError):
 
 
 def _channels(path: Path) -> tuple[dict[str, np.ndarray], dict]:
+    # Imported here: the modules that import this one (the renderers, the
+    # benchmark's scene builders) are also used where only bpy is installed.
+    import OpenEXR
+
     chans: dict[str, np.ndarray] = {}
     header: dict = {}
     with OpenEXR.File(str(path), separate_channels=True) as f:
