@@ -53,6 +53,9 @@ occluded (the warped previous surface's depth within 10 % of the current one),
 then over frames; ``truth`` is the clean render's own warping error (the
 floor: what real motion and lighting changes leave). Seconds per frame: the
 processing alone (harmonize's ``process_ms``; the peers' call), not file I/O.
+On hole sequences also the holes' PSNR by when their surface was last covered
+(``hole_ages``: a frame ago, 2-3, 4 or more, never), pooled over the
+sequence: where the history helps and where only a spatial fill can.
 
 Writes ``metrics.json`` (every number, per sequence and method, plus per
 frame), ``report.md`` (tables), ``per_frame_<set>.png`` and ``strips/<seq>.png``.
@@ -119,6 +122,37 @@ def warp_error(frames_srgb: list[np.ndarray], s: dict) -> list[float | None]:
     return out
 
 
+# A hole pixel's age: how many frames ago its surface was last covered in the
+# input (1: the previous frame), followed back along the true motion, the
+# chain broken where the surface was hidden (``occlusion_mask``); never
+# covered since the sequence began: ``AGE_NEVER``. Where the surface was seen
+# a frame ago the history has it; the longer ago, the more the history is its
+# own earlier fills; never seen, only a spatial fill (or an older fill) has
+# anything to give.
+AGE_NEVER = 1 << 20
+AGE_BUCKETS = (("1", 1, 1), ("2-3", 2, 3), ("4+", 4, AGE_NEVER - 1), ("never", AGE_NEVER, AGE_NEVER))
+
+
+def hole_ages(s: dict) -> np.ndarray:
+    """Per frame and pixel: 0 where the input covers it (coverage >= 0.5),
+    else the frames since its surface was last covered, ``AGE_NEVER`` if
+    never (nearest-pixel chain along the true motion)."""
+    cov = s["input"][..., 3] >= 0.5
+    T, H, W = cov.shape
+    yy, xx = np.mgrid[0:H, 0:W]
+    ages = np.zeros((T, H, W), np.int64)
+    ages[0] = np.where(cov[0], 0, AGE_NEVER)
+    for t in range(1, T):
+        ok, _ = occlusion_mask(s["gt_depth"], s["gt_motion"], t)
+        mv = s["gt_motion"][t]
+        px = np.clip(np.round(xx + mv[..., 0]).astype(np.int64), 0, W - 1)
+        py = np.clip(np.round(yy + mv[..., 1]).astype(np.int64), 0, H - 1)
+        prev = ages[t - 1][py, px]
+        carried = np.where(ok & (prev < AGE_NEVER), prev + 1, AGE_NEVER)
+        ages[t] = np.where(cov[t], 0, carried)
+    return ages
+
+
 def regions(s: dict, t: int) -> dict[str, np.ndarray]:
     return {
         "hole": s["input"][t, ..., 3] < 0.5,
@@ -131,6 +165,7 @@ def frame_metrics(outs: list[np.ndarray], s: dict) -> list[dict]:
     tgt = [srgb(x) for x in s["target"]]
     enc = [srgb(x) for x in outs]
     warp = warp_error(enc, s)
+    ages = hole_ages(s) if s.get("region") == "hole" else None
     rows = []
     for t in range(len(outs)):
         sm = ssim_map(enc[t], tgt[t]).mean(-1)
@@ -140,6 +175,18 @@ def frame_metrics(outs: list[np.ndarray], s: dict) -> list[dict]:
             mask = regions(s, t)[reg]
             m["psnr_region"] = psnr(enc[t], tgt[t], mask)
             m["ssim_region"] = float(sm[mask].mean()) if mask.sum() >= 16 else None
+        if ages is not None:
+            # Squared error summed over each age's hole pixels and their count,
+            # pooled over the sequence by ``summarize`` (a frame's share of one
+            # age is often a few pixels).
+            se = ((enc[t] - tgt[t]) ** 2).mean(-1)
+            m["hole_age_se"] = {
+                name: [
+                    float(se[(ages[t] >= lo) & (ages[t] <= hi)].sum()),
+                    int(((ages[t] >= lo) & (ages[t] <= hi)).sum()),
+                ]
+                for name, lo, hi in AGE_BUCKETS
+            }
         rows.append(m)
     return rows
 
@@ -375,8 +422,24 @@ def summarize(results: dict, truth_warp: list) -> dict:
         rows = r["frames"]
         out[m] = {k: mean(x.get(k) for x in rows) for k in ("psnr", "ssim", "psnr_region", "ssim_region", "warp_err")}
         out[m]["seconds_per_frame"] = r["seconds_per_frame"]
+        if any("hole_age_se" in x for x in rows):
+            out[m]["psnr_age"], out[m]["age_share"] = age_psnr(rows)
     out["truth"] = {"warp_err": mean(truth_warp)}
     return out
+
+
+def age_psnr(rows: list[dict]) -> tuple[dict, dict]:
+    """PSNR per hole age pooled over the frames (the squared error of all
+    their pixels of that age), and each age's share of the hole pixels."""
+    se = {name: 0.0 for name, _, _ in AGE_BUCKETS}
+    n = {name: 0 for name, _, _ in AGE_BUCKETS}
+    for x in rows:
+        for name, (e, c) in x.get("hole_age_se", {}).items():
+            se[name] += e
+            n[name] += c
+    total = max(sum(n.values()), 1)
+    out = {k: (float(10 * np.log10(1.0 / max(se[k] / n[k], 1e-12))) if n[k] >= 16 else None) for k in se}
+    return out, {k: n[k] / total for k in n}
 
 
 INPAINTING_PEERS = ("telea", "navier_stokes")
@@ -495,7 +558,41 @@ def write_report(out: Path, summary: dict, info: dict, methods: tuple[str, ...])
                 f"{m['margin']:+.2f} |"
             )
         L.append("")
+    L += age_table(summary, methods)
     (out / "report.md").write_text("\n".join(L) + "\n")
+
+
+def age_table(summary: dict, methods: tuple[str, ...]) -> list[str]:
+    """The holes' PSNR by how long ago their surface was last seen
+    (``hole_ages``): history against spatial fill, where each wins."""
+    rows = [(st, seq, row) for st, seqs in summary.items() for seq, row in seqs.items()]
+    rows = [(st, seq, row) for st, seq, row in rows if any("psnr_age" in (row.get(m) or {}) for m in methods)]
+    if not rows:
+        return []
+    cols = [m for m in methods if any("psnr_age" in (row.get(m) or {}) for _, _, row in rows)]
+    L = [
+        "## Holes by when their surface was last seen",
+        "",
+        "PSNR (dB) over the hole pixels whose surface the input last covered 1, 2-3 or 4 or more frames",
+        "before (followed along the true motion, broken where it was hidden), or never, pooled over the",
+        "sequence; the share is of the sequence's hole pixels. Seen a frame ago the history has the",
+        "surface; never seen, only a spatial fill has anything to give.",
+        "",
+        "| set | sequence | last seen | share | " + " | ".join(cols) + " |",
+        "|---" * (len(cols) + 4) + "|",
+    ]
+    for st, seq, row in rows:
+        share = next(row[m]["age_share"] for m in cols if "age_share" in (row.get(m) or {}))
+        for name, _, _ in AGE_BUCKETS:
+            vals = [(row.get(m) or {}).get("psnr_age", {}).get(name) for m in cols]
+            got = [v for v in vals if v is not None]
+            best = max(got) if len({fmt(v) for v in got}) > 1 else None
+            cells = [
+                f"**{fmt(v)}**" if v is not None and best is not None and fmt(v) == fmt(best) else fmt(v) for v in vals
+            ]
+            L.append(f"| {st} | {seq} | {name} | {100 * share[name]:.1f} % | " + " | ".join(cells) + " |")
+    L.append("")
+    return L
 
 
 def write_figures(out: Path, per_frame: dict, shown: dict, methods: tuple[str, ...]) -> None:

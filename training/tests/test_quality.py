@@ -170,3 +170,48 @@ def test_the_report_counts_the_reconstructions_one_db_above_the_best_inpainting_
     assert "| in_domain | scene_9/s1_recon | 25.00 | telea 24.80 | +0.20 |" in report
     # Without a peer that ran there is nothing to compare with.
     assert quality.hole_margins({"ood": {"recon_a": {"neural": {"psnr_region": 22.0}}}}, regions) == []
+
+
+def test_hole_ages_follow_the_surface_and_restart_where_it_was_hidden():
+    # A 1x8 strip panned one pixel a frame: the surface at x was at x + 1 the
+    # frame before (motion = current -> previous, +1 px).
+    T, W = 4, 8
+    cov = np.ones((T, 1, W), np.float32)
+    cov[1, 0, 3] = 0  # a hole over a surface covered in frame 0 (at x = 4)
+    cov[2, 0, 2] = 0  # the same surface, still a hole: seen 2 frames ago
+    cov[3, 0, 1] = 0
+    cov[0, 0, 6] = 0  # a surface never covered: at x = 5 in frame 1 (covered there)
+    cov[2, 0, 6] = cov[3, 0, 5] = 0  # a surface hidden in frame 2: its hole in frame 3 is "never"
+    s = {
+        "input": np.concatenate([np.zeros((T, 1, W, 3), np.float32), cov[..., None]], -1),
+        "gt_motion": np.tile(np.array([1.0, 0.0], np.float32), (T, 1, W, 1)),
+        "gt_depth": np.ones((T, 1, W), np.float32),
+    }
+    s["gt_depth"][2, 0, 6] = 0.5  # something nearer there in frame 2: frame 3's x = 5 was hidden
+    ages = quality.hole_ages(s)
+    assert ages[1, 0, 3] == 1 and ages[2, 0, 2] == 2 and ages[3, 0, 1] == 3
+    assert ages[0, 0, 6] == quality.AGE_NEVER
+    assert ages[3, 0, 5] == quality.AGE_NEVER
+    assert (ages[cov >= 0.5] == 0).all()
+
+
+def test_the_report_gives_the_holes_psnr_by_when_their_surface_was_last_seen(tmp_path):
+    # Frame rows as frame_metrics writes them: squared error and count per age.
+    def rows(e_recent, e_never):
+        return [
+            {"hole_age_se": {"1": [e_recent * 100, 100], "2-3": [0.0, 0], "4+": [0.0, 0], "never": [e_never * 50, 50]}}
+            for _ in range(3)
+        ]
+
+    hist, share = quality.age_psnr(rows(1e-3, 1e-2))
+    assert round(hist["1"], 2) == 30.0 and round(hist["never"], 2) == 20.0
+    assert hist["2-3"] is None and hist["4+"] is None
+    assert abs(share["1"] - 2 / 3) < 1e-9 and share["2-3"] == 0
+    summary = {"ood": {"recon_a": {}}}
+    for m, e in (("neural", 1e-3), ("navier_stokes", 1e-2)):
+        p, sh = quality.age_psnr(rows(e, 1e-2))
+        summary["ood"]["recon_a"][m] = {"psnr": 20.0, "psnr_age": p, "age_share": sh}
+    lines = quality.age_table(summary, ("navier_stokes", "neural"))
+    assert "| ood | recon_a | 1 | 66.7 % | 20.00 | **30.00** |" in lines
+    assert "| ood | recon_a | never | 33.3 % | 20.00 | 20.00 |" in lines
+    assert quality.age_table({"ood": {"insert_b": {"neural": {"psnr": 30.0}}}}, ("neural",)) == []
