@@ -177,16 +177,13 @@ def frame_metrics(outs: list[np.ndarray], s: dict) -> list[dict]:
             m["ssim_region"] = float(sm[mask].mean()) if mask.sum() >= 16 else None
         if ages is not None:
             # Squared error summed over each age's hole pixels and their count,
-            # pooled over the sequence by ``summarize`` (a frame's share of one
+            # pooled over the sequence by ``age_psnr`` (a frame's share of one
             # age is often a few pixels).
             se = ((enc[t] - tgt[t]) ** 2).mean(-1)
-            m["hole_age_se"] = {
-                name: [
-                    float(se[(ages[t] >= lo) & (ages[t] <= hi)].sum()),
-                    int(((ages[t] >= lo) & (ages[t] <= hi)).sum()),
-                ]
-                for name, lo, hi in AGE_BUCKETS
-            }
+            m["hole_age_se"] = {}
+            for name, lo, hi in AGE_BUCKETS:
+                sel = (ages[t] >= lo) & (ages[t] <= hi)
+                m["hole_age_se"][name] = [float(se[sel].sum()), int(sel.sum())]
         rows.append(m)
     return rows
 
