@@ -972,6 +972,14 @@ fn an_insert_s_covered_pixels_keep_their_rendered_color_under_the_network() {
     );
 }
 
+/// `got` within 1e-5 of `want` (relative above 1); `what` names the sample.
+fn assert_near(got: f32, want: f32, what: impl std::fmt::Display) {
+    assert!(
+        (got - want).abs() <= 1e-5 * want.max(1.0),
+        "{what}: {got} against {want}"
+    );
+}
+
 /// The object's pixels beside its background made a soft edge over a
 /// hole: 0.7 of the object (mask and coverage 0.7, its color premultiplied
 /// by it), nothing behind it. Returns those pixels.
@@ -1030,11 +1038,7 @@ fn an_insert_s_edge_over_a_hole_keeps_its_covered_share() {
     for &i in &edge {
         for c in 0..3 {
             let want = sc.rgb[3 * i + c] + 0.3 * network.data[c * n + i];
-            let got = kept.data[c * n + i];
-            assert!(
-                (got - want).abs() <= 1e-5 * want.max(1.0),
-                "pixel {i}: {got} against {want}"
-            );
+            assert_near(kept.data[c * n + i], want, format!("pixel {i}"));
         }
     }
 }
@@ -1066,10 +1070,10 @@ fn the_classical_backend_keeps_an_unchanged_insert_in_a_frame_with_holes() {
     let out = out.unwrap();
     for i in (0..n).filter(|&i| next.mask[i] >= 1.0) {
         for c in 0..3 {
-            let (got, want) = (out.data[c * n + i], next.rgb[3 * i + c]);
-            assert!(
-                (got - want).abs() <= 1e-5 * want.max(1.0),
-                "pixel {i}: {got} against {want}"
+            assert_near(
+                out.data[c * n + i],
+                next.rgb[3 * i + c],
+                format!("pixel {i}"),
             );
         }
     }
@@ -1103,11 +1107,10 @@ fn a_kept_insert_is_not_stabilized_unless_recolored() {
             let out = s.process(&input, None).unwrap().0;
             for i in (0..n).filter(|&i| sc.mask[i] >= 1.0) {
                 for c in 0..3 {
-                    let want = frame.rgb[3 * i + c];
-                    let got = out.data[c * n + i];
-                    assert!(
-                        (got - want).abs() <= 1e-5 * want.max(1.0),
-                        "frame {t}, pixel {i}, stabilize {stabilize}: {got} against {want}"
+                    assert_near(
+                        out.data[c * n + i],
+                        frame.rgb[3 * i + c],
+                        format!("frame {t}, pixel {i}, stabilize {stabilize}"),
                     );
                 }
             }
