@@ -161,11 +161,15 @@ def regions(s: dict, t: int) -> dict[str, np.ndarray]:
     }
 
 
-def frame_metrics(outs: list[np.ndarray], s: dict) -> list[dict]:
+def frame_metrics(outs: list[np.ndarray], s: dict, ages: np.ndarray | None = None) -> list[dict]:
+    """Per frame: PSNR, SSIM, warping error, the region's; on a hole
+    sequence the squared error per hole age (``ages``: ``hole_ages(s)``,
+    computed here when not given; one sequence's methods share it)."""
     tgt = [srgb(x) for x in s["target"]]
     enc = [srgb(x) for x in outs]
     warp = warp_error(enc, s)
-    ages = hole_ages(s) if s.get("region") == "hole" else None
+    if ages is None and s.get("region") == "hole":
+        ages = hole_ages(s)
     rows = []
     for t in range(len(outs)):
         sm = ssim_map(enc[t], tgt[t]).mean(-1)
@@ -395,13 +399,14 @@ def evaluate(s: dict, exe: Path, work: Path, threads: int, methods: tuple[str, .
     if any(m in OURS for m in methods):
         write_inputs(s, in_dir)
     cache: dict = {}
+    ages = hole_ages(s) if s.get("region") == "hole" else None
     for m in methods:
         if m in OURS:
             host = [x for k, v in s.get("host_params", {}).items() for x in ("--set", f"{k}={v}")]
             outs, spf = run_ours(exe, in_dir, work / m, OURS[m] + host, T, threads)
         else:
             outs, spf = run_peer(m, s, cache)
-        rows = frame_metrics(outs, s)
+        rows = frame_metrics(outs, s, ages)
         results[m] = {"frames": rows, "seconds_per_frame": spf}
         shown[m] = outs[T // 2]
     truth_warp = warp_error([srgb(x) for x in s["target"]], s)
