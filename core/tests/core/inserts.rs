@@ -927,6 +927,15 @@ fn box3_session(name: &str, value: bool) -> Session {
     Session::new(crate::neural::device_file("box3"), params).unwrap()
 }
 
+/// Frame 0 of `sc` with `coverage`, through the box-blur model with
+/// `keep_covered` on or off.
+fn keep_covered_run(sc: &Scene, coverage: &[f32], keep: bool) -> Image {
+    let mut s = box3_session("keep_covered", keep);
+    let mut input = input_of(sc, 0, true);
+    input.coverage = Some(ImageView::from_f32("coverage", coverage, W, H, 1).unwrap());
+    s.process(&input, None).unwrap().0
+}
+
 /// An object composited into a reconstruction is the host's render: the
 /// network (a 3x3 box filter here) does not repaint its covered pixels,
 /// which keep their rendered color while the rest of the frame is the
@@ -937,13 +946,10 @@ fn an_insert_s_covered_pixels_keep_their_rendered_color_under_the_network() {
     let sc = scene(0.0, None);
     let n = W * H;
     let coverage = corner_hole(&sc);
-    let run = |keep: bool| {
-        let mut s = box3_session("keep_covered", keep);
-        let mut input = input_of(&sc, 0, true);
-        input.coverage = Some(ImageView::from_f32("coverage", &coverage, W, H, 1).unwrap());
-        s.process(&input, None).unwrap().0
-    };
-    let (kept, repainted) = (run(true), run(false));
+    let (kept, repainted) = (
+        keep_covered_run(&sc, &coverage, true),
+        keep_covered_run(&sc, &coverage, false),
+    );
     let inside = |i: usize| sc.mask[i] >= 1.0;
     let (mut changed_inside, mut changed_outside) = (0, 0);
     for i in 0..n {
@@ -1028,13 +1034,10 @@ fn an_insert_s_edge_over_a_hole_keeps_its_covered_share() {
     let mut coverage = corner_hole(&sc);
     // The object's pixels beside its background: 0.7 object, 0.3 nothing.
     let edge = soft_edge_over_a_hole(&mut sc, &mut coverage);
-    let run = |keep: bool| {
-        let mut s = box3_session("keep_covered", keep);
-        let mut input = input_of(&sc, 0, true);
-        input.coverage = Some(ImageView::from_f32("coverage", &coverage, W, H, 1).unwrap());
-        s.process(&input, None).unwrap().0
-    };
-    let (kept, network) = (run(true), run(false));
+    let (kept, network) = (
+        keep_covered_run(&sc, &coverage, true),
+        keep_covered_run(&sc, &coverage, false),
+    );
     for &i in &edge {
         for c in 0..3 {
             let want = sc.rgb[3 * i + c] + 0.3 * network.data[c * n + i];
