@@ -986,6 +986,21 @@ fn assert_near(got: f32, want: f32, what: impl std::fmt::Display) {
     );
 }
 
+/// Every pixel wholly in the object (`mask` 1) is `rgb` (interleaved) in
+/// `out`; `what` prefixes the failing pixel's name.
+fn assert_object_as_rendered(out: &Image, mask: &[f32], rgb: &[f32], what: &str) {
+    let n = W * H;
+    for i in (0..n).filter(|&i| mask[i] >= 1.0) {
+        for c in 0..3 {
+            assert_near(
+                out.data[c * n + i],
+                rgb[3 * i + c],
+                format!("{what}pixel {i}"),
+            );
+        }
+    }
+}
+
 /// The object's pixels beside its background made a soft edge over a
 /// hole: 0.7 of the object (mask and coverage 0.7, its color premultiplied
 /// by it), nothing behind it. Returns those pixels.
@@ -1071,15 +1086,7 @@ fn the_classical_backend_keeps_an_unchanged_insert_in_a_frame_with_holes() {
         out = Some(s.process(&input, None).unwrap().0);
     }
     let out = out.unwrap();
-    for i in (0..n).filter(|&i| next.mask[i] >= 1.0) {
-        for c in 0..3 {
-            assert_near(
-                out.data[c * n + i],
-                next.rgb[3 * i + c],
-                format!("pixel {i}"),
-            );
-        }
-    }
+    assert_object_as_rendered(&out, &next.mask, &next.rgb, "");
     // The edge: at least the share it covers, less than a whole pixel of it.
     for &i in &edge {
         let (got, part) = (out.data[n + i], next.rgb[3 * i + 1]);
@@ -1098,7 +1105,6 @@ fn the_classical_backend_keeps_an_unchanged_insert_in_a_frame_with_holes() {
 #[test]
 fn a_kept_insert_is_not_stabilized_unless_recolored() {
     let sc = scene(0.0, None);
-    let n = W * H;
     let coverage = corner_hole(&sc);
     // The next frame: the same view, the object flickering.
     let next = flickering_object();
@@ -1108,15 +1114,8 @@ fn a_kept_insert_is_not_stabilized_unless_recolored() {
             let mut input = input_of(frame, t as i64, true);
             input.coverage = Some(ImageView::from_f32("coverage", &coverage, W, H, 1).unwrap());
             let out = s.process(&input, None).unwrap().0;
-            for i in (0..n).filter(|&i| sc.mask[i] >= 1.0) {
-                for c in 0..3 {
-                    assert_near(
-                        out.data[c * n + i],
-                        frame.rgb[3 * i + c],
-                        format!("frame {t}, pixel {i}, stabilize {stabilize}"),
-                    );
-                }
-            }
+            let what = format!("frame {t}, stabilize {stabilize}, ");
+            assert_object_as_rendered(&out, &sc.mask, &frame.rgb, &what);
         }
     }
 }
