@@ -71,12 +71,24 @@ def history_read_of(cfg: ModelConfig) -> int | None:
 
 
 def manifest_for(
-    model: Enhancer, name: str, version: str, stabilize: bool = True, repair_margin: int | None = None
+    model: Enhancer,
+    name: str,
+    version: str,
+    stabilize: bool = True,
+    repair_margin: int | None = None,
+    edge_fill: float | None = None,
 ) -> dict:
     cfg = model.cfg
     history_read = history_read_of(cfg)
     if repair_margin is not None and not 1 <= repair_margin <= 64:
         raise ValueError(f"repair_margin {repair_margin} is out of range 1..=64")
+    if edge_fill and not (0 < edge_fill <= 1 and cfg.prior and cfg.prior_input):
+        raise ValueError(f"edge_fill {edge_fill} needs a prior computed by the runtime and a share in 0..=1")
+    prior = prior_spec(cfg) if cfg.prior and cfg.prior_input else None
+    if prior is not None and edge_fill:
+        # The runtime's edge-continuing fill in what the history left missing
+        # (not in the trainer's prior; the network does not correct holes).
+        prior["edge_fill"] = edge_fill
     # Tiled equals untiled output when overlap - overlap/2 >= the receptive radius;
     # the 256 px tile allows at most 63 px (tile_size >= 4 * overlap + 2).
     overlap = int(min(max(2 * effective_radius(model), 16), 62))
@@ -105,7 +117,7 @@ def manifest_for(
             "stabilize": stabilize,
         }
         | ({"history_read": history_read} if history_read is not None else {})
-        | ({"prior": prior_spec(cfg)} if cfg.prior and cfg.prior_input else {})
+        | ({"prior": prior} if prior is not None else {})
         | (
             # Covered pixels farther than this from a hole keep their rendered
             # color (the runtime; measured per model, see the model card).
@@ -194,10 +206,13 @@ def export(
     version: str = "0.1.0",
     stabilize: bool = True,
     repair_margin: int | None = None,
+    edge_fill: float | None = None,
 ) -> dict:
     import onnx
 
     model.eval()
+    # First: a bad manifest field writes nothing.
+    manifest = manifest_for(model, name, version, stabilize, repair_margin, edge_fill)
     net = graph_of(model).eval()
     cin = len(model.cfg.graph_channels())
     m = model.cfg.spatial_multiple
@@ -216,7 +231,6 @@ def export(
     onnx.checker.check_model(proto)
     onnx.save(proto, str(tmp))
     tmp.replace(onnx_path)
-    manifest = manifest_for(model, name, version, stabilize, repair_margin)
     json_path = out_stem.with_suffix(".json")
     json_path.write_text(json.dumps(manifest, indent=2) + "\n")
     return manifest
@@ -462,6 +476,13 @@ def main(argv: list[str] | None = None) -> int:
         "color (default: none; with --from-onnx, the source's)",
     )
     ap.add_argument(
+        "--edge-fill",
+        type=float,
+        default=None,
+        help="manifest `prior.edge_fill`: the share of the runtime's edge-continuing fill in what the history "
+        "left missing (0: none; default: none; with --from-onnx, the source's)",
+    )
+    ap.add_argument(
         "--prior-input",
         action=argparse.BooleanOptionalAction,
         default=None,
@@ -497,6 +518,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.repair_margin is None:
             source_manifest = json.loads(args.from_onnx.with_suffix(".json").read_text())
             args.repair_margin = source_manifest.get("repair_margin")
+        if args.edge_fill is None:
+            source_manifest = json.loads(args.from_onnx.with_suffix(".json").read_text())
+            args.edge_fill = source_manifest.get("prior", {}).get("edge_fill")
     else:
         ck = torch.load(args.ckpt, map_location="cpu", weights_only=False)
         model = Enhancer(ModelConfig.from_dict(ck["model_cfg"]))
@@ -512,7 +536,11 @@ def main(argv: list[str] | None = None) -> int:
             setattr(model.cfg, k, v)
         model.eval()
         step = ck["step"]
-    manifest = export(model, args.out, args.name, args.version, args.stabilize, args.repair_margin)
+    try:
+        manifest = export(model, args.out, args.name, args.version, args.stabilize, args.repair_margin, args.edge_fill)
+    except ValueError as e:
+        print(f"export: {e}", file=sys.stderr)
+        return 2
     onnx_path = args.out.with_suffix(".onnx")
     diff = verify(model, onnx_path)
     macs, params = count_macs(model, 576, 1024)

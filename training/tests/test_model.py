@@ -358,6 +358,23 @@ def test_a_lean_graph_reads_only_its_history_frames_and_comes_back_whole(tmp_pat
         export(Enhancer(ModelConfig(widths=(8, 8, 12, 16), prior_frames=2, correction_history=True)), tmp_path / "h")
 
 
+def test_the_edge_fill_is_a_manifest_field_of_a_runtime_prior(tmp_path):
+    """``--edge-fill``: the runtime's edge-continuing fill, set in the manifest's
+    prior; a model whose prior the runtime does not compute refuses it and
+    writes nothing."""
+    from training.export import export
+
+    torch.manual_seed(3)
+    model = Enhancer(ModelConfig(widths=(8, 8, 12, 16), prior_input=True))
+    manifest = export(model, tmp_path / "e", edge_fill=0.5)
+    assert manifest["prior"]["edge_fill"] == 0.5
+    assert json.loads((tmp_path / "e.json").read_text())["prior"]["edge_fill"] == 0.5
+    assert "edge_fill" not in export(model, tmp_path / "n")["prior"]
+    with pytest.raises(ValueError, match="edge_fill"):
+        export(Enhancer(ModelConfig(widths=(8, 8, 12, 16))), tmp_path / "g", edge_fill=0.5)
+    assert not (tmp_path / "g.onnx").exists() and not (tmp_path / "g.json").exists()
+
+
 @pytest.mark.parametrize("prior,depth_tol", [(True, 0.0), (False, 0.0), (True, 0.05)])
 def test_export_matches_pytorch_in_onnx_runtime(tmp_path, prior, depth_tol):
     pytest.importorskip("onnxruntime")

@@ -223,6 +223,18 @@ pub struct PriorSpec {
     /// Relative disparity within which two surfaces count as one (0: a
     /// plain push-pull, without depth).
     pub depth_tol: f32,
+    /// Share (0..=1) of the edge-continuing fill in what the history left
+    /// missing (`crate::ops::inpaint::edge`): the push-pull's fill there
+    /// becomes `(1 - edge_fill) * push_pull + edge_fill * edge`. A runtime
+    /// stage the trainer's prior does not have (the network does not
+    /// correct holes, which keep the prior: `hole_correction` 0); absent
+    /// or 0, the trainer's prior exactly.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub edge_fill: f32,
+}
+
+fn is_zero(x: &f32) -> bool {
+    *x == 0.0
 }
 
 /// A model manifest (see the module documentation for the JSON form).
@@ -388,6 +400,12 @@ impl Manifest {
             return bad(
                 "prior.depth_tol",
                 format!("{} is out of range 0..=1", p.depth_tol),
+            );
+        }
+        if !(p.edge_fill.is_finite() && (0.0..=1.0).contains(&p.edge_fill)) {
+            return bad(
+                "prior.edge_fill",
+                format!("{} is out of range 0..=1", p.edge_fill),
             );
         }
         if !(1..=16).contains(&p.levels) {
@@ -683,6 +701,7 @@ mod tests {
             frames: 1,
             levels: 8,
             depth_tol: 0.05,
+            edge_fill: 0.0,
         });
         m
     }
@@ -725,5 +744,14 @@ mod tests {
         m.history_read = Some(0);
         let e = err(&m);
         assert!(e.contains("prior.frames"), "{e}");
+        // The edge fill's share: a round trip, and its range.
+        let mut m = with_prior();
+        m.prior.as_mut().unwrap().edge_fill = 0.5;
+        assert!(m.to_json().contains("\"edge_fill\""));
+        assert_eq!(Manifest::from_json(&m.to_json(), "test").unwrap(), m);
+        assert!(!with_prior().to_json().contains("edge_fill"));
+        m.prior.as_mut().unwrap().edge_fill = 1.5;
+        let e = err(&m);
+        assert!(e.contains("prior.edge_fill") && e.contains("1.5"), "{e}");
     }
 }

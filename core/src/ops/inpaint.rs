@@ -14,6 +14,7 @@ use super::{bbox_below, par_bands_mut, rgba_planes_mut, Rect};
 use crate::frame::Image;
 use crate::temporal::ReprojectedFrame;
 
+pub(crate) mod edge;
 pub(crate) mod far;
 mod sparse;
 

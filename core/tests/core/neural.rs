@@ -1469,3 +1469,71 @@ fn the_runtime_prior_is_the_trainers() {
         }
     }
 }
+
+/// The manifest's `prior.edge_fill` (the runtime's edge-continuing fill in
+/// what the history left missing): through the probe (which returns the
+/// prior), a hole across a horizontal edge is filled with the edge going on
+/// through it, much nearer the frame's own colors than the push-pull's
+/// blend of both sides, and every covered pixel is the same with it as
+/// without.
+#[test]
+fn the_edge_fill_carries_an_edge_through_a_hole() {
+    let (w, h) = (96, 64);
+    let dark = [0.05f32, 0.04, 0.03];
+    let light = [0.8f32, 0.7, 0.6];
+    let truth: Vec<f32> = (0..w * h)
+        .flat_map(|i| if i / w < 32 { dark } else { light })
+        .collect();
+    let hole = |i: usize| (30..66).contains(&(i % w)) && (20..44).contains(&(i / w));
+    let cov: Vec<f32> = (0..w * h)
+        .map(|i| if hole(i) { 0.0 } else { 1.0 })
+        .collect();
+    let premult: Vec<f32> = truth
+        .iter()
+        .enumerate()
+        .map(|(i, v)| v * cov[i / 3])
+        .collect();
+    let depth = vec![5.0f32; w * h];
+    let mut input = FrameInput::new(ImageView::from_f32("color", &premult, w, h, 3).unwrap());
+    input.coverage = Some(ImageView::from_f32("coverage", &cov, w, h, 1).unwrap());
+    input.depth = Some(ImageView::from_f32("depth", &depth, w, h, 1).unwrap());
+    let frame = PreparedFrame::from_input(&input, Default::default()).unwrap();
+    let params = Params {
+        context_frames: 0,
+        ..Params::default()
+    };
+    let run = |share: f32| {
+        let dev = device_edited("prior_probe", 0, |m| {
+            m["prior"]["edge_fill"] = share.into();
+        });
+        let model = dev.neural_model().unwrap().unwrap();
+        run_backend(&model, &dev, &frame, &[], &params)
+    };
+    let (plain, edge) = (run(0.0), run(1.0));
+    // The error in the hole, relative to the step across the edge.
+    let err = |img: &Image| {
+        let mut sum = 0.0f32;
+        let mut n = 0usize;
+        for c in 0..3 {
+            for (i, v) in img.plane(c).iter().enumerate() {
+                if hole(i) {
+                    sum += (v - truth[3 * i + c]).abs() / (light[c] - dark[c]);
+                    n += 1;
+                }
+            }
+        }
+        sum / n as f32
+    };
+    let (e_plain, e_edge) = (err(&plain), err(&edge));
+    assert!(
+        e_edge < 0.6 * e_plain && e_edge < 0.15,
+        "edge fill {e_edge}, push-pull {e_plain}"
+    );
+    for c in 0..3 {
+        for (i, (a, b)) in plain.plane(c).iter().zip(edge.plane(c)).enumerate() {
+            if !hole(i) {
+                assert_eq!(a, b, "covered pixel ({}, {}), channel {c}", i % w, i / w);
+            }
+        }
+    }
+}

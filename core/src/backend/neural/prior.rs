@@ -24,6 +24,22 @@
 //! clamped), and the last step into the full resolution takes of each
 //! pixel's four bilinear taps only those within `depth_tol` of the
 //! farthest, renormalized.
+//!
+//! With the manifest's `edge_fill` (a runtime stage, not the trainer's):
+//! the pixels the history left missing (weight under 0.95), and the
+//! frame's own pixels within [`NEAR_RADIUS`] of them that are nearer than
+//! the farthest own pixel within that radius by [`NEAR_TOL`] (the near
+//! side of a silhouette, which the fill would carry into the hole), are
+//! also filled by the edge-continuing fill (`crate::ops::inpaint::edge`)
+//! from the rest, and their missing part becomes that share of it and the
+//! rest the push-pull's. Measured with model 1.12.0 (the quality
+//! benchmark, 0.5 against none): warping error lower on all 36
+//! reconstruction sequences, the holes 0.06 dB higher on average in
+//! domain (+0.83 where a floor runs on past a reconstruction's border,
+//! -0.30 at worst), +0.10 and +0.20 dB on two of the three out-of-domain
+//! reconstructions (-0.01 on the third); about 6 ms at 1024x576 and 15 ms
+//! at 1920x1080 on 2 threads (its cost follows the holes left, not the
+//! frame).
 
 use rayon::prelude::*;
 
@@ -48,7 +64,25 @@ fn history_weight(share: f32) -> f32 {
 struct Scratch {
     levels: Vec<Level>,
     filled: [Filled; 2],
+    edge: EdgeScratch,
 }
+
+/// The edge-continuing fill's memory.
+#[derive(Default)]
+struct EdgeScratch {
+    fill: crate::ops::inpaint::edge::EdgeFill,
+    /// Full-frame planes holding, between fills, whatever the last wrote.
+    planes: [Vec<f32>; 3],
+    /// Per pixel: 0, or [`HOLE`] / [`SEEN`] while a fill runs.
+    tag: Vec<u8>,
+    holes: Vec<u32>,
+    seen: Vec<u32>,
+    /// Per hole: its prior with the edge fill.
+    vals: Vec<[f32; 3]>,
+}
+
+const HOLE: u8 = 1;
+const SEEN: u8 = 2;
 
 /// Where the prior's inputs and outputs lie among a tile's input planes.
 pub struct PriorChannels {
@@ -149,6 +183,16 @@ impl PriorChannels {
         pool.install(|| {
             chain(&src, &spec, [&mut *r, &mut *g, &mut *b], weight, own);
             let disp = self.disparity.map(plane);
+            let edged = spec.edge_fill > 0.0
+                && edge_prior(
+                    &mut kept.edge,
+                    [&*r, &*g, &*b],
+                    weight,
+                    own,
+                    disp,
+                    width,
+                    height,
+                );
             // Without a tolerance, a plain push-pull.
             let tol = (spec.depth_tol > 0.0).then_some(spec.depth_tol);
             let level0 = Fine {
@@ -159,7 +203,7 @@ impl PriorChannels {
                 own,
                 disp,
             };
-            let Scratch { levels, filled } = &mut kept;
+            let Scratch { levels, filled, .. } = &mut kept;
             // The pull: level 1 from the full resolution, then halvings.
             levels.resize_with(spec.levels, Level::default);
             halve(&level0, tol, &mut levels[0]);
@@ -188,8 +232,19 @@ impl PriorChannels {
                 push(&f, l, &mut next);
                 std::mem::swap(&mut f, &mut next);
             }
-            finish(&f, [r, g, b], weight, width, tol);
+            finish(&f, [&mut *r, &mut *g, &mut *b], weight, width, tol);
             *filled = [f, next];
+            if edged {
+                // The push-pull's share of the missing part gives way to the
+                // edge fill's: both priors hold the same known part.
+                let share = spec.edge_fill;
+                for (&i, v) in kept.edge.holes.iter().zip(&kept.edge.vals) {
+                    let i = i as usize;
+                    r[i] += share * (v[0] - r[i]);
+                    g[i] += share * (v[1] - g[i]);
+                    b[i] += share * (v[2] - b[i]);
+                }
+            }
         });
         *self.scratch.lock().unwrap_or_else(|p| p.into_inner()) = kept;
     }
@@ -467,4 +522,118 @@ fn finish(f: &Filled, out: [&mut [f32]; 3], weight: &[f32], w: usize, tol: Optio
                 b[x] += miss * (col(2) / den);
             }
         });
+}
+
+/// Near-side test: radius (pixels) and relative disparity.
+const NEAR_RADIUS: usize = 4;
+const NEAR_TOL: f32 = 0.15;
+
+/// The edge-continuing fill of the chain's result (`known` premultiplied
+/// by `weight`): the holes (weight under 0.95, and the frame's own pixels
+/// within [`NEAR_RADIUS`] of one that are nearer than the farthest own
+/// pixel within it by [`NEAR_TOL`]) in `edge.holes`, in pixel order, with
+/// their prior (the known part plus the missing part filled) in
+/// `edge.vals`; false (nothing found) where every pixel is known.
+fn edge_prior(
+    edge: &mut EdgeScratch,
+    known: [&[f32]; 3],
+    weight: &[f32],
+    own: &[f32],
+    disp: Option<&[f32]>,
+    w: usize,
+    h: usize,
+) -> bool {
+    let np = w * h;
+    edge.holes.clear();
+    edge.holes.par_extend(
+        weight
+            .par_iter()
+            .enumerate()
+            .filter(|&(_, &x)| x < 0.95)
+            .map(|(i, _)| i as u32),
+    );
+    if edge.holes.is_empty() {
+        return false;
+    }
+    if edge.tag.len() != np {
+        edge.tag = vec![0; np];
+        for p in &mut edge.planes {
+            *p = vec![0.0; np];
+        }
+    }
+    for &i in &edge.holes {
+        edge.tag[i as usize] = HOLE;
+    }
+    // The pixels within `r` (Chebyshev) of a hole that are not holes, each
+    // once, tagged SEEN.
+    let around = |tag: &mut [u8], seen: &mut Vec<u32>, holes: &[u32], r: usize| {
+        for &i in holes {
+            let (x, y) = (i as usize % w, i as usize / w);
+            for yy in y.saturating_sub(r)..(y + r + 1).min(h) {
+                for xx in x.saturating_sub(r)..(x + r + 1).min(w) {
+                    let j = yy * w + xx;
+                    if tag[j] == 0 {
+                        tag[j] = SEEN;
+                        seen.push(j as u32);
+                    }
+                }
+            }
+        }
+    };
+    edge.seen.clear();
+    if let Some(disp) = disp {
+        let r = NEAR_RADIUS;
+        around(&mut edge.tag, &mut edge.seen, &edge.holes, r);
+        let near: Vec<u32> = edge
+            .seen
+            .par_iter()
+            .copied()
+            .filter(|&i| {
+                let i = i as usize;
+                if own[i] < 0.5 {
+                    return false;
+                }
+                let (x, y) = (i % w, i / w);
+                let mut far = f32::INFINITY;
+                for yy in y.saturating_sub(r)..(y + r + 1).min(h) {
+                    for xx in x.saturating_sub(r)..(x + r + 1).min(w) {
+                        let j = yy * w + xx;
+                        if own[j] >= 0.5 {
+                            far = far.min(disp[j]);
+                        }
+                    }
+                }
+                disp[i] > far * (1.0 + NEAR_TOL)
+            })
+            .collect();
+        for &i in &near {
+            edge.tag[i as usize] = HOLE;
+        }
+        edge.holes.extend(near);
+        edge.holes.par_sort_unstable();
+    }
+    // The known values the fill reads.
+    let reach = crate::ops::inpaint::edge::EDGE_RADIUS as usize + 1;
+    around(&mut edge.tag, &mut edge.seen, &edge.holes, reach);
+    for &i in &edge.seen {
+        let i = i as usize;
+        if edge.tag[i] == SEEN {
+            for (plane, k) in edge.planes.iter_mut().zip(known) {
+                plane[i] = k[i] / weight[i];
+            }
+        }
+    }
+    let [p0, p1, p2] = &mut edge.planes;
+    edge.fill.fill([p0, p1, p2], &edge.holes, w, h);
+    for &i in edge.holes.iter().chain(&edge.seen) {
+        edge.tag[i as usize] = 0;
+    }
+    let planes = &edge.planes;
+    edge.vals.clear();
+    edge.vals.par_extend(edge.holes.par_iter().map(|&i| {
+        let i = i as usize;
+        let miss = 1.0 - weight[i];
+        std::array::from_fn(|c| known[c][i] + miss * planes[c][i])
+    }));
+    true
 }
