@@ -1474,8 +1474,8 @@ fn the_runtime_prior_is_the_trainers() {
 /// what the history left missing): through the probe (which returns the
 /// prior), a hole across a horizontal edge is filled with the edge going on
 /// through it, much nearer the frame's own colors than the push-pull's
-/// blend of both sides, and every covered pixel is the same with it as
-/// without.
+/// blend of both sides, every covered pixel is the same with it as
+/// without, and one thread gives the same bits as two.
 #[test]
 fn the_edge_fill_carries_an_edge_through_a_hole() {
     let (w, h) = (96, 64);
@@ -1502,14 +1502,27 @@ fn the_edge_fill_carries_an_edge_through_a_hole() {
         context_frames: 0,
         ..Params::default()
     };
-    let run = |share: f32| {
-        let dev = device_edited("prior_probe", 0, |m| {
-            m["prior"]["edge_fill"] = share.into();
-        });
+    let run = |share: f32, threads: usize| {
+        let mut m = fixture_manifest("prior_probe");
+        m["prior"]["edge_fill"] = share.into();
+        let dev = Device::new(DeviceOptions {
+            threads,
+            ..options(
+                ModelSource::Bytes {
+                    onnx: std::fs::read(fixture("prior_probe")).unwrap(),
+                    manifest: m.to_string(),
+                },
+                0,
+            )
+        })
+        .unwrap();
         let model = dev.neural_model().unwrap().unwrap();
         run_backend(&model, &dev, &frame, &[], &params)
     };
-    let (plain, edge) = (run(0.0), run(1.0));
+    let (plain, edge) = (run(0.0, 2), run(1.0, 2));
+    // The same bits on one thread (the planes are filled in parallel along
+    // one order).
+    assert_eq!(run(1.0, 1).data, edge.data, "one thread against two");
     // The error in the hole, relative to the step across the edge.
     let err = |img: &Image| {
         let mut sum = 0.0f32;
