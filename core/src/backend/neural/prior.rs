@@ -544,6 +544,11 @@ fn edge_prior(
     h: usize,
 ) -> bool {
     let np = w * h;
+    // The fill ranks pixels in 32 bits (a tile is far smaller: at most the
+    // manifest's tile size squared).
+    if np >= u32::MAX as usize {
+        return false;
+    }
     edge.holes.clear();
     edge.holes.par_extend(
         weight
