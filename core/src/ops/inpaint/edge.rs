@@ -304,6 +304,57 @@ mod tests {
     }
 
     #[test]
+    fn any_mask_fills_within_the_known_range() {
+        // Random sizes (from 1x1), masks and values: every hole connected to
+        // a known pixel is filled with a weighted mean, so within the known
+        // values' range; the fill is the same run twice.
+        let mut state = 0x2545_f491_4f6c_dd1du64;
+        let mut next = move || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state >> 40) as f32 / (1u64 << 24) as f32
+        };
+        let mut fill = EdgeFill::default();
+        for case in 0..200 {
+            let w = 1 + (next() * 23.0) as usize;
+            let h = 1 + (next() * 17.0) as usize;
+            let density = next();
+            let known: Vec<bool> = (0..w * h).map(|_| next() > density).collect();
+            let img: Vec<f32> = (0..w * h).map(|_| next() * 4.0 - 1.0).collect();
+            let holes: Vec<u32> = (0..w * h)
+                .filter(|&i| !known[i])
+                .map(|i| i as u32)
+                .collect();
+            let (lo, hi) = (0..w * h)
+                .filter(|&i| known[i])
+                .fold((f32::INFINITY, f32::NEG_INFINITY), |(l, u), i| {
+                    (l.min(img[i]), u.max(img[i]))
+                });
+            let mut out = [img.clone(), img.clone(), img.clone()];
+            let [a, b, c] = &mut out;
+            let n = fill.fill([a, b, c], &holes, w, h);
+            let mut again = [img.clone(), img.clone(), img.clone()];
+            let [a2, b2, c2] = &mut again;
+            assert_eq!(EdgeFill::default().fill([a2, b2, c2], &holes, w, h), n);
+            assert_eq!(out, again, "case {case}: {w}x{h}");
+            let any_known = known.iter().any(|&k| k);
+            assert_eq!(n, if any_known { holes.len() } else { 0 }, "case {case}");
+            for i in 0..w * h {
+                if known[i] || !any_known {
+                    assert_eq!(out[0][i], img[i]);
+                } else {
+                    let v = out[0][i];
+                    assert!(
+                        v >= lo - 1e-5 && v <= hi + 1e-5,
+                        "case {case}: {v} outside {lo}..{hi}"
+                    );
+                }
+            }
+        }
+    }
+
+    #[test]
     fn nothing_known_fills_nothing() {
         let mut a = vec![0.5; 16];
         let mut b = a.clone();
