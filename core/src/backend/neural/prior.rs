@@ -27,8 +27,8 @@
 //!
 //! With the manifest's `edge_fill` (a runtime stage, not the trainer's):
 //! the pixels the history left missing (weight under 0.95), and the
-//! frame's own pixels within [`NEAR_RADIUS`] of them that are nearer than
-//! the farthest own pixel within that radius by [`NEAR_TOL`] (the near
+//! frame's own pixels within `NEAR_RADIUS` (4 px) of them that are nearer
+//! than the farthest own pixel within that radius by `NEAR_TOL` (15 %; the near
 //! side of a silhouette, which the fill would carry into the hole), are
 //! also filled by the edge-continuing fill (`crate::ops::inpaint::edge`)
 //! from the rest, and their missing part becomes that share of it and the
