@@ -515,11 +515,12 @@ def main(argv: list[str] | None = None) -> int:
             print(f"export: {e}", file=sys.stderr)
             return 2
         step = None
+        # The runtime's settings that the graph does not hold: the source's,
+        # unless given.
+        source_manifest = json.loads(args.from_onnx.with_suffix(".json").read_text())
         if args.repair_margin is None:
-            source_manifest = json.loads(args.from_onnx.with_suffix(".json").read_text())
             args.repair_margin = source_manifest.get("repair_margin")
         if args.edge_fill is None:
-            source_manifest = json.loads(args.from_onnx.with_suffix(".json").read_text())
             args.edge_fill = source_manifest.get("prior", {}).get("edge_fill")
     else:
         ck = torch.load(args.ckpt, map_location="cpu", weights_only=False)

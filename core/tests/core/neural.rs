@@ -130,6 +130,14 @@ fn plane_of(img: &Image, c: usize) -> Vec<f32> {
     img.plane(c).to_vec()
 }
 
+/// Interleaved RGB premultiplied by a per-pixel coverage.
+fn premultiply(rgb: &[f32], cov: &[f32]) -> Vec<f32> {
+    rgb.iter()
+        .enumerate()
+        .map(|(i, v)| v * cov[i / 3])
+        .collect()
+}
+
 /// Planar channel `c` of interleaved data.
 fn deinterleave(data: &[f32], channels: usize, c: usize) -> Vec<f32> {
     data.iter().skip(c).step_by(channels).copied().collect()
@@ -244,11 +252,7 @@ fn identity_model_returns_its_input_through_tiles() {
     let cov: Vec<f32> = (0..w * h)
         .map(|i| [0.0, 0.25, 0.5, 1.0, 1.0][i % 5])
         .collect();
-    let premult: Vec<f32> = rgb
-        .iter()
-        .enumerate()
-        .map(|(i, v)| v * cov[i / 3])
-        .collect();
+    let premult = premultiply(&rgb, &cov);
     let device = device_edited("identity", 0, |m| m["premultiplied"] = false.into());
     let mut s = session(device, &[("fill_holes", ParamValue::Bool(false))]);
     let mut input = FrameInput::new(ImageView::from_f32("color", &premult, w, h, 3).unwrap());
@@ -1421,11 +1425,7 @@ fn the_runtime_prior_is_the_trainers() {
             }
         }
     }
-    let premult: Vec<f32> = rgb
-        .iter()
-        .enumerate()
-        .map(|(i, v)| v * cov[i / 3])
-        .collect();
+    let premult = premultiply(&rgb, &cov);
     let mut input = FrameInput::new(ImageView::from_f32("color", &premult, w, h, 3).unwrap());
     input.coverage = Some(ImageView::from_f32("coverage", &cov, w, h, 1).unwrap());
     input.depth = Some(ImageView::from_f32("depth", &depth, w, h, 1).unwrap());
@@ -1488,11 +1488,7 @@ fn the_edge_fill_carries_an_edge_through_a_hole() {
     let cov: Vec<f32> = (0..w * h)
         .map(|i| if hole(i) { 0.0 } else { 1.0 })
         .collect();
-    let premult: Vec<f32> = truth
-        .iter()
-        .enumerate()
-        .map(|(i, v)| v * cov[i / 3])
-        .collect();
+    let premult = premultiply(&truth, &cov);
     let depth = vec![5.0f32; w * h];
     let mut input = FrameInput::new(ImageView::from_f32("color", &premult, w, h, 3).unwrap());
     input.coverage = Some(ImageView::from_f32("coverage", &cov, w, h, 1).unwrap());
