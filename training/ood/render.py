@@ -15,9 +15,12 @@ cameras orbit).
 Per frame of ``courtyard`` (outdoor; two inserts ``insert_a`` and ``insert_b``):
 ``truth``, ``noinsert_ab`` (both inserts hidden), ``relit``
 (another sun and sky), ``albedo`` (Cycles' Denoising Albedo of the truth
-render: what a host gives as the albedo AOV), plus three static context views
-for the sparse-view reconstruction (``--add-albedo`` adds the albedo to a
-render made before it was kept). Per frame of ``hall`` (indoor): ``truth`` and ``noisy`` (4
+render: what a host gives as the albedo AOV), ``alone_a`` and
+``relit_alone_a`` (``insert_a`` rendered on its own, every other mesh a
+holdout on a transparent film, under each light: what a host composites),
+plus three static context views for the sparse-view reconstruction
+(``--add-albedo`` and ``--add-alone`` add those passes to a render made
+before they were kept). Per frame of ``hall`` (indoor): ``truth`` and ``noisy`` (4
 samples, a new seed per frame, stored raw and through Cycles' own denoiser,
 with the denoiser's albedo and normal passes), plus three context views.
 Per frame of ``ruins`` (outdoor, no inserts): ``truth``, plus four context
@@ -436,8 +439,7 @@ def render_scene(name: str, out_root: Path, cfg: dict) -> dict:
     sky = info["kind"] == "outdoor"
 
     def light(p: dict) -> None:
-        set_sky(p["sun_elev"], p["sun_azim"], p["sky"])
-        set_sun(info["sun"], p["sun_elev"], p["sun_azim"], p["sun_energy"], p["sun_color"])
+        set_lights(info, p)
 
     if sky:
         light(info["light"])
@@ -481,6 +483,7 @@ def render_scene(name: str, out_root: Path, cfg: dict) -> dict:
             light(info["relit"])
             fr["relit"] = render(tmp / "relit.exr")[0]["rgba"][..., :3]
             light(info["light"])
+            fr.update(render_alone(info, tmp, cfg["samples"]))
         if info.get("noisy"):
             vl = sc.view_layers[0]
             vl.cycles.denoising_store_passes = True
@@ -519,6 +522,8 @@ def render_scene(name: str, out_root: Path, cfg: dict) -> dict:
         a = np.stack(v).astype(np.float32)
         if k in ("truth", "noinsert_ab", "relit", "noisy", "noisy_denoised"):
             a = a * k_exp
+        elif k in ALONE_PASSES:
+            a[..., :3] *= k_exp
         arrays[k] = a
     arrays["ctx_rgb"] = np.stack(ctx_rgb) * k_exp
     arrays["ctx_depth"] = np.stack(ctx_depth)
@@ -599,6 +604,90 @@ def add_albedo(name: str, out_root: Path, cfg: dict) -> Path:
     return out
 
 
+#: The passes of the first insert rendered alone (RGBA, premultiplied).
+ALONE_PASSES = ("alone_a", "relit_alone_a")
+
+
+def set_lights(info: dict, p: dict) -> None:
+    """The sky and sun of light settings ``p`` (``info["light"]`` or ``info["relit"]``)."""
+    set_sky(p["sun_elev"], p["sun_azim"], p["sky"])
+    set_sun(info["sun"], p["sun_elev"], p["sun_azim"], p["sun_energy"], p["sun_color"])
+
+
+def render_alone(info: dict, tmp: Path, samples: int) -> dict[str, np.ndarray]:
+    """The first insert rendered on its own, under the scene's light and under
+    its ``relit`` light: every other mesh a holdout (still shadowing and
+    lighting it, invisible) on a transparent film, the truth's samples and
+    seed. RGBA at the render's exposure; the scene is left as it was."""
+    sc = bpy.context.scene
+    alone = info["inserts"][0]
+    others = [o for o in sc.objects if o.type == "MESH" and o is not alone]
+    for o in others:
+        o.is_holdout = True
+    sc.render.film_transparent = True
+    out = {}
+    try:
+        for key, p in zip(ALONE_PASSES, (info["light"], info["relit"]), strict=True):
+            set_lights(info, p)
+            quality(samples, True, info["seed"])
+            out[key] = render(tmp / f"{key}.exr")[0]["rgba"].astype(np.float32)
+    finally:
+        for o in others:
+            o.is_holdout = False
+        sc.render.film_transparent = False
+        set_lights(info, info["light"])
+    return out
+
+
+def add_alone(name: str, out_root: Path, cfg: dict) -> Path:
+    """Adds the first insert rendered alone to a scene rendered before it.
+
+    An object rendered on its own (every other object a holdout: still
+    shadowing and lighting it, invisible; transparent film) is what a host
+    composites over its frame: its premultiplied color, whose soft edge
+    holds none of the background. Two passes a frame, RGBA, at the scene's
+    exposure: ``alone_a`` under the scene's light, ``relit_alone_a`` under
+    its ``relit`` light (the same samples and seed as the truth). The
+    other arrays are copied as they are (bit for bit).
+    """
+    out = out_root / name / "scene.npz"
+    if not out.exists():
+        raise SystemExit(f"ood.render: {out} missing: render the scene first")
+    meta = json.loads((out_root / name / "meta.json").read_text())
+    fetch()
+    sc = reset(cfg["width"], cfg["height"], cfg["threads"])
+    info = BUILDERS[name](cfg["frames"])
+    if not info["inserts"]:
+        raise SystemExit(f"ood.render: {name} has no inserts")
+    set_lights(info, info["light"])
+    k_exp = float(meta["exposure_scale"])
+    tmp = out_root / f"{name}.alone.tmp"
+    tmp.mkdir(parents=True, exist_ok=True)
+    passes: dict[str, list] = {k: [] for k in ALONE_PASSES}
+    for t in range(cfg["frames"]):
+        sc.frame_set(t + 1)
+        cache = tmp / f"frame_{t:02d}.npz"
+        if cache.exists():  # resumable
+            with np.load(cache) as z:
+                for k in passes:
+                    passes[k].append(z[k])
+            continue
+        fr = render_alone(info, tmp, cfg["samples"])
+        for v in fr.values():
+            v[..., :3] *= k_exp
+        np.savez(cache, **fr)
+        for k, v in fr.items():
+            passes[k].append(v)
+        print(f"ood.render: {name} alone frame {t}", flush=True)
+    with np.load(out) as z:
+        raw = {k: z[k] for k in z.files}
+    raw.update(pack({k: np.stack(v) for k, v in passes.items()}))
+    np.savez_compressed(tmp / "scene.npz", **raw)
+    (tmp / "scene.npz").replace(out)
+    shutil.rmtree(tmp, ignore_errors=True)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", choices=SCENES, required=True)
@@ -613,8 +702,16 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="add the albedo pass to an existing render of an insert scene (its other passes unchanged)",
     )
+    ap.add_argument(
+        "--add-alone",
+        action="store_true",
+        help="add the first insert rendered alone (under the scene's and the relit light) to an existing render",
+    )
     args = ap.parse_args(argv)
     cfg = vars(args)
+    if args.add_alone:
+        print(f"ood.render: wrote {add_alone(args.scene, args.out, cfg)}")
+        return 0
     if args.add_albedo:
         print(f"ood.render: wrote {add_albedo(args.scene, args.out, cfg)}")
         return 0

@@ -25,6 +25,8 @@ Sequences (``SEQUENCES``; the parameters are fixed, so building is deterministic
 | ``insert_recon`` | courtyard | ``insert_relight``'s insert in ``recon_courtyard``'s reconstruction (its albedo only) |
 | ``insert_recon_control`` | courtyard | the same insert correctly lit (the truth's pixels): nothing to change on it |
 | ``insert_relight`` | courtyard | insert A lit by another sun and sky (low, warm, from the side); shadow present |
+| ``insert_tone_alone`` | courtyard | ``insert_tone``'s change on A rendered alone, composited over the frame |
+| ``insert_relight_alone`` | courtyard | A rendered alone under ``insert_relight``'s light, composited over it |
 | ``insert_noshadow`` | courtyard | inserts A and B correctly lit, composited over the plate: no contact shadows |
 | ``two_inserts`` | courtyard | A tone-shifted (cool, darker) and B relit, over the plate: no contact shadows |
 | ``insert_control`` | courtyard | the clean render with both inserts' mask: nothing should change |
@@ -61,6 +63,8 @@ SEQUENCES = (
     "insert_tone_rgb",
     "insert_recon",
     "insert_recon_control",
+    "insert_tone_alone",
+    "insert_relight_alone",
 )
 
 TONE_A = {"exposure": 0.9, "wb": [1.22, 0.98, 0.72], "gamma": 1.0, "saturation": 1.25}
@@ -270,6 +274,27 @@ def build(name: str, data: Path = DATA, cache: dict | None = None, frames: int =
                 f"{name}: the courtyard render has no albedo: add it with "
                 "`.venv-bpy/bin/python -m training.ood.render --scene courtyard --add-albedo --samples 32`"
             )
+    elif name in ("insert_tone_alone", "insert_relight_alone"):
+        # What a host composites: the object rendered on its own (its soft
+        # edge holds only its own share, premultiplied) over the frame
+        # without it. ``insert_tone`` and ``insert_relight`` blend two whole
+        # frames by the mask instead, so their soft edge also carries the
+        # other frame's background.
+        if "alone_a" not in sc:
+            raise SequenceError(
+                f"{name}: the courtyard render has no insert rendered alone: add it with "
+                "`.venv-bpy/bin/python -m training.ood.render --scene courtyard --add-alone`"
+            )
+        alone = sc["alone_a"][:T]
+        share, cov = alone[..., :3], alone[..., 3:4]
+        if name == "insert_tone_alone":
+            fg = _tone(share / np.maximum(cov, 1e-6), TONE_A) * cov
+            s["about"] = "insert rendered alone, tone / white-balance mismatch, over the frame (shadow present)"
+        else:
+            fg = sc["relit_alone_a"][:T][..., :3]
+            s["about"] = "insert rendered alone under another sun and sky, over the frame (shadow present)"
+        rgb = np.maximum(gt - share + fg, 0.0).astype(np.float32)
+        s.update(input=np.concatenate([rgb, ones], -1), mask_insert=a, region="insert")
     elif name == "insert_relight":
         s.update(input=np.concatenate([degrade.composite(gt, sc["relit"][:T], a), ones], -1), mask_insert=a)
         s.update(region="insert", about="insert lit by another sun and sky (shadow present)")
