@@ -7,8 +7,12 @@
 //! A pixel on an edge that runs into the hole passes its value along the
 //! edge; a flat neighbourhood gives an almost even mean. This is the
 //! marching fill with isophote weights that OpenCV ships as its
-//! Navier-Stokes inpainting, formulated here on float planes with signed
-//! gradients.
+//! Navier-Stokes inpainting, formulated here on float planes; its gradient
+//! is, as OpenCV's, per axis the magnitudes of the two one-sided
+//! differences summed (unsigned), which carries thin lines and textured
+//! bands that a signed central difference cancels (never-seen holes of
+//! the held-out reconstructions, the prior alone without history: up to
+//! +2.3 dB against the signed gradient; the model card, 2026-11-29).
 //!
 //! Push-pull averages whatever lies around a hole, at ever coarser levels;
 //! where a floor or a wall runs on past the border of a reconstruction,
@@ -216,16 +220,21 @@ fn value(
     for &(dx, dy, dist) in offsets {
         let (qx, qy) = (x + dx, y + dy);
         let Some(v) = val(qx, qy) else { continue };
-        // The signed gradient at the neighbour from its neighbours that
-        // had values (central, else one-sided, else none).
-        let diff = |a: Option<f32>, b: Option<f32>| match (a, b) {
-            (Some(a), Some(b)) => (b - a) / 2.0,
-            (Some(a), None) => v - a,
-            (None, Some(b)) => b - v,
+        // The gradient at the neighbour, per axis the sum of the
+        // magnitudes of its two one-sided differences to the neighbours
+        // that had values (twice the one where only one had). Unsigned: a
+        // thin line or a ridge, whose signed central difference cancels,
+        // has a gradient across it and passes along it; the slant's sign
+        // is lost (a "/" edge weighs as a "\" one); measured better than
+        // the signed gradient all the same (module documentation).
+        let grad = |a: Option<f32>, b: Option<f32>| match (a, b) {
+            (Some(a), Some(b)) => (b - v).abs() + (v - a).abs(),
+            (Some(a), None) => 2.0 * (v - a).abs(),
+            (None, Some(b)) => 2.0 * (b - v).abs(),
             (None, None) => 0.0,
         };
-        let gx = diff(val(qx - 1, qy), val(qx + 1, qy));
-        let gy = diff(val(qx, qy - 1), val(qx, qy + 1));
+        let gx = grad(val(qx - 1, qy), val(qx + 1, qy));
+        let gy = grad(val(qx, qy - 1), val(qx, qy + 1));
         // The isophote (-gy, gx) against the offset (dx, dy).
         let dot = (gx * dy as f32 - gy * dx as f32).abs();
         let dir = if dot <= FLAT {
@@ -300,6 +309,34 @@ mod tests {
             if !hole(i % w, i / w) {
                 assert_eq!(*v, img[i]);
             }
+        }
+    }
+
+    #[test]
+    fn a_thin_line_runs_on_through_the_hole() {
+        // A bright line one pixel wide on a dark ground (a seam, a skirting
+        // board, a crease far away), a hole across it: the line goes on
+        // through the hole. Its own pixels have no signed central gradient
+        // across it (both sides are dark), only the sum of the two one-sided
+        // differences' magnitudes sees it.
+        let (w, h) = (32, 17);
+        let img: Vec<f32> = (0..w * h)
+            .map(|i| if i / w == 8 { 1.0 } else { 0.1 })
+            .collect();
+        let hole = |x: usize, y: usize| (10..22).contains(&x) && (3..14).contains(&y);
+        let known: Vec<bool> = (0..w * h).map(|i| !hole(i % w, i / w)).collect();
+        let out = run(&img, &known, w, h);
+        let mean_row = |y: usize| (10..22).map(|x| out[y * w + x]).sum::<f32>() / 12.0;
+        let line = mean_row(8);
+        for y in (3..14).filter(|&y| y != 8) {
+            assert!(line > mean_row(y), "row 8 {line}, row {y} {}", mean_row(y));
+        }
+        for y in [3, 5, 11, 13] {
+            assert!(
+                line > mean_row(y) + 0.1,
+                "row 8 {line}, row {y} {}",
+                mean_row(y)
+            );
         }
     }
 
