@@ -438,11 +438,8 @@ def render_scene(name: str, out_root: Path, cfg: dict) -> dict:
     cam = info["camera"]
     sky = info["kind"] == "outdoor"
 
-    def light(p: dict) -> None:
-        set_lights(info, p)
-
     if sky:
-        light(info["light"])
+        set_lights(info, info["light"])
     passes: dict[str, list] = {}
     cams = []
 
@@ -480,9 +477,9 @@ def render_scene(name: str, out_root: Path, cfg: dict) -> dict:
             a.hide_render = b.hide_render = True
             fr["noinsert_ab"] = render(tmp / "noinsert_ab.exr")[0]["rgba"][..., :3]
             a.hide_render = b.hide_render = False
-            light(info["relit"])
+            set_lights(info, info["relit"])
             fr["relit"] = render(tmp / "relit.exr")[0]["rgba"][..., :3]
-            light(info["light"])
+            set_lights(info, info["light"])
             fr.update(render_alone(info, tmp, cfg["samples"]))
         if info.get("noisy"):
             vl = sc.view_layers[0]
@@ -568,6 +565,19 @@ def render_scene(name: str, out_root: Path, cfg: dict) -> dict:
     return meta
 
 
+def add_arrays(out: Path, tmp: Path, arrays: dict[str, np.ndarray]) -> Path:
+    """Writes ``arrays`` (packed) into the scene file ``out`` beside its
+    arrays, which are copied as they are (bit for bit), through ``tmp``
+    (removed after)."""
+    with np.load(out) as z:
+        raw = {k: z[k] for k in z.files}
+    raw.update(pack(arrays))
+    np.savez_compressed(tmp / "scene.npz", **raw)
+    (tmp / "scene.npz").replace(out)
+    shutil.rmtree(tmp, ignore_errors=True)
+    return out
+
+
 def add_albedo(name: str, out_root: Path, cfg: dict) -> Path:
     """Adds the albedo pass to a scene rendered before it kept one.
 
@@ -595,13 +605,7 @@ def add_albedo(name: str, out_root: Path, cfg: dict) -> Path:
         _, chans = render(tmp / "albedo.exr")
         albedo.append(pass_rgb(chans, ["Denoising Albedo"]))
         print(f"ood.render: {name} albedo frame {t}", flush=True)
-    with np.load(out) as z:
-        raw = {k: z[k] for k in z.files}
-    raw.update(pack({"albedo": np.stack(albedo).astype(np.float32)}))
-    np.savez_compressed(tmp / "scene.npz", **raw)
-    (tmp / "scene.npz").replace(out)
-    shutil.rmtree(tmp, ignore_errors=True)
-    return out
+    return add_arrays(out, tmp, {"albedo": np.stack(albedo).astype(np.float32)})
 
 
 #: The passes of the first insert rendered alone (RGBA, premultiplied).
@@ -679,13 +683,7 @@ def add_alone(name: str, out_root: Path, cfg: dict) -> Path:
         for k, v in fr.items():
             passes[k].append(v)
         print(f"ood.render: {name} alone frame {t}", flush=True)
-    with np.load(out) as z:
-        raw = {k: z[k] for k in z.files}
-    raw.update(pack({k: np.stack(v) for k, v in passes.items()}))
-    np.savez_compressed(tmp / "scene.npz", **raw)
-    (tmp / "scene.npz").replace(out)
-    shutil.rmtree(tmp, ignore_errors=True)
-    return out
+    return add_arrays(out, tmp, {k: np.stack(v) for k, v in passes.items()})
 
 
 def main(argv: list[str] | None = None) -> int:
