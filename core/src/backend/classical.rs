@@ -96,8 +96,10 @@ pub const SCENE_LIGHT_FRAMES: f32 = 4.0;
 /// occlusion, not the light's shadow) takes [`CONTACT_SHARE`] of that. The
 /// shares and the strength are smoothed over time in the carry. Returns
 /// the area touched.
+#[allow(clippy::too_many_arguments)]
 fn shadows(
     img: &mut Image,
+    rendered: Option<&Image>,
     mask: &[f32],
     rect: Rect,
     depth: &[f32],
@@ -115,17 +117,24 @@ fn shadows(
         .and_then(|(l, camera)| cast_shadow::cast_shadow_map(mask, depth, rect, camera, l, w, h));
     // How dark a shadow is here, from the scene's own shadows.
     let measured_strength = match (&cast, light) {
-        (Some(_), Some((l, camera))) => scene.get(img, mask, depth, input, camera, l).map(|s| {
-            (1.0 - (-s.stops).exp2()).clamp(MIN_STRENGTH, params.shadow_strength.max(MIN_STRENGTH))
-        }),
+        (Some(_), Some((l, camera))) => scene
+            .get(rendered.unwrap_or(img), mask, depth, input, camera, l)
+            .map(|s| {
+                (1.0 - (-s.stops).exp2())
+                    .clamp(MIN_STRENGTH, params.shadow_strength.max(MIN_STRENGTH))
+            }),
         _ => None,
     };
     // Whether the render already has the insert's shadows: told by the cast
     // shadow when there is one (the contact shadow lies inside it, where
-    // the ground around is as dark), else by the contact shadow.
+    // the ground around is as dark), else by the contact shadow. Measured
+    // on the render's own pixels (`rendered`, else `img`; those covered at
+    // least [`shadow::COVERED`]): a repair's fill is not the render's.
+    let (probe, coverage) = (rendered.unwrap_or(img), frame.coverage.as_deref());
     let missing = |m: &Option<shadow::ShadowMap>| {
-        m.as_ref()
-            .map(|m| shadow::missing_share(shadow::existing_darkening(img, mask, depth, m)))
+        m.as_ref().map(|m| {
+            shadow::missing_share(shadow::existing_darkening(probe, mask, depth, m, coverage))
+        })
     };
     let measured = match missing(&cast) {
         Some(c) => [contact.as_ref().map(|_| c), Some(c), measured_strength],
@@ -532,7 +541,7 @@ fn run_ops_on(
         }
     }
     progress.report(0.4)?;
-    let changed = insert_ops(img, input, carry, progress, stages)?;
+    let changed = insert_ops(img, None, input, carry, progress, stages)?;
 
     // Frames with holes (reconstructions) are stabilized whole: their
     // covered pixels flicker too. Otherwise only the insert is: the rest is
@@ -656,8 +665,15 @@ impl KeptInsert {
 /// state. Returns the area stabilization should blend in a frame without
 /// holes: a recolored insert and a margin around it. The neural backend
 /// runs them on its output for frames with holes and an insert.
+///
+/// `rendered`: the frame's color as the host rendered it, when `img` is
+/// another backend's output (the network repaints covered pixels near
+/// holes). What the render already shows of the scene's light (its own
+/// shadows, and whether the insert's are there) is measured on it; `None`:
+/// on `img` (the classical backend's, the render with its holes filled).
 pub fn insert_ops(
     img: &mut Image,
+    rendered: Option<&Image>,
     input: &BackendInput<'_>,
     carry: &mut Carry,
     progress: &mut Progress<'_>,
@@ -795,7 +811,7 @@ pub fn insert_ops(
                         })?;
                         let fit = pool.install(|| relight::fit(img, pmask, &lattice))?;
                         let ratio = scene_ratio(
-                            scene.get(img, mask, depth, input, camera, l),
+                            scene.get(rendered.unwrap_or(img), mask, depth, input, camera, l),
                             params.shadow_strength,
                         );
                         let measured = relight::shade(&fit, ratio);
@@ -903,7 +919,7 @@ pub fn insert_ops(
     if params.contact_shadows && params.shadow_strength > 0.0 {
         if let (Some((mask, rect)), Some(depth)) = (insert, &frame.depth) {
             stages.time("shadow", || {
-                pool.install(|| shadows(img, mask, rect, depth, input, &mut scene, carry))
+                pool.install(|| shadows(img, rendered, mask, rect, depth, input, &mut scene, carry))
             });
         } else {
             carry.values.remove(SHADOW_KEY);

@@ -33,6 +33,8 @@ pub const PRESENCE_REACH: f32 = 0.08;
 pub const PRESENT_FROM: f32 = 0.15;
 /// Fewest shadowed/unshadowed pairs [`existing_darkening`] decides on.
 pub const PRESENCE_MIN_PAIRS: usize = 16;
+/// Coverage from which a pixel counts as rendered for [`existing_darkening`].
+pub const COVERED: f32 = 0.95;
 
 /// Rows below a footprint pixel at which the background's depth tells
 /// whether the object stands there ([`shadow_map`]).
@@ -384,13 +386,16 @@ pub fn contact_shadow(
 /// the same depth (within 10 %): each shadowed cell is compared with the
 /// cells [`PRESENCE_REACH`] of the map's size away in eight directions that
 /// are unshadowed (occlusion below 0.1), off the insert and not sky, on a
-/// 3x3 mean of luminance. `None` with fewer than [`PRESENCE_MIN_PAIRS`] such
-/// pairs.
+/// 3x3 mean of luminance. With `coverage`, only pixels covered at least
+/// [`COVERED`] count (a hole's fill is not the render's, and its pixels
+/// move the measure with whatever filled them). `None` with fewer than
+/// [`PRESENCE_MIN_PAIRS`] such pairs.
 pub fn existing_darkening(
     img: &Image,
     mask: &[f32],
     depth: &[f32],
     map: &ShadowMap,
+    coverage: Option<&[f32]>,
 ) -> Option<f32> {
     let (w, h) = (img.width, img.height);
     let (r, g, b) = (img.plane(0), img.plane(1), img.plane(2));
@@ -412,7 +417,12 @@ pub fn existing_darkening(
             map.sample(x, y).0
         }
     };
-    let ground = |i: usize| mask[i] < 0.5 && depth[i] > 0.0 && depth[i] < EMPTY_DEPTH;
+    let ground = |i: usize| {
+        mask[i] < 0.5
+            && depth[i] > 0.0
+            && depth[i] < EMPTY_DEPTH
+            && coverage.is_none_or(|c| c[i] >= COVERED)
+    };
     let reach = (PRESENCE_REACH * map.area.width().max(map.area.height()) as f32).max(3.0) as isize;
     let (mut sum, mut pairs) = (0.0f64, 0usize);
     for j in 0..map.grid_height {
@@ -705,6 +715,38 @@ mod tests {
             "plate {plate_seen} against {plate_plain}"
         );
         assert!(plate_seen > 0.0, "a plate still touches the ground");
+    }
+
+    #[test]
+    fn a_shadow_counts_as_rendered_only_where_the_render_covers_it() {
+        // The floor under the box already as dark as a shadow: found when
+        // rendered, not when those pixels are a hole's fill.
+        let (mut img, mask, depth) = scene();
+        let (w, h) = (img.width, img.height);
+        let rect = crate::ops::harmonize::insert_rect(&mask, w, h).unwrap();
+        let map = shadow_map(&mask, &depth, rect, w, h, None).unwrap();
+        assert_eq!(
+            existing_darkening(&img, &mask, &depth, &map, None),
+            Some(0.0)
+        );
+        apply(&mut img, &mask, &depth, &map, 0.6);
+        let rendered = existing_darkening(&img, &mask, &depth, &map, None).unwrap();
+        assert!(rendered > 2.0 * PRESENT_FROM, "{rendered} stops");
+        assert_eq!(missing_share(Some(rendered)), 0.0);
+        let full = vec![1.0; w * h];
+        let covered = existing_darkening(&img, &mask, &depth, &map, Some(&full));
+        assert_eq!(covered, Some(rendered));
+        // The darkened pixels uncovered (the fill made them): nothing
+        // darker is left to compare, so the whole shadow is missing.
+        let mut cov = full;
+        for (i, c) in cov.iter_mut().enumerate() {
+            if img.data[w * h + i] < 0.5 {
+                *c = 0.0;
+            }
+        }
+        let filled = existing_darkening(&img, &mask, &depth, &map, Some(&cov));
+        assert!(filled.is_none_or(|e| e < PRESENT_FROM), "{filled:?}");
+        assert_eq!(missing_share(filled), 1.0);
     }
 
     #[test]

@@ -1492,8 +1492,14 @@ impl Backend for Neural {
             let mut img = self.run_frame(input, progress, stages)?;
             stages.time("keep_inserts", || keep_inserts(&mut img, input));
             progress.set_span(mid, hi);
-            let done =
-                crate::backend::classical::insert_ops(&mut img, input, carry, progress, stages);
+            let done = crate::backend::classical::insert_ops(
+                &mut img,
+                Some(&input.frame.color),
+                input,
+                carry,
+                progress,
+                stages,
+            );
             progress.set_span(lo, hi);
             let changed = done?;
             if self.model.manifest.stabilize {
