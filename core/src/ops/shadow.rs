@@ -387,8 +387,9 @@ pub fn contact_shadow(
 /// cells [`PRESENCE_REACH`] of the map's size away in eight directions that
 /// are unshadowed (occlusion below 0.1), off the insert and not sky, on a
 /// 3x3 mean of luminance. With `coverage`, only pixels covered at least
-/// [`COVERED`] count (a hole's fill is not the render's, and its pixels
-/// move the measure with whatever filled them). `None` with fewer than
+/// [`COVERED`] count, as cells and in the means (a hole's fill is not the
+/// render's, and its pixels move the measure with whatever filled them, or
+/// darken it where the render left them empty). `None` with fewer than
 /// [`PRESENCE_MIN_PAIRS`] such pairs.
 pub fn existing_darkening(
     img: &Image,
@@ -399,15 +400,20 @@ pub fn existing_darkening(
 ) -> Option<f32> {
     let (w, h) = (img.width, img.height);
     let (r, g, b) = (img.plane(0), img.plane(1), img.plane(2));
+    let counts = |i: usize| coverage.is_none_or(|c| c[i] >= COVERED);
+    // The mean over the 3x3 pixels that count (the centre always does).
     let lum = |x: usize, y: usize| -> f32 {
-        let mut s = 0.0;
+        let (mut s, mut n) = (0.0, 0.0);
         for yy in y.saturating_sub(1)..(y + 2).min(h) {
             for xx in x.saturating_sub(1)..(x + 2).min(w) {
                 let i = yy * w + xx;
-                s += super::LUMA[0] * r[i] + super::LUMA[1] * g[i] + super::LUMA[2] * b[i];
+                if counts(i) {
+                    s += super::LUMA[0] * r[i] + super::LUMA[1] * g[i] + super::LUMA[2] * b[i];
+                    n += 1.0;
+                }
             }
         }
-        s
+        s / n
     };
     let occ_at = |x: usize, y: usize| -> f32 {
         let a = map.area;
@@ -417,12 +423,7 @@ pub fn existing_darkening(
             map.sample(x, y).0
         }
     };
-    let ground = |i: usize| {
-        mask[i] < 0.5
-            && depth[i] > 0.0
-            && depth[i] < EMPTY_DEPTH
-            && coverage.is_none_or(|c| c[i] >= COVERED)
-    };
+    let ground = |i: usize| mask[i] < 0.5 && depth[i] > 0.0 && depth[i] < EMPTY_DEPTH && counts(i);
     let reach = (PRESENCE_REACH * map.area.width().max(map.area.height()) as f32).max(3.0) as isize;
     let (mut sum, mut pairs) = (0.0f64, 0usize);
     for j in 0..map.grid_height {
@@ -747,6 +748,20 @@ mod tests {
         let filled = existing_darkening(&img, &mask, &depth, &map, Some(&cov));
         assert!(filled.is_none_or(|e| e < PRESENT_FROM), "{filled:?}");
         assert_eq!(missing_share(filled), 1.0);
+        // Scattered empty pixels (a reconstruction's holes, premultiplied
+        // black) in unshadowed ground: they darken no 3x3 mean.
+        let (mut img, _, _) = scene();
+        let mut cov = vec![1.0; w * h];
+        for i in (0..w * h).step_by(5) {
+            cov[i] = 0.0;
+            for c in 0..3 {
+                img.data[c * w * h + i] = 0.0;
+            }
+        }
+        assert_eq!(
+            existing_darkening(&img, &mask, &depth, &map, Some(&cov)),
+            Some(0.0)
+        );
     }
 
     #[test]
