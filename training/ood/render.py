@@ -578,6 +578,23 @@ def add_arrays(out: Path, tmp: Path, arrays: dict[str, np.ndarray]) -> Path:
     return out
 
 
+def reopen(name: str, out_root: Path, cfg: dict, what: str) -> tuple[Path, bpy.types.Scene, dict, Path]:
+    """An insert scene rendered before, set up again to add pass ``what``:
+    its ``scene.npz``, the Blender scene built as for the render (assets
+    fetched), the builder's info and a work directory ``<name>.<what>.tmp``."""
+    out = out_root / name / "scene.npz"
+    if not out.exists():
+        raise SystemExit(f"ood.render: {out} missing: render the scene first")
+    fetch()
+    sc = reset(cfg["width"], cfg["height"], cfg["threads"])
+    info = BUILDERS[name](cfg["frames"])
+    if not info["inserts"]:
+        raise SystemExit(f"ood.render: {name} has no inserts; only insert scenes keep the {what} pass")
+    tmp = out_root / f"{name}.{what}.tmp"
+    tmp.mkdir(parents=True, exist_ok=True)
+    return out, sc, info, tmp
+
+
 def add_albedo(name: str, out_root: Path, cfg: dict) -> Path:
     """Adds the albedo pass to a scene rendered before it kept one.
 
@@ -586,17 +603,8 @@ def add_albedo(name: str, out_root: Path, cfg: dict) -> Path:
     existing ``scene.npz`` beside the packed arrays, which are copied as they
     are (bit for bit).
     """
-    out = out_root / name / "scene.npz"
-    if not out.exists():
-        raise SystemExit(f"ood.render: {out} missing: render the scene first")
-    fetch()
-    sc = reset(cfg["width"], cfg["height"], cfg["threads"])
-    info = BUILDERS[name](cfg["frames"])
-    if not info["inserts"]:
-        raise SystemExit(f"ood.render: {name} has no inserts; only insert scenes keep an albedo")
+    out, sc, info, tmp = reopen(name, out_root, cfg, "albedo")
     # No light to set: the albedo does not depend on it.
-    tmp = out_root / f"{name}.albedo.tmp"
-    tmp.mkdir(parents=True, exist_ok=True)
     sc.view_layers[0].cycles.denoising_store_passes = True
     albedo = []
     for t in range(cfg["frames"]):
@@ -654,19 +662,9 @@ def add_alone(name: str, out_root: Path, cfg: dict) -> Path:
     its ``relit`` light (the same samples and seed as the truth). The
     other arrays are copied as they are (bit for bit).
     """
-    out = out_root / name / "scene.npz"
-    if not out.exists():
-        raise SystemExit(f"ood.render: {out} missing: render the scene first")
-    meta = json.loads((out_root / name / "meta.json").read_text())
-    fetch()
-    sc = reset(cfg["width"], cfg["height"], cfg["threads"])
-    info = BUILDERS[name](cfg["frames"])
-    if not info["inserts"]:
-        raise SystemExit(f"ood.render: {name} has no inserts")
+    out, sc, info, tmp = reopen(name, out_root, cfg, "alone")
     set_lights(info, info["light"])
-    k_exp = float(meta["exposure_scale"])
-    tmp = out_root / f"{name}.alone.tmp"
-    tmp.mkdir(parents=True, exist_ok=True)
+    k_exp = float(json.loads((out_root / name / "meta.json").read_text())["exposure_scale"])
     passes: dict[str, list] = {k: [] for k in ALONE_PASSES}
     for t in range(cfg["frames"]):
         sc.frame_set(t + 1)

@@ -115,22 +115,20 @@ fn shadows(
         .zip(frame.camera.as_ref());
     let cast = light
         .and_then(|(l, camera)| cast_shadow::cast_shadow_map(mask, depth, rect, camera, l, w, h));
+    // What the render shows is read off its own pixels (`rendered`, else
+    // `img`; for the insert's shadows only those covered at least
+    // [`shadow::COVERED`]): a repair's fill is not the render's.
+    let (probe, coverage) = (rendered.unwrap_or(img), frame.coverage.as_deref());
     // How dark a shadow is here, from the scene's own shadows.
     let measured_strength = match (&cast, light) {
-        (Some(_), Some((l, camera))) => scene
-            .get(rendered.unwrap_or(img), mask, depth, input, camera, l)
-            .map(|s| {
-                (1.0 - (-s.stops).exp2())
-                    .clamp(MIN_STRENGTH, params.shadow_strength.max(MIN_STRENGTH))
-            }),
+        (Some(_), Some((l, camera))) => scene.get(probe, mask, depth, input, camera, l).map(|s| {
+            (1.0 - (-s.stops).exp2()).clamp(MIN_STRENGTH, params.shadow_strength.max(MIN_STRENGTH))
+        }),
         _ => None,
     };
     // Whether the render already has the insert's shadows: told by the cast
     // shadow when there is one (the contact shadow lies inside it, where
-    // the ground around is as dark), else by the contact shadow. Measured
-    // on the render's own pixels (`rendered`, else `img`; those covered at
-    // least [`shadow::COVERED`]): a repair's fill is not the render's.
-    let (probe, coverage) = (rendered.unwrap_or(img), frame.coverage.as_deref());
+    // the ground around is as dark), else by the contact shadow.
     let missing = |m: &Option<shadow::ShadowMap>| {
         m.as_ref().map(|m| {
             shadow::missing_share(shadow::existing_darkening(probe, mask, depth, m, coverage))
